@@ -1,0 +1,1 @@
+"""Benchmarks behind ``facewire bench``: bandwidth, speed, quality."""

@@ -1,0 +1,1 @@
+"""The ``facewire`` command: argument parsing and dispatch only (see ``cli.py``)."""

@@ -1,0 +1,178 @@
+"""``facewire``: the command-line contract of DESIGN.md, parsed and dispatched.
+
+Every subcommand of the contract is listed by ``facewire --help``. One whose work has not
+landed yet exits with status 2 and says "not implemented yet"; it never pretends. Errors a
+user can cause (a missing file, a corrupt log, a bad address) print one clear line to stderr
+and exit with status 2; a benchmark whose target is missed exits with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+EXIT_USAGE = 2
+
+
+class CommandError(Exception):
+    """A user-facing failure: printed as one line, no traceback."""
+
+
+def _not_implemented(what: str, issue: int) -> Callable[[argparse.Namespace], int]:
+    def run(_: argparse.Namespace) -> int:
+        print(f"facewire {what}: not implemented yet (tracked in issue {issue})", file=sys.stderr)
+        return EXIT_USAGE
+
+    return run
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from bench.inspect import inspect_log
+
+    return inspect_log(args.log, csv_path=args.csv, as_json=args.json)
+
+
+def _bench_bandwidth(args: argparse.Namespace) -> int:
+    from bench.bandwidth import bandwidth
+
+    return bandwidth(args.log, as_json=args.json, plot=args.plot)
+
+
+def _keys_generate(args: argparse.Namespace) -> int:
+    from protocol.keys import generate_keys
+
+    public, secret = generate_keys(args.dir, name=args.name)
+    print(f"public key:  {public}\nsecret key:  {secret}\n"
+          f"authorised peers go in: {public.parent / 'authorized'}")
+    return 0
+
+
+def _check(_: argparse.Namespace) -> int:
+    from models.egl import check_egl
+
+    print(check_egl())
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="facewire",
+        description="Low-bandwidth face telepresence: a sender tracks a face and sends a "
+        "fixed-size packet per frame (< 12 kbit/s at 30 Hz); a receiver morphs and renders "
+        "that person's head from it.",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    model = sub.add_parser("model", help="build, inspect and export a person model (.fwm)")
+    msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
+    m = msub.add_parser("build", help="build a person model from a short video of that person")
+    m.add_argument("video", help="enrollment video of the person making faces")
+    m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
+    m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
+    m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    m.set_defaults(run=_not_implemented("model build", 3))
+    m = msub.add_parser("info", help="describe a model file")
+    m.add_argument("model", help="model file (.fwm)")
+    m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    m.set_defaults(run=_not_implemented("model info", 3))
+    m = msub.add_parser("export", help="export a model to glTF 2.0 (.glb)")
+    m.add_argument("model", help="model file (.fwm)")
+    m.add_argument("-o", "--output", required=True, help="glTF binary to write (.glb)")
+    m.set_defaults(run=_not_implemented("model export", 3))
+
+    s = sub.add_parser("send", help="track a face and publish packets (camera host)")
+    s.add_argument("--model", required=True, help="person model (.fwm)")
+    s.add_argument("--source", required=True, help="camera:N or a video file")
+    s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ address to publish on")
+    s.add_argument("--record", help="also write the packets to this log (.fwlog)")
+    s.add_argument("--rate", type=float, default=30.0, help="target frame rate in Hz")
+    s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate')")
+    s.set_defaults(run=_not_implemented("send", 7))
+
+    r = sub.add_parser("receive", help="receive packets and render the face (render host)")
+    r.add_argument("--connect", required=True, help="sender address, e.g. tcp://HOST:5555")
+    r.add_argument("--model", help="person model (.fwm); fetched from the sender if omitted")
+    out = r.add_mutually_exclusive_group()
+    out.add_argument("--out", help="write an H.264 video (.mp4)")
+    out.add_argument("--frames", help="write PNG frames to this folder")
+    out.add_argument("--view", action="store_true", help="serve a live view on 127.0.0.1")
+    r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate')")
+    r.set_defaults(run=_not_implemented("receive", 7))
+
+    e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
+    e.add_argument("--model", required=True, help="person model (.fwm)")
+    e.add_argument("--source", required=True, help="video file")
+    e.add_argument("-o", "--output", required=True, help="packet log to write (.fwlog)")
+    e.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    e.set_defaults(run=_not_implemented("encode", 4))
+
+    rp = sub.add_parser("replay", help="render a recorded packet log to a video")
+    rp.add_argument("log", help="packet log (.fwlog)")
+    rp.add_argument("--model", required=True, help="person model (.fwm)")
+    rp.add_argument("--out", required=True, help="video to write (.mp4)")
+    rp.set_defaults(run=_not_implemented("replay", 6))
+
+    b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality")
+    bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
+    bb = bsub.add_parser("bandwidth", help="payload and wire bit rates of a packet log "
+                         "(exit 1 at >= 12 kbit/s at 30 Hz)")
+    bb.add_argument("--log", required=True, help="packet log (.fwlog)")
+    bb.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    bb.add_argument("--plot", help="write a plot of bits per frame and kbit/s over time (.png)")
+    bb.set_defaults(run=_bench_bandwidth)
+    bs = bsub.add_parser("speed", help="per-stage timings of sender and receiver")
+    bs.add_argument("--model", required=True, help="person model (.fwm)")
+    bs.add_argument("--source", required=True, help="video file")
+    bs.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    bs.set_defaults(run=_not_implemented("bench speed", 3))
+    bq = bsub.add_parser("quality", help="geometry and appearance fidelity on a real video")
+    bq.add_argument("--model", required=True, help="person model (.fwm)")
+    bq.add_argument("--source", required=True, help="video file")
+    bq.add_argument("--frames", help="frame range A:B to measure on")
+    bq.add_argument("--reference", help="OpenFace CSV of the same video, for Q agreement")
+    bq.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
+    bq.set_defaults(run=_not_implemented("bench quality", 4))
+
+    i = sub.add_parser("inspect", help="summarise a packet log; optionally dump it as CSV")
+    i.add_argument("log", help="packet log (.fwlog)")
+    i.add_argument("--csv", help="write every frame's decoded fields to this CSV")
+    i.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    i.set_defaults(run=_inspect)
+
+    x = sub.add_parser("relay", help="fan packets from senders out to receivers (ZeroMQ proxy)")
+    x.add_argument("--in", dest="inp", required=True, help="address senders publish to")
+    x.add_argument("--out", required=True, help="address receivers connect to")
+    x.set_defaults(run=_not_implemented("relay", 7))
+
+    d = sub.add_parser("demo", help="the embedded default: build, perform, send, receive, render")
+    d.add_argument("--source", help="a real video to use instead of the embedded portrait")
+    d.set_defaults(run=_not_implemented("demo", 7))
+
+    k = sub.add_parser("keys", help="CURVE key management")
+    ksub = k.add_subparsers(dest="keys_command", metavar="ACTION", required=True)
+    kg = ksub.add_parser("generate", help="make a CURVE key pair in DIR")
+    kg.add_argument("dir", help="key folder (created if missing)")
+    kg.add_argument("--name", default="id", help="key pair file name (default: id)")
+    kg.set_defaults(run=_keys_generate)
+
+    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa")
+    c.set_defaults(run=_check)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except CommandError as exc:
+        print(f"facewire: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("facewire: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

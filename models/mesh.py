@@ -1,0 +1,96 @@
+"""A head mesh: triangles with UVs, triangle tags, and the vertices that carry landmarks.
+
+Frames and units (DESIGN.md): model space in millimetres, right-handed, x toward the person's
+left (image right on a frontal face), y up, z out of the face toward the camera. Triangles
+wind counter-clockwise seen from outside, so ``cross(b - a, c - a)`` points outward. UVs are
+in [0, 1] with v up, as OpenGL samples them: the texel row of v in an H-row image is
+``(1 - v) * H``.
+
+"Left" and "right" in tag and region names are the person's own, as in anatomy: the person's
+right eye is iBUG points 36-41, which appear on the image's left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+N_LANDMARKS = 68
+N_PHANTOMS = 13
+
+
+class Tag(IntEnum):
+    """What a triangle is, for the texture and deformation engines."""
+
+    SKIN = 0
+    RIGHT_EYEBALL = 1
+    LEFT_EYEBALL = 2
+    MOUTH_INTERIOR = 3
+    EAR = 4
+    SCALP = 5
+
+
+class MeshError(ValueError):
+    """A mesh's arrays are inconsistent; the message names the field."""
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """A triangle mesh with the correspondences facewire needs.
+
+    Attributes:
+        vertices: (N, 3) float32, model space, mm.
+        triangles: (M, 3) int32 vertex indices, counter-clockwise from outside.
+        uv: (N, 2) float32 texture coordinates in [0, 1], v up.
+        tags: (M,) uint8, a ``Tag`` per triangle.
+        landmarks: (68,) int32, the vertex of each iBUG 300-W landmark (0-based order).
+        phantoms: (13,) int32, the vertices of the phantom points around the face boundary.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    uv: np.ndarray
+    tags: np.ndarray
+    landmarks: np.ndarray
+    phantoms: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = _check("vertices", self.vertices, np.float32, (None, 3))
+        m = _check("triangles", self.triangles, np.int32, (None, 3))
+        _check("uv", self.uv, np.float32, (n, 2))
+        _check("tags", self.tags, np.uint8, (m,))
+        _check("landmarks", self.landmarks, np.int32, (N_LANDMARKS,))
+        _check("phantoms", self.phantoms, np.int32, (N_PHANTOMS,))
+        for name in ("triangles", "landmarks", "phantoms"):
+            idx = getattr(self, name)
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise MeshError(f"{name}: vertex index outside [0, {n})")
+        if self.tags.size and self.tags.max() > max(Tag):
+            raise MeshError(f"tags: unknown tag {int(self.tags.max())}")
+
+    def vertex_normals(self) -> np.ndarray:
+        """(N, 3) float32 unit normals: area-weighted mean of the adjacent face normals."""
+        v = self.vertices.astype(np.float64)
+        a, b, c = (v[self.triangles[:, k]] for k in range(3))
+        face = np.cross(b - a, c - a)
+        normals = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(normals, self.triangles[:, k], face)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        return (normals / np.maximum(length, 1e-12)).astype(np.float32)
+
+
+def _check(name: str, a: np.ndarray, dtype: type, shape: tuple[int | None, ...]) -> int:
+    """Validate one array field; return its first dimension."""
+    if not isinstance(a, np.ndarray):
+        raise MeshError(f"{name}: expected a numpy array, got {type(a).__name__}")
+    if a.dtype != dtype:
+        raise MeshError(f"{name}: expected dtype {np.dtype(dtype).name}, got {a.dtype.name}")
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise MeshError(f"{name}: expected shape {want}, got {a.shape}")
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise MeshError(f"{name}: contains NaN or infinity")
+    return a.shape[0]

@@ -1,0 +1,1 @@
+"""The camera host: capture, tracking, pose and lift, appearance classification, packing."""
