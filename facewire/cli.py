@@ -162,11 +162,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """The failures a user can cause: reported as one line, no traceback."""
+    from models.egl import EGLUnavailable
+    from protocol.control import ControlError
+    from protocol.keys import KeyFileError
+    from protocol.log import LogError
+    from protocol.packet import PacketError
+    from protocol.transport import TransportError
+
+    return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
+            TransportError, FileNotFoundError, PermissionError, IsADirectoryError)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except CommandError as exc:
+    except _user_errors() as exc:
         print(f"facewire: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -1,0 +1,76 @@
+"""``facewire inspect``: summarise a packet log, and dump its decoded frames as CSV.
+
+CSV columns: ``seq, time, flags, face_present, rot_x_deg, rot_y_deg, rot_z_deg, tx_mm,
+ty_mm, tz_mm``, the residuals ``res<k>_u, res<k>_v`` (k = 0..8 in the protocol's point
+order), then ``q_<region>`` for each region named in the log's Hello.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import numpy as np
+
+from bench.report import report
+from protocol.log import read_log
+from protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
+
+
+def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | None = None,
+                as_json: bool = False) -> int:
+    """Print a log's summary; optionally write its frames as CSV. Returns the exit status."""
+    data = read_log(log)
+    f = data.frames
+    n = len(f)
+    span = float(data.times[-1] - data.times[0]) if n > 1 else 0.0
+    steps = np.diff(f["seq"].astype(np.int64)) % SEQ_MODULO
+    summary = {
+        "log": str(log),
+        "frames": n,
+        "duration_s": round(span, 3),
+        "rate_hz": round((n - 1) / span, 3) if span > 0 else data.hello.rate_hz,
+        "lost_records": data.lost,
+        "sequence_gaps": int(np.clip(steps - 1, 0, None).sum()) if n > 1 else 0,
+        "face_frames": int(np.count_nonzero(f["flags"] & Flag.FACE_PRESENT)),
+        "clamped_frames": int(np.count_nonzero(f["flags"] & Flag.CLAMPED)),
+        "model_sha256": data.hello.model_sha256,
+        "regions": list(data.hello.regions),
+    }
+    lines = [
+        f"{log}: {n} frames over {span:.2f} s ({summary['rate_hz']} Hz)",
+        f"lost or corrupt records: {data.lost}; packets missing from the sequence: "
+        f"{summary['sequence_gaps']}",
+        f"face present in {summary['face_frames']} frames; clamped in "
+        f"{summary['clamped_frames']}",
+        f"model {data.hello.model_sha256[:16]}…, regions: {', '.join(data.hello.regions)}",
+    ]
+    if csv_path is not None:
+        _write_csv(csv_path, data.times, f, data.hello.regions)
+        lines.append(f"csv: {csv_path}")
+    report(summary, lines, as_json)
+    return 0
+
+
+def _write_csv(path: str | os.PathLike[str], times: np.ndarray, f: np.ndarray,
+               regions: tuple[str, ...]) -> None:
+    header = ["seq", "time", "flags", "face_present", "rot_x_deg", "rot_y_deg", "rot_z_deg",
+              "tx_mm", "ty_mm", "tz_mm"]
+    header += [f"res{k}_{axis}" for k in range(N_RESIDUAL_POINTS) for axis in "uv"]
+    header += [f"q_{name}" for name in regions]
+    columns = [f["seq"], times, f["flags"], (f["flags"] & Flag.FACE_PRESENT) > 0,
+               *np.degrees(f["rotation"]).T, *f["translation"].T,
+               *f["residuals"].reshape(len(f), -1).T, *f["q"][:, :len(regions)].T]
+    with open(path, "w", newline="") as out:
+        writer = csv.writer(out)
+        writer.writerow(header)
+        for row in zip(*columns):
+            writer.writerow([_cell(v) for v in row])
+
+
+def _cell(v: object) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return str(int(v))
+    if isinstance(v, (np.floating, float)):
+        return f"{float(v):.6g}"
+    return str(v)

@@ -1,0 +1,257 @@
+"""Control messages: msgpack maps with an explicit, validated schema.
+
+Every message is one msgpack map with a ``"type"`` key. Receivers ask, the sender answers:
+
+============== ============================================================================
+type           fields (msgpack types)
+============== ============================================================================
+hello_request  -
+hello          protocol (int), model_sha256 (str, 64 hex), model_bytes (int), rate_hz
+               (float), camera (map: fx, fy, cx, cy (float), width, height (int)), regions
+               (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``)
+model_request  sha256 (str), index (int): ask for one chunk of the model file
+model_chunk    sha256 (str), index, count, total (int), data (bin), data_sha256 (str)
+error          message (str)
+============== ============================================================================
+
+A model travels as ``count`` chunks of at most ``CHUNK_BYTES``; each chunk carries the sha256
+of its own data, and the reassembled file must hash to the announced model sha256.
+
+Decoding bounds every size before allocating (no message over ``MAX_MESSAGE_BYTES``, no
+extension types, string map keys only), then checks each field's type and range. Anything
+malformed or unknown raises ``ControlError``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from dataclasses import MISSING, asdict, dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+
+from protocol.packet import N_REGIONS, VERSION, quantiser_table
+
+CHUNK_BYTES = 256 * 1024
+MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
+MAX_MODEL_BYTES = 256 * 1024 * 1024
+_HEX64 = re.compile(r"[0-9a-f]{64}")
+
+
+class ControlError(ValueError):
+    """A control message is malformed, unknown or inconsistent."""
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics of the sender's camera, pixels; image origin top-left."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy"):
+            _require(0 < getattr(self, name) < 1e6, f"camera.{name}: must be in (0, 1e6)")
+        for name in ("width", "height"):
+            _require(0 < getattr(self, name) <= 16384, f"camera.{name}: must be in [1, 16384]")
+        _require(abs(self.cx) < 1e5 and abs(self.cy) < 1e5, "camera.cx/cy: out of range")
+
+
+@dataclass(frozen=True)
+class HelloRequest:
+    TYPE: ClassVar[str] = "hello_request"
+
+
+@dataclass(frozen=True)
+class Hello:
+    """What a receiver needs before the first packet."""
+
+    TYPE: ClassVar[str] = "hello"
+    model_sha256: str
+    model_bytes: int
+    rate_hz: float
+    camera: Camera
+    regions: tuple[str, ...]
+    protocol: int = VERSION
+    quantisers: tuple[dict[str, Any], ...] = field(
+        default_factory=lambda: tuple(quantiser_table()))
+
+    def __post_init__(self) -> None:
+        _require(self.protocol == VERSION, f"hello.protocol: {self.protocol} is not {VERSION}")
+        _require(bool(_HEX64.fullmatch(self.model_sha256)),
+                 "hello.model_sha256: expected 64 lowercase hex digits")
+        _require(0 < self.model_bytes <= MAX_MODEL_BYTES,
+                 f"hello.model_bytes: must be in [1, {MAX_MODEL_BYTES}]")
+        _require(0 < self.rate_hz <= 1000, "hello.rate_hz: must be in (0, 1000]")
+        _require(len(self.regions) <= N_REGIONS, f"hello.regions: more than {N_REGIONS}")
+        _require(all(0 < len(r) <= 64 for r in self.regions),
+                 "hello.regions: names must have 1 to 64 characters")
+        _require(list(self.quantisers) == quantiser_table(),
+                 "hello.quantisers: do not match this receiver's protocol version 1 table")
+
+
+@dataclass(frozen=True)
+class ModelRequest:
+    TYPE: ClassVar[str] = "model_request"
+    sha256: str
+    index: int
+
+    def __post_init__(self) -> None:
+        _require(bool(_HEX64.fullmatch(self.sha256)), "model_request.sha256: not 64 hex digits")
+        _require(0 <= self.index < MAX_MODEL_BYTES // CHUNK_BYTES + 1,
+                 "model_request.index: out of range")
+
+
+@dataclass(frozen=True)
+class ModelChunk:
+    TYPE: ClassVar[str] = "model_chunk"
+    sha256: str
+    index: int
+    count: int
+    total: int
+    data: bytes
+    data_sha256: str
+
+    def __post_init__(self) -> None:
+        _require(bool(_HEX64.fullmatch(self.sha256)), "model_chunk.sha256: not 64 hex digits")
+        _require(0 < self.total <= MAX_MODEL_BYTES, "model_chunk.total: out of range")
+        _require(self.count == math.ceil(self.total / CHUNK_BYTES),
+                 "model_chunk.count: does not match total")
+        _require(0 <= self.index < self.count, "model_chunk.index: out of range")
+        want = min(CHUNK_BYTES, self.total - self.index * CHUNK_BYTES)
+        _require(len(self.data) == want, f"model_chunk.data: {len(self.data)} bytes, "
+                 f"expected {want}")
+        _require(hashlib.sha256(self.data).hexdigest() == self.data_sha256,
+                 "model_chunk.data_sha256: does not match the data")
+
+
+@dataclass(frozen=True)
+class Error:
+    TYPE: ClassVar[str] = "error"
+    message: str
+
+
+Message = HelloRequest | Hello | ModelRequest | ModelChunk | Error
+_TYPES: dict[str, type] = {t.TYPE: t for t in (HelloRequest, Hello, ModelRequest, ModelChunk,
+                                                 Error)}
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "model_sha256": (str,), "sha256": (str,), "data_sha256": (str,), "message": (str,),
+    "model_bytes": (int,), "index": (int,), "count": (int,), "total": (int,),
+    "protocol": (int,), "rate_hz": (float, int), "camera": (dict,), "regions": (list,),
+    "quantisers": (list,), "data": (bytes,),
+}
+
+
+def encode_message(message: Message) -> bytes:
+    """Serialise a message to msgpack bytes."""
+    body = {"type": message.TYPE, **asdict(message)}
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def decode_message(data: bytes) -> Message:
+    """Parse and validate one control message.
+
+    Raises:
+        ControlError: too large, not msgpack, unknown type, missing/extra/mistyped fields,
+            or a value out of range.
+    """
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise ControlError(f"control message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    try:
+        body = msgpack.unpackb(data, raw=False, strict_map_key=True, ext_hook=_no_ext)
+    except ControlError:
+        raise
+    except Exception as exc:  # msgpack raises several unrelated types on malformed input
+        raise ControlError(f"control message is not valid msgpack: {exc}") from None
+    if not isinstance(body, dict):
+        raise ControlError("control message is not a map")
+    kind = body.pop("type", None)
+    cls = _TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise ControlError(f"unknown control message type {kind!r}")
+    names = {f.name for f in fields(cls)}
+    required = {f.name for f in fields(cls) if f.default is f.default_factory is MISSING}
+    if missing := required - body.keys():
+        raise ControlError(f"{kind}: missing {', '.join(sorted(missing))}")
+    if extra := body.keys() - names:
+        raise ControlError(f"{kind}: unknown field {', '.join(sorted(map(str, extra)))}")
+    for name, value in body.items():
+        if not isinstance(value, _FIELD_TYPES[name]) or isinstance(value, bool):
+            raise ControlError(f"{kind}.{name}: wrong type {type(value).__name__}")
+    try:
+        if kind == "hello":
+            body["camera"] = Camera(**_camera_fields(body["camera"]))
+            body["regions"] = tuple(body["regions"])
+            body["quantisers"] = tuple(body.get("quantisers", ()))
+            if not all(isinstance(r, str) for r in body["regions"]):
+                raise ControlError("hello.regions: names must be strings")
+        return cls(**body)
+    except TypeError as exc:
+        raise ControlError(f"{kind}: {exc}") from None
+
+
+def model_chunks(data: bytes, sha256: str) -> list[ModelChunk]:
+    """Split a model file into hashed chunks of at most ``CHUNK_BYTES``."""
+    count = math.ceil(len(data) / CHUNK_BYTES)
+    return [ModelChunk(sha256, i, count, len(data), part, hashlib.sha256(part).hexdigest())
+            for i in range(count)
+            for part in [data[i * CHUNK_BYTES:(i + 1) * CHUNK_BYTES]]]
+
+
+class ModelAssembler:
+    """Collects the chunks of one model and verifies the whole against its sha256."""
+
+    def __init__(self, sha256: str, total: int) -> None:
+        _require(bool(_HEX64.fullmatch(sha256)), "model sha256: not 64 hex digits")
+        _require(0 < total <= MAX_MODEL_BYTES, f"model size {total}: out of range")
+        self.sha256 = sha256
+        self.total = total
+        self.count = math.ceil(total / CHUNK_BYTES)
+        self._parts: dict[int, bytes] = {}
+
+    def missing(self) -> list[int]:
+        """Indices of the chunks still to fetch."""
+        return [i for i in range(self.count) if i not in self._parts]
+
+    def add(self, chunk: ModelChunk) -> None:
+        """Accept one chunk (already validated on decode) of this model."""
+        if chunk.sha256 != self.sha256 or chunk.total != self.total:
+            raise ControlError("model_chunk: belongs to another model")
+        self._parts[chunk.index] = chunk.data
+
+    def result(self) -> bytes:
+        """The whole file, once every chunk is in and the sha256 matches."""
+        if missing := self.missing():
+            raise ControlError(f"model transfer incomplete: {len(missing)} chunks missing")
+        data = b"".join(self._parts[i] for i in range(self.count))
+        if hashlib.sha256(data).hexdigest() != self.sha256:
+            raise ControlError("model transfer: the chunks do not hash to the announced sha256")
+        return data
+
+
+def _camera_fields(camera: dict[Any, Any]) -> dict[str, Any]:
+    want = {"fx": (float, int), "fy": (float, int), "cx": (float, int), "cy": (float, int),
+            "width": (int,), "height": (int,)}
+    if camera.keys() != want.keys():
+        raise ControlError("hello.camera: expected exactly fx, fy, cx, cy, width, height")
+    for key, types in want.items():
+        if not isinstance(camera[key], types) or isinstance(camera[key], bool):
+            raise ControlError(f"hello.camera.{key}: wrong type")
+        if isinstance(camera[key], float) and not math.isfinite(camera[key]):
+            raise ControlError(f"hello.camera.{key}: not finite")
+    return camera
+
+
+def _no_ext(code: int, data: bytes) -> None:
+    raise ControlError(f"msgpack extension type {code} is not allowed")
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ControlError(message)

@@ -1,0 +1,329 @@
+"""The frame packet, protocol version 1: 39 bytes per frame, 9.36 kbit/s at 30 Hz.
+
+One fixed-size packet carries everything the receiver needs for one frame. The fields are
+quantised to unsigned integer codes and packed most-significant bit first into one bit
+stream, followed by a CRC:
+
+=========  =====  ==========  ==================================  ========  =====================
+field      count  bits each   range (decoded value)               step      unit
+=========  =====  ==========  ==================================  ========  =====================
+version    1      4           1                                   -         -
+flags      1      8           bit set, see ``Flag``               -         -
+seq        1      16          0 .. 65535, wraps                   1         -
+rotation   3      11          -102.4 .. +102.3                    0.1       degree (rotation vector)
+shift_xy   2      11          -256.0 .. +255.75                   0.25      mm
+shift_z    1      11          -2147 .. -100                       1         mm
+residuals  18     8           -32.0 .. +31.75                     0.25      mm
+q          8      7           0 .. 7.9375                         1/16      layer
+(pad)      1      2           0                                   -         -
+crc        1      16          CRC-16/CCITT-FALSE of bytes 0..36   -         -
+=========  =====  ==========  ==================================  ========  =====================
+
+Total 312 bits = 39 bytes. Worst-case quantisation error is half a step: 0.05 degree per
+rotation-vector component (at most 0.087 degree of rotation), 0.125 mm in x and y, 0.5 mm in
+depth, 0.125 mm per residual coordinate, 1/32 layer in Q. The tracker's own noise is about a
+pixel, roughly 1 mm at a typical webcam distance, so quantisation stays well below it.
+
+Meaning of the values (frames as in DESIGN.md):
+
+- ``rotation`` (3,): the head's rotation as a rotation vector (axis times angle, radians in
+  the API, quantised in degrees) that maps model space into the camera frame. The camera
+  frame is x right, y up, z toward the viewer (the camera looks along -z), so a frontal face
+  has rotation (0, 0, 0).
+- ``translation`` (3,): the model origin in that camera frame, mm; z < 0 in front of it.
+- ``residuals`` (9, 2): the expression of the 9 non-rigid feature points (DESIGN.md order:
+  19, 21, 22, 24, 48, 54, 51, 57, 8) as displacements on the model surface, mm, in each
+  point's tangent frame (t1, t2) defined by the person model. A 2D image residual lifted onto
+  the surface has two degrees of freedom; a third coordinate would carry no information.
+- ``q`` (8,): the classified appearance of each region, in layers of its 3D texture; the
+  region names travel in the Hello.
+
+A value outside its range is clamped to the range and the packet gets ``Flag.CLAMPED``; it is
+never wrapped. Decoding any byte string either returns a frame or raises ``PacketError``.
+"""
+
+from __future__ import annotations
+
+import binascii
+from dataclasses import dataclass, field
+from enum import IntFlag
+
+import numpy as np
+
+VERSION = 1
+PACKET_BYTES = 39
+N_RESIDUAL_POINTS = 9
+N_REGIONS = 8
+SEQ_MODULO = 1 << 16
+
+
+class Flag(IntFlag):
+    """Per-frame state bits."""
+
+    FACE_PRESENT = 1 << 0  # the tracker saw a face this frame
+    TRACKING_LOST = 1 << 1  # the face was lost; pose and residuals are the last good ones
+    CLAMPED = 1 << 2  # at least one value was outside its quantiser's range
+    HELD = 1 << 3  # a heuristic held or decayed at least one feature point
+    MIRRORED = 1 << 4  # at least one feature point was completed from its partner
+    REACQUIRED = 1 << 5  # first frame after the face was found again
+
+
+RESERVED_FLAGS = 0xFF & ~int(sum(Flag))
+
+
+class PacketError(ValueError):
+    """A byte string is not a valid version-1 packet.
+
+    Attributes:
+        reason: one of ``"size"``, ``"version"``, ``"crc"``, ``"reserved"``.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Quantiser:
+    """A uniform quantiser: code k in [0, 2**bits) decodes to ``lo + k * step``."""
+
+    name: str
+    count: int
+    bits: int
+    lo: float
+    step: float
+    unit: str
+
+    @property
+    def hi(self) -> float:
+        """The largest decodable value."""
+        return self.lo + ((1 << self.bits) - 1) * self.step
+
+
+QUANTISERS: tuple[Quantiser, ...] = (
+    Quantiser("rotation", 3, 11, -102.4, 0.1, "degree"),
+    Quantiser("shift_xy", 2, 11, -256.0, 0.25, "mm"),
+    Quantiser("shift_z", 1, 11, -2147.0, 1.0, "mm"),
+    Quantiser("residuals", 2 * N_RESIDUAL_POINTS, 8, -32.0, 0.25, "mm"),
+    Quantiser("q", N_REGIONS, 7, 0.0, 1.0 / 16.0, "layer"),
+)
+
+# The bit layout: (name, count, bits) in stream order, CRC excluded, flattened into slots.
+_LAYOUT: tuple[tuple[str, int, int], ...] = (
+    ("version", 1, 4), ("flags", 1, 8), ("seq", 1, 16),
+    *((q.name, q.count, q.bits) for q in QUANTISERS),
+    ("pad", 1, 2),
+)
+_WIDTHS = np.array([bits for _, count, bits in _LAYOUT for _ in range(count)])
+_SLOT = {}  # name -> slice of slots
+for _name, _count, _ in _LAYOUT:
+    _start = sum(s.stop - s.start for s in _SLOT.values())
+    _SLOT[_name] = slice(_start, _start + _count)
+_MAX_WIDTH = int(_WIDTHS.max())
+# Bit j of a slot (0 = most significant of _MAX_WIDTH) is real where j >= _MAX_WIDTH - width.
+_SHIFTS = np.arange(_MAX_WIDTH - 1, -1, -1)
+_REAL_BITS = _SHIFTS[None, :] < _WIDTHS[:, None]
+_BODY_BYTES = PACKET_BYTES - 2
+assert int(_WIDTHS.sum()) == 8 * _BODY_BYTES
+
+FRAME_DTYPE = np.dtype([
+    ("seq", np.uint16),
+    ("flags", np.uint8),
+    ("rotation", np.float32, (3,)),
+    ("translation", np.float32, (3,)),
+    ("residuals", np.float32, (N_RESIDUAL_POINTS, 2)),
+    ("q", np.float32, (N_REGIONS,)),
+])
+"""One frame as a numpy record; arrays of these are what logs and benchmarks work on."""
+
+
+@dataclass
+class Frame:
+    """One frame's content, decoded (or to be encoded).
+
+    Attributes:
+        seq: sequence number, 0..65535 (wraps).
+        flags: ``Flag`` bits.
+        rotation: (3,) float32 rotation vector, radians, model -> camera.
+        translation: (3,) float32 model origin in the camera frame, mm.
+        residuals: (9, 2) float32 tangent-frame displacements of the non-rigid points, mm.
+        q: (8,) float32 region appearance values, layers.
+    """
+
+    seq: int = 0
+    flags: Flag = Flag(0)
+    rotation: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    translation: np.ndarray = field(
+        default_factory=lambda: np.array([0.0, 0.0, -600.0], np.float32))
+    residuals: np.ndarray = field(
+        default_factory=lambda: np.zeros((N_RESIDUAL_POINTS, 2), np.float32))
+    q: np.ndarray = field(default_factory=lambda: np.zeros(N_REGIONS, np.float32))
+
+    def to_record(self) -> np.ndarray:
+        """This frame as a shape-() record of ``FRAME_DTYPE``."""
+        rec = np.zeros((), FRAME_DTYPE)
+        rec["seq"] = self.seq % SEQ_MODULO
+        rec["flags"] = int(self.flags)
+        rec["rotation"] = self.rotation
+        rec["translation"] = self.translation
+        rec["residuals"] = self.residuals
+        rec["q"] = self.q
+        return rec
+
+    @classmethod
+    def from_record(cls, rec: np.ndarray) -> Frame:
+        """The frame held in one ``FRAME_DTYPE`` record."""
+        return cls(int(rec["seq"]), Flag(int(rec["flags"])), rec["rotation"].copy(),
+                   rec["translation"].copy(), rec["residuals"].copy(), rec["q"].copy())
+
+
+_QUANTISED = slice(_SLOT[QUANTISERS[0].name].start, _SLOT[QUANTISERS[-1].name].stop)
+_LO = np.concatenate([np.full(q.count, q.lo) for q in QUANTISERS])
+_STEP = np.concatenate([np.full(q.count, q.step) for q in QUANTISERS])
+_TOP = np.concatenate([np.full(q.count, (1 << q.bits) - 1) for q in QUANTISERS])
+_NAME = np.concatenate([[q.name] * q.count for q in QUANTISERS])
+
+
+def _values(frames: np.ndarray) -> np.ndarray:
+    """(N, 33) float64 values in quantiser units, in slot order."""
+    n = len(frames)
+    return np.concatenate([
+        np.degrees(frames["rotation"].astype(np.float64)),
+        frames["translation"].astype(np.float64),
+        frames["residuals"].astype(np.float64).reshape(n, 2 * N_RESIDUAL_POINTS),
+        frames["q"].astype(np.float64),
+    ], axis=1)
+
+
+def encode_frames(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Encode frames into packets (vectorised), clamping out-of-range values.
+
+    Args:
+        frames: (N,) array of ``FRAME_DTYPE``; all values finite.
+
+    Returns:
+        packets: (N, 39) uint8, one packet per row; ``Flag.CLAMPED`` set where clamped.
+        clamped: (N,) int64, the number of clamped values per frame (never silent).
+
+    Raises:
+        ValueError: a value is NaN or infinite (naming the field).
+    """
+    frames = np.asarray(frames, FRAME_DTYPE).reshape(-1)
+    values = _values(frames)
+    finite = np.isfinite(values)
+    if not finite.all():
+        raise ValueError(f"{_NAME[np.argmin(finite.all(axis=0))]}: cannot encode NaN or infinity")
+    k = np.rint((values - _LO) / _STEP)
+    outside = (k < 0) | (k > _TOP)
+    clamped = outside.sum(axis=1)
+    n = len(frames)
+    flags = frames["flags"].astype(np.int64) & ~RESERVED_FLAGS
+    flags[clamped > 0] |= Flag.CLAMPED
+    slots = np.zeros((n, len(_WIDTHS)), np.int64)
+    slots[:, _SLOT["version"]] = VERSION
+    slots[:, _SLOT["flags"]] = flags[:, None]
+    slots[:, _SLOT["seq"]] = frames["seq"][:, None]
+    slots[:, _QUANTISED] = np.clip(k, 0, _TOP)
+    bits = ((slots[:, :, None] >> _SHIFTS) & 1)[:, _REAL_BITS]
+    body = np.packbits(bits.astype(np.uint8), axis=1)
+    crc = crc16(body)
+    packets = np.concatenate([body, (crc >> 8)[:, None], (crc & 0xFF)[:, None]], axis=1)
+    return packets.astype(np.uint8), clamped
+
+
+def decode_frames(packets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decode packets (vectorised), validating each.
+
+    Args:
+        packets: (N, 39) uint8.
+
+    Returns:
+        frames: (N,) ``FRAME_DTYPE``; rows that failed validation are zero.
+        errors: (N,) object array, None for a valid packet, else the ``PacketError`` reason.
+    """
+    packets = np.asarray(packets)
+    if packets.ndim != 2 or packets.shape[1] != PACKET_BYTES or packets.dtype != np.uint8:
+        raise ValueError(f"packets: expected (N, {PACKET_BYTES}) uint8, "
+                         f"got {packets.shape} {packets.dtype}")
+    n = len(packets)
+    spread = np.zeros((n, len(_WIDTHS), _MAX_WIDTH), np.int64)
+    spread[:, _REAL_BITS] = np.unpackbits(packets[:, :_BODY_BYTES], axis=1)
+    slots = spread @ (1 << _SHIFTS)
+    crc = packets[:, -2].astype(np.int64) << 8 | packets[:, -1]
+    errors = np.full(n, None, object)
+    reserved = (slots[:, _SLOT["flags"].start] & RESERVED_FLAGS) | slots[:, _SLOT["pad"].start]
+    errors[reserved != 0] = "reserved"
+    errors[crc != crc16(packets[:, :_BODY_BYTES])] = "crc"
+    errors[slots[:, _SLOT["version"].start] != VERSION] = "version"
+    ok = errors == None  # noqa: E711 (elementwise on an object array)
+
+    value = _LO + slots[:, _QUANTISED] * _STEP
+    frames = np.zeros(n, FRAME_DTYPE)
+    frames["seq"] = slots[:, _SLOT["seq"].start]
+    frames["flags"] = slots[:, _SLOT["flags"].start]
+    frames["rotation"] = np.radians(value[:, 0:3])
+    frames["translation"] = value[:, 3:6]
+    frames["residuals"] = value[:, 6:6 + 2 * N_RESIDUAL_POINTS].reshape(n, N_RESIDUAL_POINTS, 2)
+    frames["q"] = value[:, 6 + 2 * N_RESIDUAL_POINTS:]
+    frames[~ok] = np.zeros((), FRAME_DTYPE)
+    return frames, errors
+
+
+def encode(frame: Frame) -> bytes:
+    """Encode one frame into a 39-byte packet (values out of range are clamped and flagged)."""
+    packets, _ = encode_frames(frame.to_record().reshape(1))
+    return packets[0].tobytes()
+
+
+def decode(data: bytes) -> Frame:
+    """Decode one packet.
+
+    Raises:
+        PacketError: wrong size, unknown version, bad CRC or reserved bits set.
+    """
+    if len(data) != PACKET_BYTES:
+        raise PacketError("size", f"packet has {len(data)} bytes, expected {PACKET_BYTES}")
+    if data[0] >> 4 != VERSION:
+        raise PacketError("version", f"packet version {data[0] >> 4}, expected {VERSION}")
+    if binascii.crc_hqx(data[:_BODY_BYTES], 0xFFFF) != int.from_bytes(data[-2:], "big"):
+        raise PacketError("crc", "packet CRC mismatch")
+    frames, errors = decode_frames(np.frombuffer(data, np.uint8).reshape(1, PACKET_BYTES))
+    if errors[0] is not None:
+        raise PacketError(errors[0], f"packet rejected: {errors[0]} bits set")
+    return Frame.from_record(frames[0])
+
+
+def quantiser_table() -> list[dict[str, object]]:
+    """The quantisers as plain data, for the Hello."""
+    return [{"name": q.name, "count": q.count, "bits": q.bits, "lo": q.lo, "step": q.step,
+             "unit": q.unit} for q in QUANTISERS]
+
+
+def _crc_table() -> np.ndarray:
+    table = np.zeros(256, np.int64)
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = (crc << 1) ^ 0x1021 if crc & 0x8000 else crc << 1
+        table[byte] = crc & 0xFFFF
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16(rows: np.ndarray) -> np.ndarray:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of each row.
+
+    Args:
+        rows: (N, L) uint8.
+
+    Returns:
+        (N,) int64 CRCs, equal to ``binascii.crc_hqx(row, 0xFFFF)``.
+    """
+    if len(rows) <= 16:  # the per-row C routine wins for a handful of rows
+        return np.array([binascii.crc_hqx(r.tobytes(), 0xFFFF) for r in rows], np.int64)
+    crc = np.full(len(rows), 0xFFFF, np.int64)
+    for col in rows.T.astype(np.int64):
+        crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[((crc >> 8) ^ col) & 0xFF]
+    return crc

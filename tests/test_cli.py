@@ -1,0 +1,134 @@
+"""The ``facewire`` console script, run as a user runs it (a real subprocess)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.control import Camera, Hello
+from protocol.log import LogWriter
+from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, encode_frames
+
+FACEWIRE = str(Path(sys.executable).with_name("facewire"))
+CONTRACT = ["model", "send", "receive", "encode", "replay", "bench", "inspect", "relay", "demo",
+            "keys"]
+REGIONS = ("forehead", "brow_furrow", "eyelid_right", "eyelid_left", "eyeball_right",
+           "eyeball_left", "mouth")
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([FACEWIRE, *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture()
+def log(tmp_path: Path) -> Path:
+    """A 10 s log at 30 Hz from the protocol's own writer, with every 50th packet missing."""
+    n = 300
+    frames = np.zeros(n, FRAME_DTYPE)
+    frames["seq"] = np.arange(n)
+    frames["flags"] = np.where(np.arange(n) < 200, Flag.FACE_PRESENT, Flag.TRACKING_LOST)
+    frames["rotation"][:, 1] = np.radians(10)
+    frames["translation"] = (5, -3, -650)
+    frames["q"][:, 6] = 2.5
+    packets, _ = encode_frames(frames)
+    path = tmp_path / "session.fwlog"
+    hello = Hello("12" * 32, 5000, 30.0, Camera(600.0, 600.0, 320.0, 240.0, 640, 480), REGIONS)
+    with LogWriter(path, hello) as writer:
+        for i, packet in enumerate(packets):
+            if i % 50 != 49:
+                writer.write(packet.tobytes(), 1_700_000_000.0 + i / 30)
+    return path
+
+
+def test_help_lists_the_contract() -> None:
+    out = run("--help")
+    assert out.returncode == 0
+    for command in CONTRACT:
+        assert command in out.stdout
+    for nested in (("model", "build", "info", "export"), ("bench", "bandwidth", "speed",
+                                                            "quality"), ("keys", "generate")):
+        sub = run(nested[0], "--help")
+        assert all(word in sub.stdout for word in nested[1:])
+
+
+@pytest.mark.parametrize("args", [["demo"], ["relay", "--in", "tcp://a:1", "--out", "tcp://b:2"],
+                                  ["replay", "x.fwlog", "--model", "m.fwm", "--out", "o.mp4"]])
+def test_unlanded_commands_say_so(args: list[str]) -> None:
+    out = run(*args)
+    assert out.returncode == 2
+    assert "not implemented yet" in out.stderr
+
+
+def test_bench_bandwidth(log: Path, tmp_path: Path) -> None:
+    plot = tmp_path / "bw.png"
+    out = run("bench", "bandwidth", "--log", str(log), "--json", "--plot", str(plot))
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    for key in ("frames", "rate_hz", "packet_bytes", "payload_kbps", "wire_kbps"):
+        assert key in summary
+    assert summary["frames"] == 294
+    assert summary["packet_bytes"] == PACKET_BYTES
+    assert summary["payload_kbps"] == pytest.approx(PACKET_BYTES * 8 * 30 / 1000)
+    assert summary["payload_kbps"] < 12
+    assert summary["wire_kbps"] == pytest.approx((PACKET_BYTES + 2) * 8 * 30 / 1000)
+    assert summary["wire_kbps_curve"] == pytest.approx((PACKET_BYTES + 35) * 8 * 30 / 1000)
+    assert summary["rate_hz"] == pytest.approx(293 / (298 / 30), rel=1e-3)
+    assert plot.stat().st_size > 10_000
+
+
+def test_bench_bandwidth_exit_status_follows_the_limit(log: Path, monkeypatch) -> None:
+    import bench.bandwidth as bw
+
+    assert bw.bandwidth(log) == 0
+    monkeypatch.setattr(bw, "LIMIT_KBPS", 9.0)  # a 39-byte packet is 9.36 kbit/s at 30 Hz
+    assert bw.bandwidth(log) == 1
+
+
+def test_inspect_summary_and_csv(log: Path, tmp_path: Path) -> None:
+    out_csv = tmp_path / "frames.csv"
+    out = run("inspect", str(log), "--csv", str(out_csv), "--json")
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["frames"] == 294 and summary["sequence_gaps"] == 5  # the last one (299) is not a gap
+    assert summary["face_frames"] == 196
+    with open(out_csv) as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 294
+    for name in REGIONS:
+        assert f"q_{name}" in rows[0]
+    assert {"seq", "time", "face_present", "rot_y_deg", "tz_mm", "res8_v"} <= rows[0].keys()
+    assert float(rows[0]["rot_y_deg"]) == pytest.approx(10, abs=0.05)
+    assert float(rows[0]["q_mouth"]) == 2.5
+    assert rows[0]["face_present"] == "1" and rows[-1]["face_present"] == "0"
+
+
+def test_bad_log_is_one_clear_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.fwlog"
+    bad.write_bytes(b"this is not a log at all")
+    for args in (["inspect", str(bad)], ["bench", "bandwidth", "--log", str(bad)],
+                 ["inspect", str(tmp_path / "missing.fwlog")]):
+        out = run(*args)
+        assert out.returncode == 2
+        assert "Traceback" not in out.stderr
+        assert str(tmp_path) in out.stderr
+
+
+def test_keys_generate(tmp_path: Path) -> None:
+    out = run("keys", "generate", str(tmp_path / "k"))
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "k/id.key").is_file() and (tmp_path / "k/id.key_secret").is_file()
+    assert (tmp_path / "k/authorized").is_dir()
+    again = run("keys", "generate", str(tmp_path / "k"))
+    assert again.returncode == 2 and "already exists" in again.stderr
+
+
+def test_check_reports_egl() -> None:
+    out = run("check")
+    assert out.returncode == 0, out.stderr
+    assert "EGL" in out.stdout
