@@ -1,0 +1,107 @@
+"""Reading video files frame by frame with PyAV (FFmpeg): any container and codec it knows.
+
+Frames come out as (H, W, 3) uint8 BGR arrays (OpenCV's order, which dlib and cv2 expect),
+with their index in the file and their presentation time in seconds. ``frame_range`` parses
+the ``--frames A:B`` option (Python slice semantics, B exclusive, either side optional).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import av
+import numpy as np
+
+
+class VideoError(ValueError):
+    """A video cannot be opened or decoded; the message names the file."""
+
+
+@dataclass(frozen=True)
+class VideoFrame:
+    """One decoded frame: index in the file, time in seconds, (H, W, 3) uint8 BGR image."""
+
+    index: int
+    time: float
+    image: np.ndarray
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What the container says: size, nominal rate, and frame count (0 when unknown)."""
+
+    width: int
+    height: int
+    rate_hz: float
+    frames: int
+
+
+def frame_range(text: str | None) -> slice:
+    """Parse ``A:B`` (either side may be empty) into a slice of frame indices.
+
+    Raises:
+        ValueError: not of the form A:B with non-negative integers and A < B.
+    """
+    if text is None:
+        return slice(0, None)
+    start, sep, stop = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        a = int(start) if start.strip() else 0
+        b = int(stop) if stop.strip() else None
+    except ValueError:
+        raise ValueError(f"--frames {text!r}: expected A:B, e.g. 0:180") from None
+    if a < 0 or (b is not None and b <= a):
+        raise ValueError(f"--frames {text!r}: need 0 <= A < B")
+    return slice(a, b)
+
+
+def video_info(path: str | os.PathLike[str]) -> VideoInfo:
+    """Size, rate and frame count of a video file."""
+    with _open(Path(path)) as container:
+        stream = container.streams.video[0]
+        rate = float(stream.average_rate or stream.guessed_rate or 30)
+        return VideoInfo(stream.codec_context.width, stream.codec_context.height, rate,
+                         int(stream.frames or 0))
+
+
+def read_frames(path: str | os.PathLike[str], frames: slice = slice(0, None)
+                ) -> Iterator[VideoFrame]:
+    """Decode the frames of a file whose index falls in ``frames`` (a step of 1).
+
+    Raises:
+        VideoError: the file is missing, not a video, or undecodable.
+    """
+    path = Path(path)
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        base = float(stream.time_base) if stream.time_base else 0.0
+        rate = float(stream.average_rate or stream.guessed_rate or 30)
+        try:
+            for index, frame in enumerate(container.decode(stream)):
+                if frames.stop is not None and index >= frames.stop:
+                    break
+                if index < frames.start:
+                    continue
+                time = frame.pts * base if frame.pts is not None and base else index / rate
+                yield VideoFrame(index, time, frame.to_ndarray(format="bgr24"))
+        except av.FFmpegError as exc:
+            raise VideoError(f"{path}: cannot decode frame: {exc}") from None
+
+
+def _open(path: Path) -> av.container.InputContainer:
+    if not path.is_file():
+        raise VideoError(f"{path}: no such video file")
+    try:
+        container = av.open(str(path))
+    except av.FFmpegError as exc:
+        raise VideoError(f"{path}: not a readable video: {exc}") from None
+    if not container.streams.video:
+        container.close()
+        raise VideoError(f"{path}: has no video stream")
+    return container
