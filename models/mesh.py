@@ -17,8 +17,7 @@ from enum import IntEnum
 
 import numpy as np
 
-N_LANDMARKS = 68
-N_PHANTOMS = 13
+from models.landmarks import N_LANDMARKS, N_PHANTOMS
 
 
 class Tag(IntEnum):
