@@ -1,5 +1,10 @@
 """Headless OpenGL through EGL: the system check behind ``facewire check`` and every renderer.
 
+Several contexts live in one process (a renderer, the texture projector), and EGL has one
+*current* context per thread, so every method that issues GL calls makes its own context
+current first (``in_context``); leaving it makes none current, so no caller may rely on a
+context staying current between calls.
+
 On Debian/Ubuntu the system packages are ``libegl1 libgl1 libgl1-mesa-dri`` (Mesa's llvmpipe
 renders on the CPU when there is no GPU). Without them moderngl cannot open a context, so we
 check first and say which packages are missing instead of failing deep inside a render.
@@ -8,8 +13,13 @@ check first and say which packages are missing instead of failing deep inside a 
 from __future__ import annotations
 
 import ctypes.util
+import functools
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 SYSTEM_PACKAGES = "libegl1 libgl1 libgl1-mesa-dri"
+
+_Method = TypeVar("_Method", bound=Callable[..., Any])
 
 
 class EGLUnavailable(RuntimeError):
@@ -43,3 +53,28 @@ def check_egl() -> str:
                f"through EGL on {ctx.info['GL_RENDERER']}"
     finally:
         ctx.release()
+
+
+def create_context() -> Any:
+    """A new headless OpenGL 3.3 ``moderngl.Context`` through EGL.
+
+    Raises:
+        EGLUnavailable: headless OpenGL cannot be used (the message says how to fix it).
+    """
+    import moderngl
+
+    try:
+        return moderngl.create_standalone_context(backend="egl", require=330)
+    except Exception as exc:  # moderngl raises plain Exception for context failures
+        check_egl()  # raises EGLUnavailable naming the missing system packages
+        raise EGLUnavailable(f"could not create an OpenGL 3.3 context through EGL "
+                             f"({exc})") from exc
+
+
+def in_context(method: _Method) -> _Method:
+    """Decorate a method of an object holding ``self._ctx`` to run with that context current."""
+    @functools.wraps(method)
+    def wrapper(self: Any, *args: Any, **kwargs: Any) -> Any:
+        with self._ctx:
+            return method(self, *args, **kwargs)
+    return wrapper  # type: ignore[return-value]
