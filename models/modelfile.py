@@ -1,0 +1,840 @@
+"""The person model and its file, ``.fwm``: one zip that both hosts read.
+
+A person model holds what the sender and the receiver both need about one person: the fitted
+head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera, a little
+metadata and the texture regions of the appearance work (their layer stacks, masks and
+classification templates). The receiver may fetch a model from the network, so the reader
+treats every file as hostile: it never extracts to disk, reads members by exact allow-listed
+names, bounds every size before it inflates anything, and validates everything before it
+returns. Every failure is a ``ModelFileError`` (a ``ValueError``) whose message names the
+file and the member or field, e.g. ``alice.fwm: arrays/vertices.npy: expected dtype float32,
+got float64``.
+
+File layout, format version 1
+-----------------------------
+A zip archive holding exactly these members (no folders, no others, no duplicates):
+
+==============================  ===============  ==============================================
+member                          dtype, shape     content
+==============================  ===============  ==============================================
+``model.json``                  UTF-8 JSON       the manifest (below), at most 1 MiB
+``arrays/vertices.npy``         float32 (N, 3)   vertex positions, model space, mm
+``arrays/triangles.npy``        int32 (M, 3)     vertex indices, counter-clockwise from outside
+``arrays/uv.npy``               float32 (N, 2)   texture coordinates in [0, 1], v up
+``arrays/tags.npy``             uint8 (M,)       ``models.mesh.Tag`` of each triangle
+``arrays/landmarks.npy``        int32 (68,)      vertex of each iBUG 300-W landmark, 0-based
+``arrays/phantoms.npy``         int32 (13,)      vertices of the phantom points
+``textures/neutral.png``        uint8 (H, W, 3)  neutral texture, 8-bit RGB PNG; row 0 is v = 1
+``regions/R/layer_JJ.png``      uint8 (h, w, 3)  region R's appearance state JJ (00 .. k-1),
+                                                 8-bit RGB PNG covering the region's
+                                                 ``uv_rect``; row 0 is its top (v = v1)
+``regions/R/mask.png``          uint8 (h, w)     8-bit grey PNG: the layers' alpha over the
+                                                 neutral texture (255 = layer, 0 = neutral)
+``regions/R/templates.npy``     float32 (k, 16,  region R's classification template of each
+                                16)              state, in layer order
+==============================  ===============  ==============================================
+
+N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy format 1.0 or
+2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
+their header before that). Manifest ``model.json``, every key required and no others::
+
+    {"format": "facewire-model", "format_version": 1,
+     "camera":  {"fx", "fy": focal lengths, px, > 0; "cx", "cy": principal point, px
+                 (image origin top-left); "width", "height": image size, px},
+     "info":    {"name": person, "source_video": enrollment video's name ("" if none),
+                 "frames_used": strictly increasing frame indices, "neutral_frame": index,
+                 "creator": software that built it, "created": a date given by the caller
+                 or ""},
+     "members": {member name: {"dtype": numpy dtype name, "shape": [int, ...]}},
+     "regions": [{"name": R, "uv_rect": [u0, v0, u1, v1], "template_rect": [u0, v0, u1, v1],
+                  "layers": k}, ...]}
+
+``members`` lists every member but ``model.json``, with the dtype and shape its content must
+have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
+empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
+0 <= v0 < v1 <= 1, and ``template_rect`` lies inside ``uv_rect``. The reader checks each
+member against a schema table (member-name pattern, kind, dtype, shape with named
+dimensions, size limit) and against its ``members`` entry; the mesh arrays then go through
+``Mesh``'s own checks (finiteness, index ranges). A later addition (e.g. per-landmark neutral
+data) is a new row of that table and a new manifest key, with ``format_version`` raised: a
+reader accepts only the versions it knows, and keeps reading the older ones.
+
+The zip itself must be plain: it ends with its end-of-archive record (no comment, nothing
+before or after the archive), members are stored or deflated, never encrypted, and no name
+is absolute or holds ``..``, a drive or a NUL (refused as unsafe, never used). Limits: file
+256 MiB; uncompressed 64 MiB a member (1 MiB for ``model.json``, landmarks, phantoms and
+templates) and 256 MiB in all, checked on the sizes the zip declares before anything is
+inflated, and then by reading no more than the declared size (zipfile checks each member's
+CRC-32 at its end); a member over 1 MiB may not inflate more than 100:1; 4096 members.
+
+Determinism and identity: members are sorted by name, dated 1980-01-01 00:00, ``.npy`` and
+JSON deflated at level 6, PNGs stored (already compressed), the JSON written with sorted
+keys; there is no wall-clock time anywhere, so the same model always gives the same bytes
+with the same numpy, zlib and OpenCV builds. A model's id is the sha256 of its file's bytes
+(``model_sha256``); it is the hash of the bytes actually written, so a receiver checks the
+file it fetched, never a rebuild.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import secrets
+import stat
+import struct
+import zipfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+
+from models.mesh import Mesh, MeshError
+
+FORMAT = "facewire-model"
+FORMAT_VERSION = 1
+MAX_FILE_BYTES = 256 * 1024**2
+MAX_TOTAL_BYTES = 256 * 1024**2
+MAX_MEMBER_BYTES = 64 * 1024**2
+MAX_SMALL_BYTES = 1024**2
+MAX_MEMBERS = 4096
+MAX_RATIO = 100
+RATIO_FLOOR = 1024**2
+MAX_IMAGE_SIDE = 4096
+MAX_LAYERS = 64
+MAX_REGIONS = 32
+TEMPLATE_SIZE = 16
+
+MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
+TEXTURE_MEMBER = "textures/neutral.png"
+MANIFEST_MEMBER = "model.json"
+_REGION_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}", re.ASCII)
+_HEX64 = re.compile(r"[0-9a-f]{64}", re.ASCII)
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+_DEFLATE_LEVEL = 6
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOUR_TYPES = {2: 3, 0: 2}  # PNG colour type -> array rank (RGB, grey)
+_EOCD = struct.Struct("<4sHHHHIIH")
+_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, RuntimeError,
+               EOFError, OSError, ValueError, zlib.error, struct.error, KeyError, IndexError,
+               OverflowError)
+
+
+class ModelError(ValueError):
+    """A person model's content is invalid; the message names the field."""
+
+
+class ModelFileError(ValueError):
+    """A model file cannot be read or written; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class Camera:
+    """The enrollment camera's pinhole intrinsics (image origin top-left, rows down).
+
+    Attributes:
+        fx, fy: focal lengths, px, finite and > 0.
+        cx, cy: principal point, px, finite.
+        width, height: image size, px, in [1, 65535].
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = _number(getattr(self, name), f"camera.{name}")
+            if name in ("fx", "fy") and not value > 0:
+                raise ModelError(f"camera.{name}: must be > 0, got {value}")
+            object.__setattr__(self, name, value)
+        for name in ("width", "height"):
+            size = _integer(getattr(self, name), f"camera.{name}", 1, 65535)
+            object.__setattr__(self, name, size)
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """Who the model is and how it was made; nothing here depends on the clock.
+
+    Attributes:
+        name: the person's name, 1 to 256 printable characters.
+        source_video: the enrollment video's file name, "" if none (at most 1024 characters).
+        frames_used: strictly increasing, non-negative video frame indices used to build it.
+        neutral_frame: the frame index the neutral texture comes from, >= 0.
+        creator: the software that built it (e.g. "facewire 0.1.0"), at most 256 characters.
+        created: a creation date given by the caller, "" for none (at most 64 characters).
+    """
+
+    name: str
+    source_video: str = ""
+    frames_used: tuple[int, ...] = ()
+    neutral_frame: int = 0
+    creator: str = ""
+    created: str = ""
+
+    def __post_init__(self) -> None:
+        _text(self.name, "info.name", 1, 256)
+        _text(self.source_video, "info.source_video", 0, 1024)
+        _text(self.creator, "info.creator", 0, 256)
+        _text(self.created, "info.created", 0, 64)
+        neutral = _integer(self.neutral_frame, "info.neutral_frame", 0, 2**53)
+        if not isinstance(self.frames_used, (tuple, list)):
+            raise ModelError(f"info.frames_used: expected a list of frame indices, "
+                             f"got {_kind(self.frames_used)}")
+        frames = tuple(_integer(f, f"info.frames_used[{i}]", 0, 2**53)
+                       for i, f in enumerate(self.frames_used))
+        for i in range(1, len(frames)):
+            if frames[i] <= frames[i - 1]:
+                raise ModelError(f"info.frames_used[{i}]: not strictly increasing")
+        object.__setattr__(self, "neutral_frame", neutral)
+        object.__setattr__(self, "frames_used", frames)
+
+
+@dataclass(frozen=True, eq=False)
+class Region:
+    """A texture region's stored appearance data (the appearance work computes it).
+
+    Attributes:
+        name: matches ``[a-z][a-z0-9_]{0,31}``; unique within a model.
+        uv_rect: (u0, v0, u1, v1), the texture area the layer images cover, UV, v up.
+        template_rect: (u0, v0, u1, v1), the area classification templates are taken from,
+            inside ``uv_rect``.
+        layers: (k, h, w, 3) uint8 RGB, the region's k appearance states in template order
+            (the layers of its 3D texture), row 0 at v = v1; 1 <= k <= 64, 1 <= h, w <= 4096.
+        mask: (h, w) uint8, the layers' alpha over the neutral texture (255 = layer).
+        templates: (k, 16, 16) float32, finite, the classification template of each state.
+    """
+
+    name: str
+    uv_rect: tuple[float, float, float, float]
+    template_rect: tuple[float, float, float, float]
+    layers: np.ndarray
+    mask: np.ndarray
+    templates: np.ndarray
+
+    def __post_init__(self) -> None:
+        _region_name(self.name, "region")
+        field = f"region {self.name!r}"
+        outer = _rect(self.uv_rect, f"{field}: uv_rect")
+        inner = _rect(self.template_rect, f"{field}: template_rect")
+        if not (outer[0] <= inner[0] and outer[1] <= inner[1]
+                and inner[2] <= outer[2] and inner[3] <= outer[3]):
+            raise ModelError(f"{field}: template_rect: not inside uv_rect")
+        object.__setattr__(self, "uv_rect", outer)
+        object.__setattr__(self, "template_rect", inner)
+        _array(self.layers, f"{field}: layers", np.uint8, 4)
+        k, h, w, c = self.layers.shape
+        if not 1 <= k <= MAX_LAYERS:
+            raise ModelError(f"{field}: layers: {k} layers, expected 1 to {MAX_LAYERS}")
+        if c != 3 or not (1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE):
+            raise ModelError(f"{field}: layers: expected shape (k, h, w, 3) with h, w in "
+                             f"[1, {MAX_IMAGE_SIDE}], got {self.layers.shape}")
+        _array(self.mask, f"{field}: mask", np.uint8, 2)
+        if self.mask.shape != (h, w):
+            raise ModelError(f"{field}: mask: expected shape {(h, w)} like the layers, "
+                             f"got {self.mask.shape}")
+        _array(self.templates, f"{field}: templates", np.float32, 3)
+        if self.templates.shape != (k, TEMPLATE_SIZE, TEMPLATE_SIZE):
+            raise ModelError(f"{field}: templates: expected shape "
+                             f"{(k, TEMPLATE_SIZE, TEMPLATE_SIZE)}, got {self.templates.shape}")
+        if not np.isfinite(self.templates).all():
+            raise ModelError(f"{field}: templates: contains NaN or infinity")
+
+
+@dataclass(frozen=True, eq=False)
+class PersonModel:
+    """One person's model, as ``save_model`` writes it and ``load_model`` returns it.
+
+    Attributes:
+        mesh: the fitted head mesh (model space, mm).
+        texture: (H, W, 3) uint8 RGB neutral texture, row 0 at v = 1; 1 <= H, W <= 4096.
+        camera: the enrollment camera.
+        info: name and provenance.
+        regions: texture regions in packet order (may be empty), at most 32.
+        sha256: the model id, lowercase hex sha256 of the file it was loaded from; "" for a
+            model built in memory (``model_summary`` computes it then).
+        file_bytes: size of that file, bytes; 0 for a model built in memory.
+    """
+
+    mesh: Mesh
+    texture: np.ndarray
+    camera: Camera
+    info: ModelInfo
+    regions: tuple[Region, ...] = ()
+    sha256: str = ""
+    file_bytes: int = 0
+
+    def __post_init__(self) -> None:
+        for name, kind in (("mesh", Mesh), ("camera", Camera), ("info", ModelInfo)):
+            if not isinstance(getattr(self, name), kind):
+                raise ModelError(f"{name}: expected a {kind.__name__}, "
+                                 f"got {_kind(getattr(self, name))}")
+        _array(self.texture, "texture", np.uint8, 3)
+        h, w, c = self.texture.shape
+        if c != 3 or not (1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE):
+            raise ModelError(f"texture: expected shape (H, W, 3) with H, W in "
+                             f"[1, {MAX_IMAGE_SIDE}], got {self.texture.shape}")
+        if not isinstance(self.regions, (tuple, list)) or not all(
+                isinstance(r, Region) for r in self.regions):
+            raise ModelError("regions: expected a sequence of Region")
+        if len(self.regions) > MAX_REGIONS:
+            raise ModelError(f"regions: {len(self.regions)} regions, at most {MAX_REGIONS}")
+        names = [r.name for r in self.regions]
+        if len(set(names)) != len(names):
+            raise ModelError("regions: region names are not unique")
+        object.__setattr__(self, "regions", tuple(self.regions))
+        if not (self.sha256 == "" or (isinstance(self.sha256, str)
+                                      and _HEX64.fullmatch(self.sha256))):
+            raise ModelError("sha256: expected '' or 64 lowercase hex digits")
+        _integer(self.file_bytes, "file_bytes", 0, MAX_FILE_BYTES)
+
+
+def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
+    """Write ``model`` to ``path`` atomically; return the file's sha256 (the model id).
+
+    The bytes go to a temporary file in the same folder, are flushed to disk, and only then
+    renamed over ``path``: a crash leaves either the old file or the new one, never half of
+    one. Raises ``ModelFileError`` naming the file if it cannot be written.
+    """
+    if not isinstance(model, PersonModel):
+        raise TypeError(f"save_model: expected a PersonModel, got {_kind(model)}")
+    data = _encode(model)
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.{secrets.token_hex(8)}.tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        folder = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
+    except OSError as e:
+        raise ModelFileError(f"{os.fspath(path)}: cannot write ({e})") from e
+    return hashlib.sha256(data).hexdigest()
+
+
+def model_sha256(path: str | os.PathLike[str]) -> str:
+    """The model id: lowercase hex sha256 of the file's bytes."""
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError as e:
+        raise ModelFileError(f"{os.fspath(path)}: cannot read ({e})") from e
+
+
+def load_model(path: str | os.PathLike[str]) -> PersonModel:
+    """Read and validate a ``.fwm`` file; the result carries its ``sha256`` and ``file_bytes``.
+
+    Raises ``ModelFileError`` naming the file and the member or field on any problem.
+    """
+    where = os.fspath(path)
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise ModelFileError(f"{where}: not a regular file")
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if size > MAX_FILE_BYTES:
+                raise ModelFileError(f"{where}: {size} bytes, more than the "
+                                     f"{MAX_FILE_BYTES} a model may have")
+            data = f.read(size + 1)
+    except OSError as e:
+        raise ModelFileError(f"{where}: cannot read ({e})") from e
+    return load_model_bytes(data, where)
+
+
+def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
+    """Validate and decode the bytes of a ``.fwm`` file (e.g. as fetched from the network).
+
+    ``where`` names the source in error messages. Raises ``ModelFileError``.
+    """
+    if len(data) > MAX_FILE_BYTES:
+        raise ModelFileError(f"{where}: more than the {MAX_FILE_BYTES} bytes a model may have")
+    _check_zip_layout(data, where)
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(data))
+    except _ZIP_ERRORS as e:
+        raise ModelFileError(f"{where}: not a readable zip file ({e})") from e
+    with archive:
+        entries = _check_entries(archive, where)
+        if MANIFEST_MEMBER not in entries:
+            raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: missing")
+        raw = _read_member(archive, entries[MANIFEST_MEMBER], where)
+        try:
+            manifest = _parse_manifest(raw)
+        except ModelError as e:
+            raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: {e}") from e
+        expected = _check_members(manifest, entries, where)
+        arrays = {}
+        for name in sorted(expected):
+            raw = _read_member(archive, entries[name], where)
+            try:
+                arrays[name] = _decode(raw, _spec(name), manifest.members[name])
+            except ModelError as e:
+                raise ModelFileError(f"{where}: {name}: {e}") from e
+    try:
+        mesh = Mesh(**{f: arrays[f"arrays/{f}.npy"] for f in MESH_FIELDS})
+    except MeshError as e:
+        raise ModelFileError(f"{where}: mesh: {e}") from e
+    try:
+        regions = tuple(
+            Region(name, uv_rect, template_rect,
+                   np.stack([arrays[f"regions/{name}/layer_{j:02d}.png"] for j in range(k)]),
+                   arrays[f"regions/{name}/mask.png"], arrays[f"regions/{name}/templates.npy"])
+            for name, uv_rect, template_rect, k in manifest.regions)
+        return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
+                           regions, hashlib.sha256(data).hexdigest(), len(data))
+    except ModelError as e:
+        raise ModelFileError(f"{where}: {e}") from e
+
+
+def model_summary(model: PersonModel) -> dict[str, Any]:
+    """The ``model build/info --json`` keys: vertices, triangles, regions, layers, bytes, sha256.
+
+    ``bytes`` and ``sha256`` are the loaded file's; for a model built in memory they are those
+    of the file ``save_model`` would write.
+    """
+    if model.sha256:
+        digest, size = model.sha256, model.file_bytes
+    else:
+        data = _encode(model)
+        digest, size = hashlib.sha256(data).hexdigest(), len(data)
+    return {
+        "vertices": int(model.mesh.vertices.shape[0]),
+        "triangles": int(model.mesh.triangles.shape[0]),
+        "regions": len(model.regions),
+        "layers": sum(int(r.layers.shape[0]) for r in model.regions),
+        "bytes": size,
+        "sha256": digest,
+    }
+
+
+# ---- the schema table -------------------------------------------------------------------
+
+class _Spec(NamedTuple):
+    """One kind of member: name pattern, storage, dtype, shape (str = named size), limit."""
+
+    pattern: re.Pattern[str]
+    kind: str
+    dtype: str
+    shape: tuple[int | str, ...]
+    limit: int
+
+
+_R = r"[a-z][a-z0-9_]{0,31}"
+_SPECS = (
+    _Spec(re.compile(r"model\.json"), "json", "", (), MAX_SMALL_BYTES),
+    _Spec(re.compile(r"arrays/vertices\.npy"), "npy", "float32", ("N", 3), MAX_MEMBER_BYTES),
+    _Spec(re.compile(r"arrays/triangles\.npy"), "npy", "int32", ("M", 3), MAX_MEMBER_BYTES),
+    _Spec(re.compile(r"arrays/uv\.npy"), "npy", "float32", ("N", 2), MAX_MEMBER_BYTES),
+    _Spec(re.compile(r"arrays/tags\.npy"), "npy", "uint8", ("M",), MAX_MEMBER_BYTES),
+    _Spec(re.compile(r"arrays/landmarks\.npy"), "npy", "int32", (68,), MAX_SMALL_BYTES),
+    _Spec(re.compile(r"arrays/phantoms\.npy"), "npy", "int32", (13,), MAX_SMALL_BYTES),
+    _Spec(re.compile(r"textures/neutral\.png"), "png", "uint8", ("H", "W", 3), MAX_MEMBER_BYTES),
+    _Spec(re.compile(rf"regions/{_R}/layer_[0-9]{{2}}\.png", re.ASCII), "png", "uint8",
+          ("h", "w", 3), MAX_MEMBER_BYTES),
+    _Spec(re.compile(rf"regions/{_R}/mask\.png", re.ASCII), "png", "uint8", ("h", "w"),
+          MAX_MEMBER_BYTES),
+    _Spec(re.compile(rf"regions/{_R}/templates\.npy", re.ASCII), "npy", "float32",
+          ("k", TEMPLATE_SIZE, TEMPLATE_SIZE), MAX_SMALL_BYTES),
+)
+
+
+def _spec(name: str) -> _Spec | None:
+    return next((s for s in _SPECS if s.pattern.fullmatch(name)), None)
+
+
+def _expected_members(regions: list[tuple[str, Any, Any, int]]) -> set[str]:
+    names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
+    for name, _, _, k in regions:
+        names |= {f"regions/{name}/layer_{j:02d}.png" for j in range(k)}
+        names |= {f"regions/{name}/mask.png", f"regions/{name}/templates.npy"}
+    return names
+
+
+# ---- writing -----------------------------------------------------------------------------
+
+def _encode(model: PersonModel) -> bytes:
+    """The file's bytes: deterministic for a given model (see the module docstring)."""
+    members: dict[str, bytes] = {}
+    declared: dict[str, dict[str, Any]] = {}
+
+    def put(name: str, array: np.ndarray, data: bytes) -> None:
+        members[name] = data
+        declared[name] = {"dtype": array.dtype.name, "shape": list(array.shape)}
+
+    for f in MESH_FIELDS:
+        array = getattr(model.mesh, f)
+        put(f"arrays/{f}.npy", array, _npy_bytes(array))
+    put(TEXTURE_MEMBER, model.texture, _png_bytes(model.texture))
+    for r in model.regions:
+        for j, layer in enumerate(r.layers):
+            put(f"regions/{r.name}/layer_{j:02d}.png", layer, _png_bytes(layer))
+        put(f"regions/{r.name}/mask.png", r.mask, _png_bytes(r.mask))
+        put(f"regions/{r.name}/templates.npy", r.templates, _npy_bytes(r.templates))
+    c, i = model.camera, model.info
+    manifest = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "camera": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                   "width": c.width, "height": c.height},
+        "info": {"name": i.name, "source_video": i.source_video,
+                 "frames_used": list(i.frames_used), "neutral_frame": i.neutral_frame,
+                 "creator": i.creator, "created": i.created},
+        "members": declared,
+        "regions": [{"name": r.name, "uv_rect": list(r.uv_rect),
+                     "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0])}
+                    for r in model.regions],
+    }
+    members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
+                                           allow_nan=False) + "\n").encode("ascii")
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as archive:
+        for name in sorted(members):
+            entry = zipfile.ZipInfo(name, date_time=_ZIP_TIME)
+            entry.create_system = 3
+            entry.external_attr = 0o644 << 16
+            entry.compress_type = zipfile.ZIP_STORED if name.endswith(".png") \
+                else zipfile.ZIP_DEFLATED
+            archive.writestr(entry, members[name], compresslevel=_DEFLATE_LEVEL)
+    return out.getvalue()
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    out = io.BytesIO()
+    little = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+    np.lib.format.write_array(out, little, version=(1, 0), allow_pickle=False)
+    return out.getvalue()
+
+
+def _png_bytes(image: np.ndarray) -> bytes:
+    """8-bit PNG of an (h, w, 3) RGB or (h, w) grey uint8 image."""
+    bgr = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+    ok, data = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    if not ok:
+        raise ModelError(f"PNG encoding failed for an image of shape {image.shape}")
+    return data.tobytes()
+
+
+# ---- reading -----------------------------------------------------------------------------
+
+def _check_zip_layout(data: bytes, where: str) -> None:
+    """Refuse anything but a plain zip ending in its end record, before zipfile parses it."""
+    if len(data) < _EOCD.size or data[-_EOCD.size:-_EOCD.size + 4] != b"PK\x05\x06":
+        raise ModelFileError(f"{where}: not a facewire model (not a zip file, or truncated, "
+                             f"or followed by a comment or other data)")
+    _, disk, cd_disk, n_disk, n_total, cd_size, cd_offset, comment = _EOCD.unpack(
+        data[-_EOCD.size:])
+    if disk or cd_disk or n_disk != n_total or comment:
+        raise ModelFileError(f"{where}: not a plain zip file (multi-part or commented)")
+    if n_total > MAX_MEMBERS:
+        raise ModelFileError(f"{where}: {n_total} members, at most {MAX_MEMBERS}")
+    if cd_offset + cd_size != len(data) - _EOCD.size:
+        raise ModelFileError(f"{where}: zip directory is not where the end record says "
+                             f"(truncated, prefixed or corrupt file)")
+
+
+def _check_entries(archive: zipfile.ZipFile, where: str) -> dict[str, zipfile.ZipInfo]:
+    """Name, size and compression checks on every entry, before any is read."""
+    entries: dict[str, zipfile.ZipInfo] = {}
+    total = 0
+    for entry in archive.infolist():
+        name = entry.filename
+        parts = entry.orig_filename.replace("\\", "/").split("/")
+        if (entry.orig_filename != name or name.startswith("/") or ":" in name
+                or ".." in parts):
+            raise ModelFileError(f"{where}: zip member {entry.orig_filename!r}: unsafe name "
+                                 f"(absolute, '..', drive or NUL); refused")
+        spec = _spec(name)
+        if spec is None:
+            raise ModelFileError(f"{where}: zip member {name!r}: not a member of a facewire "
+                                 f"model; refused")
+        if name in entries:
+            raise ModelFileError(f"{where}: {name}: appears twice in the zip")
+        if entry.flag_bits & 0x1:
+            raise ModelFileError(f"{where}: {name}: encrypted members are not allowed")
+        if entry.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise ModelFileError(f"{where}: {name}: compression method {entry.compress_type} "
+                                 f"not allowed (stored or deflated only)")
+        if entry.file_size > spec.limit:
+            raise ModelFileError(f"{where}: {name}: declares {entry.file_size} bytes "
+                                 f"uncompressed, limit {spec.limit}")
+        if entry.file_size > RATIO_FLOOR and entry.file_size > MAX_RATIO * entry.compress_size:
+            raise ModelFileError(f"{where}: {name}: compression ratio "
+                                 f"{entry.file_size / max(entry.compress_size, 1):.0f}:1 "
+                                 f"exceeds {MAX_RATIO}:1 (zip bomb?)")
+        total += entry.file_size
+        if total > MAX_TOTAL_BYTES:
+            raise ModelFileError(f"{where}: {name}: members declare more than "
+                                 f"{MAX_TOTAL_BYTES} bytes uncompressed in all")
+        entries[name] = entry
+    return entries
+
+
+def _read_member(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, where: str) -> bytes:
+    """The member's bytes, reading no more than its (already bounded) declared size.
+
+    zipfile verifies the CRC-32 once the declared size has been read.
+    """
+    out = bytearray()
+    try:
+        with archive.open(entry) as f:
+            while len(out) < entry.file_size:
+                chunk = f.read(min(1 << 20, entry.file_size - len(out)))
+                if not chunk:
+                    break
+                out += chunk
+    except _ZIP_ERRORS as e:
+        raise ModelFileError(f"{where}: {entry.filename}: corrupt ({e})") from e
+    if len(out) != entry.file_size:
+        raise ModelFileError(f"{where}: {entry.filename}: truncated ({len(out)} of "
+                             f"{entry.file_size} bytes)")
+    return bytes(out)
+
+
+class _Manifest(NamedTuple):
+    camera: Camera
+    info: ModelInfo
+    members: dict[str, tuple[int, ...]]  # member name -> declared shape
+    regions: list[tuple[str, Any, Any, int]]
+
+
+def _parse_manifest(raw: bytes) -> _Manifest:
+    """Decode and type-check ``model.json``; raises ``ModelError`` naming the field."""
+    def unique(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [k for k, _ in pairs]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"duplicate key {next(k for k in keys if keys.count(k) > 1)!r}")
+        return dict(pairs)
+
+    def no_constant(token: str) -> None:
+        raise ValueError(f"{token} is not allowed")
+
+    try:
+        doc = json.loads(raw.decode("utf-8"), object_pairs_hook=unique, parse_constant=no_constant)
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise ModelError(f"not valid JSON ({e})") from e
+    _keys(doc, "manifest", {"format", "format_version", "camera", "info", "members", "regions"})
+    if doc["format"] != FORMAT:
+        raise ModelError(f"format: expected {FORMAT!r}, got {doc['format']!r:.80}")
+    version = _integer(doc["format_version"], "format_version", 0, 2**31)
+    if version != FORMAT_VERSION:
+        raise ModelError(f"format_version: unsupported version {version} "
+                         f"(this reader knows {FORMAT_VERSION})")
+    camera = Camera(**_keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"}))
+    info = ModelInfo(**_keys(doc["info"], "info", {"name", "source_video", "frames_used",
+                                                   "neutral_frame", "creator", "created"}))
+    members: dict[str, tuple[int, ...]] = {}
+    if not isinstance(doc["members"], dict):
+        raise ModelError(f"members: expected an object, got {_kind(doc['members'])}")
+    for name, entry in doc["members"].items():
+        field = f"members[{name!r:.80}]"
+        spec = _spec(name)
+        if spec is None or spec.kind == "json":
+            raise ModelError(f"{field}: not a member of a facewire model")
+        _keys(entry, field, {"dtype", "shape"})
+        if entry["dtype"] != spec.dtype:
+            raise ModelError(f"{name}: expected dtype {spec.dtype}, got {entry['dtype']!r:.40}")
+        shape = entry["shape"]
+        if not isinstance(shape, list) or len(shape) != len(spec.shape):
+            raise ModelError(f"{name}: expected shape {_shape_text(spec.shape)}, "
+                             f"got {shape!r:.80}")
+        for axis, (size, want) in enumerate(zip(shape, spec.shape)):
+            _integer(size, f"{field}.shape[{axis}]", 1, 2**53)
+            if isinstance(want, int) and size != want:
+                raise ModelError(f"{name}: expected shape {_shape_text(spec.shape)}, "
+                                 f"got {tuple(shape)}")
+            if spec.kind == "png" and axis < 2 and size > MAX_IMAGE_SIDE:
+                raise ModelError(f"{name}: image side {size} exceeds {MAX_IMAGE_SIDE}")
+        members[name] = tuple(shape)
+    if not isinstance(doc["regions"], list):
+        raise ModelError(f"regions: expected a list, got {_kind(doc['regions'])}")
+    if len(doc["regions"]) > MAX_REGIONS:
+        raise ModelError(f"regions: {len(doc['regions'])} regions, at most {MAX_REGIONS}")
+    regions = []
+    for i, entry in enumerate(doc["regions"]):
+        field = f"regions[{i}]"
+        _keys(entry, field, {"name", "uv_rect", "template_rect", "layers"})
+        name = _region_name(entry["name"], f"{field}.name")
+        if any(name == r[0] for r in regions):
+            raise ModelError(f"{field}.name: {name!r} appears twice")
+        k = _integer(entry["layers"], f"{field}.layers", 1, MAX_LAYERS)
+        regions.append((name, entry["uv_rect"], entry["template_rect"], k))
+    return _Manifest(camera, info, members, regions)
+
+
+def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
+                   where: str) -> set[str]:
+    """The members the manifest requires: each in the zip and declared, region sizes agreeing."""
+    expected = _expected_members(manifest.regions)
+    for name in sorted(expected | entries.keys() | manifest.members.keys()):
+        if name == MANIFEST_MEMBER:
+            continue
+        if name not in expected:
+            raise ModelFileError(f"{where}: {name}: not a member of this model "
+                                 f"(not required by model.json's regions)")
+        if name not in entries:
+            raise ModelFileError(f"{where}: {name}: missing")
+        if name not in manifest.members:
+            raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
+    for region, _, _, k in manifest.regions:
+        size = manifest.members[f"regions/{region}/mask.png"]
+        for j in range(k):
+            name = f"regions/{region}/layer_{j:02d}.png"
+            if manifest.members[name][:2] != size:
+                raise ModelFileError(f"{where}: {name}: shape {manifest.members[name]} does not "
+                                     f"match the region's mask {size}")
+    return expected
+
+
+def _decode(raw: bytes, spec: _Spec, shape: tuple[int, ...]) -> np.ndarray:
+    """One member's array, checked against its declared shape; raises ``ModelError``."""
+    if spec.kind == "png":
+        return _decode_png(raw, shape)
+    return _decode_npy(raw, np.dtype(spec.dtype), shape)
+
+
+def _decode_npy(raw: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """Parse the header first: refuse object arrays and size mismatches before np.load."""
+    f = io.BytesIO(raw)
+    try:
+        version = np.lib.format.read_magic(f)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise ModelError(f"npy format version {version} not supported (1.0 or 2.0)")
+        header = read_header(f)
+    except ModelError:
+        raise
+    except (ValueError, SyntaxError, TypeError, RecursionError, EOFError) as e:
+        raise ModelError(f"not a valid .npy array ({e})") from e
+    got_shape, _, got_dtype = header
+    if got_dtype.hasobject:
+        raise ModelError("object arrays (pickle) are not allowed")
+    want = dtype.newbyteorder("<")
+    if got_dtype != want:
+        shown = got_dtype.name if got_dtype.isnative else got_dtype.str
+        raise ModelError(f"expected dtype {dtype.name}, got {shown}")
+    if tuple(got_shape) != shape:
+        raise ModelError(f"expected shape {shape} (as declared in model.json), "
+                         f"got {tuple(got_shape)}")
+    size = math.prod(shape) * want.itemsize
+    if len(raw) - f.tell() != size:
+        raise ModelError(f"array data is {len(raw) - f.tell()} bytes, expected {size}")
+    try:
+        array = np.load(io.BytesIO(raw), allow_pickle=False)
+    except (ValueError, EOFError, OSError) as e:
+        raise ModelError(f"not a valid .npy array ({e})") from e
+    return np.ascontiguousarray(array, dtype=dtype)
+
+
+def _decode_png(raw: bytes, shape: tuple[int, ...]) -> np.ndarray:
+    """Check the PNG header against the declared shape before decoding; RGB out."""
+    if len(raw) < 33 or raw[:8] != _PNG_SIGNATURE or raw[8:16] != b"\x00\x00\x00\x0dIHDR":
+        raise ModelError("not a PNG image")
+    width, height = struct.unpack(">II", raw[16:24])
+    depth, colour = raw[24], raw[25]
+    if depth != 8 or _PNG_COLOUR_TYPES.get(colour) != len(shape):
+        want = "RGB" if len(shape) == 3 else "grey"
+        raise ModelError(f"expected an 8-bit {want} PNG, got bit depth {depth}, "
+                         f"colour type {colour}")
+    if (height, width) != shape[:2]:
+        raise ModelError(f"expected a {shape[1]}x{shape[0]} image (as declared in "
+                         f"model.json), got {width}x{height}")
+    try:
+        image = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:
+        raise ModelError(f"PNG does not decode ({e})") from e
+    if image is None or image.dtype != np.uint8 or image.shape != shape:
+        raise ModelError("PNG does not decode to the declared image")
+    return np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+
+
+# ---- field checks ------------------------------------------------------------------------
+
+def _kind(value: object) -> str:
+    return type(value).__name__
+
+
+def _shape_text(shape: tuple[int | str, ...]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _keys(value: object, field: str, keys: set[str]) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ModelError(f"{field}: expected an object, got {_kind(value)}")
+    missing, unknown = sorted(keys - value.keys()), sorted(value.keys() - keys)
+    if missing:
+        raise ModelError(f"{field}: missing key {missing[0]!r}")
+    if unknown:
+        raise ModelError(f"{field}: unknown key {unknown[0]!r:.80}")
+    return value
+
+
+def _integer(value: object, field: str, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ModelError(f"{field}: expected an integer, got {_kind(value)}")
+    if not low <= value <= high:
+        raise ModelError(f"{field}: {value} outside [{low}, {high}]")
+    return int(value)
+
+
+def _number(value: object, field: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ModelError(f"{field}: expected a number, got {_kind(value)}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ModelError(f"{field}: must be finite, got {number}")
+    return number
+
+
+def _text(value: object, field: str, low: int, high: int) -> str:
+    if not isinstance(value, str):
+        raise ModelError(f"{field}: expected a string, got {_kind(value)}")
+    if not low <= len(value) <= high or not value.isprintable():
+        raise ModelError(f"{field}: expected {low} to {high} printable characters")
+    return value
+
+
+def _region_name(value: object, field: str) -> str:
+    if not isinstance(value, str) or not _REGION_NAME.fullmatch(value):
+        raise ModelError(f"{field}: expected a name matching [a-z][a-z0-9_]{{0,31}}, "
+                         f"got {value!r:.40}")
+    return value
+
+
+def _rect(value: object, field: str) -> tuple[float, float, float, float]:
+    if not isinstance(value, (tuple, list)) or len(value) != 4:
+        raise ModelError(f"{field}: expected [u0, v0, u1, v1]")
+    u0, v0, u1, v1 = (_number(x, field) for x in value)
+    if not (0 <= u0 < u1 <= 1 and 0 <= v0 < v1 <= 1):
+        raise ModelError(f"{field}: expected 0 <= u0 < u1 <= 1 and 0 <= v0 < v1 <= 1")
+    return (u0, v0, u1, v1)
+
+
+def _array(value: object, field: str, dtype: type, ndim: int) -> None:
+    if not isinstance(value, np.ndarray):
+        raise ModelError(f"{field}: expected a numpy array, got {_kind(value)}")
+    if value.dtype != dtype:
+        raise ModelError(f"{field}: expected dtype {np.dtype(dtype).name}, got {value.dtype}")
+    if value.ndim != ndim:
+        raise ModelError(f"{field}: expected {ndim} dimensions, got shape {value.shape}")
+
