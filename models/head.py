@@ -67,8 +67,9 @@ Texture layout (u to the right, v up; 1024 x 512 in the paper)
   very top. Socket cups map into the eye openings of this map, which no skin triangle covers.
 - Eyeballs: discs of radius ``EYE_UV_RADIUS`` in u (twice that in v: round in texels) centred
   at ``EYE_UV[side]``; the angle theta from the gaze axis goes to the radius
-  ``(theta / 90 deg) ** 0.75`` of the disc, the back half folded onto the front one. The cornea
-  apex is the centre, the iris (theta < 29.5 deg) the inner 44 %.
+  ``(theta / 90 deg) ** 0.75`` of the disc. The cornea apex is the centre, the iris
+  (theta < 29.5 deg) the inner 44 %. The back halves, never seen, have small discs of their
+  own at ``EYE_BACK_UV`` (a seam at the 90-degree ring), so no texel holds two surface points.
 - Mouth cavity: a disc at ``MOUTH_UV`` with the inner lip line on its rim (the person's left
   half on the right, the midline at top and bottom) and the back of the cavity at its centre.
 
@@ -879,6 +880,8 @@ def _half_skin() -> _HalfSkin:
 SKIN_U_MAX = 0.8
 EYE_UV = {"left": (0.95, 0.9), "right": (0.85, 0.9)}
 EYE_UV_RADIUS = 0.047  # in u; the v radius is twice as large (square texels on a 2:1 image)
+EYE_BACK_UV = {"left": (0.95, 0.2), "right": (0.85, 0.2)}  # the hidden back halves
+EYE_BACK_UV_RADIUS = 0.03
 MOUTH_UV = (0.9, 0.55)
 MOUTH_UV_RADIUS = 0.09
 
@@ -984,31 +987,47 @@ _EYE_LONGITUDES = 24
 
 
 def _eyeball() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The left eyeball: points (N, 3), UV (N, 2) and triangles (outward)."""
+    """The left eyeball: points (N, 3), UV (N, 2) and triangles (outward).
+
+    Two caps that share the 90-degree ring's positions but not its vertices (a UV seam): the
+    front maps onto the disc at ``EYE_UV``, the back (never seen) onto the small disc at
+    ``EYE_BACK_UV``, so no texel belongs to two surface points.
+    """
     theta = np.radians(np.array(_EYE_THETA_DEG))
-    phi = 2.0 * np.pi * np.arange(_EYE_LONGITUDES) / _EYE_LONGITUDES
-    T, P = np.meshgrid(theta, phi, indexing="ij")
-    T, P = np.concatenate([[0.0], T.ravel(), [np.pi]]), np.concatenate([[0.0], P.ravel(), [0.0]])
+    equator = int(np.argmin(np.abs(theta - np.pi / 2)))
+    front = _eye_cap(np.concatenate([[0.0], theta[:equator + 1]]), EYE_UV["left"],
+                     EYE_UV_RADIUS)
+    back = _eye_cap(np.concatenate([[np.pi], theta[equator:][::-1]]), EYE_BACK_UV["left"],
+                    EYE_BACK_UV_RADIUS)
+    points, uv = (np.concatenate([f, b]) for f, b in zip(front[:2], back[:2]))
+    return points, uv, np.concatenate([front[2], back[2][:, ::-1] + len(front[0])])
+
+
+def _eye_cap(theta: np.ndarray, centre: tuple[float, float], radius: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A cap of the eyeball from its pole ``theta[0]`` through rings ``theta[1:]`` (radians
+    from the gaze axis, ending at 90 degrees): points, UV on a disc (the pole at the centre,
+    the 90-degree ring at ``0.98 radius``), triangles outward for a front cap."""
+    n = _EYE_LONGITUDES
+    phi = 2.0 * np.pi * np.arange(n) / n
+    T, P = np.meshgrid(theta[1:], phi, indexing="ij")
+    T, P = np.concatenate([theta[:1], T.ravel()]), np.concatenate([[0.0], P.ravel()])
     lim = np.radians(IRIS_ANGLE_DEG + 6.0)
     r = EYE_RADIUS + CORNEA_BULGE * np.clip(1.0 - (T / lim) ** 2, 0.0, 1.0) ** 2
     points = EYE_CENTRE + r[:, None] * np.column_stack(
         [np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)])
-    rho = 0.98 * (np.minimum(T, np.pi - T) / (np.pi / 2)) ** 0.75
-    cu, cv = EYE_UV["left"]
-    uv = np.column_stack([cu + EYE_UV_RADIUS * rho * np.cos(P),
-                          cv + 2.0 * EYE_UV_RADIUS * rho * np.sin(P)])
-    m, n = len(theta), _EYE_LONGITUDES
+    rho = 0.98 * (np.abs(T - theta[0]) / (np.pi / 2)) ** 0.75
+    uv = np.column_stack([centre[0] + radius * rho * np.cos(P),
+                          centre[1] + 2.0 * radius * rho * np.sin(P)])
 
     def ring(k: int) -> np.ndarray:
         return 1 + k * n + np.arange(n)
 
     tri = [np.column_stack([np.zeros(n, int), ring(0), np.roll(ring(0), -1)])]
-    for k in range(m - 1):
+    for k in range(len(theta) - 2):
         a, b = ring(k), ring(k + 1)
-        b1, a1 = np.roll(b, -1), np.roll(a, -1)
-        tri += [np.column_stack([a, b, b1]), np.column_stack([a, b1, a1])]
-    last = ring(m - 1)
-    tri.append(np.column_stack([last, np.full(n, len(points) - 1), np.roll(last, -1)]))
+        tri += [np.column_stack([a, b, np.roll(b, -1)]),
+                np.column_stack([a, np.roll(b, -1), np.roll(a, -1)])]
     return points, uv, np.concatenate(tri)
 
 

@@ -7,8 +7,8 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from models.head import (EYE_RADIUS, EYE_UV, EYE_UV_RADIUS, MOUTH_UV, SKIN_U_MAX, generic_head,
-                         mirror_map)
+from models.head import (EYE_BACK_UV, EYE_BACK_UV_RADIUS, EYE_RADIUS, EYE_UV, EYE_UV_RADIUS,
+                         MOUTH_UV, SKIN_U_MAX, generic_head, mirror_map)
 from models.landmarks import FEATURES, MIRROR, PHANTOM_MIRROR, PHANTOM_NAMES
 from models.mesh import Mesh, Tag
 
@@ -234,8 +234,11 @@ def test_uv_layout(mesh: Mesh) -> None:
     assert uv[skin, 0].max() <= SKIN_U_MAX + 1e-6
     for tag, side in ((Tag.LEFT_EYEBALL, "left"), (Tag.RIGHT_EYEBALL, "right")):
         ball = np.unique(tri[mesh.tags == tag])
+        front = mesh.vertices[ball, 2] >= mesh.vertices[ball, 2].max() - EYE_RADIUS - 1e-3
         d = (uv[ball] - EYE_UV[side]) / [EYE_UV_RADIUS, 2 * EYE_UV_RADIUS]
-        assert np.linalg.norm(d, axis=1).max() <= 1.0
+        back = (uv[ball] - EYE_BACK_UV[side]) / [EYE_BACK_UV_RADIUS, 2 * EYE_BACK_UV_RADIUS]
+        in_front, in_back = (np.linalg.norm(x, axis=1) <= 1.0 for x in (d, back))
+        assert np.all(in_front | in_back) and np.all(in_front[front])
         apex = ball[np.argmax(mesh.vertices[ball, 2])]
         np.testing.assert_allclose(uv[apex], EYE_UV[side], atol=1e-6)  # the iris is central
     cavity = np.unique(tri[mesh.tags == Tag.MOUTH_INTERIOR])
@@ -274,3 +277,10 @@ def test_tags(mesh: Mesh) -> None:
     face = mesh.vertices[mesh.landmarks]
     assert not np.isin(mesh.landmarks, mesh.triangles[mesh.tags == Tag.SCALP]).any()
     assert face[:, 2].min() > 0.0
+
+
+def test_uv_layout_is_one_to_one(mesh: Mesh) -> None:
+    """No texel holds two surface points: the texture projection refuses a stacked layout."""
+    from models.texture import uv_surface
+
+    uv_surface(mesh, (512, 1024))  # raises TextureError on > 1 % overlapping texels
