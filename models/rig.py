@@ -1,0 +1,213 @@
+"""The animation rig of a person model: which centres drive the RBF morph, and how a frame moves.
+
+The sender (to lift residuals and measure geometry) and the receiver (to deform the mesh)
+both need "the morph of this model"; it is defined once, here.
+
+Centres (M of them, in this order)
+----------------------------------
+- the 18 feature points (``models.landmarks.FEATURES``: 9 rigid, then 9 non-rigid) at their
+  landmark vertices ``mesh.landmarks[FEATURES]``;
+- the 13 phantom vertices ``mesh.phantoms`` around the face boundary;
+- K anchors (``ANCHORS`` = 16 at most): vertices on the back and top of the scalp, the ears and
+  the neck, far from the face.
+
+Only the 9 non-rigid feature points ever move: the pose carries all rigid motion, so the
+rigid feature points, the phantoms and the anchors always have zero displacement. The anchors
+exist because Hardy's multiquadric grows with distance: with the 31 face centres alone, a
+5 mm mouth-corner move drags the back of the head about 2 mm (measured on the generic head);
+with the anchors it moves at most about 0.2 mm there.
+
+Anchor selection (deterministic, from the mesh alone). Candidates are the vertices of SKIN,
+SCALP and EAR triangles (never eyeballs or the mouth cavity) that lie
+
+- behind the face, ``z < min_z`` of the 12 ring phantoms (all but the crown; the face looks
+  along +z), or on the neck, more than ``NECK_BELOW`` mm below the lowest face centre; and
+- at least ``ANCHOR_CLEARANCE`` mm from every face centre (an anchor next to a moving centre
+  would pin the skin the face needs, and near-coincident centres condition the system badly).
+
+From these, farthest-point sampling seeded with the 31 face centres picks each next anchor as
+the candidate farthest from every centre chosen so far. Picks are made in mirror pairs so
+that the rig is left-right symmetric on a symmetric mesh: a pick within ``MIDLINE`` mm of
+the midsagittal plane x = 0 is first replaced by the candidate nearest its projection onto
+that plane; the pick is then taken with the candidate nearest its mirror image ``(-x, y, z)``
+(itself, on the midline). Sampling stops before a pair would exceed ``ANCHORS``, or when no
+candidate is left (a mesh without a back of the head gets fewer, possibly no, anchors). The
+generic head gets 15: back of the head, occiput, nape and neck, crown-side, ears, temples
+behind the hairline.
+
+Per-frame math
+--------------
+``VolumeMorph`` (``models/morph.py``) gives the (N, M) matrix ``W`` of cardinal weights:
+moving every centre by ``d`` (M, 3) moves vertex n to ``v_n + W[n] @ d``. Here ``d`` is zero
+except in the 9 rows of the non-rigid feature points, which hold the residuals ``r`` (9, 3).
+Hence, with ``B = W[:, cols]`` (N, 9) the columns of those centres,
+
+    morph(r) = v + B @ r,
+
+which equals ``VolumeMorph.apply`` of the full displacement array (zeros elsewhere) for every
+vertex but the eyeballs': dropping the columns multiplied by zero leaves the same sums (equal
+up to float32 summation order; bit-equal in the test). One
+(N, 9) @ (9, 3) float32 product and one add per frame.
+
+Eyeballs do not deform and do not move: their rows of ``B`` are zero. An eyeball sits in
+the bony orbit, which is part of the skull: expressions move the lids over it, not the eyeball
+itself, so it stays rigid with the head and the pose carries it (gaze is a texture matter).
+Bending it would distort the iris; translating it with the field (at its centre, or by the
+field's mean over it) would make the iris drift with the brows and the mouth. The lids and
+the socket cup around it (SKIN) still follow the field; under a strong expression (mouth
+open 10 mm, chin down 8 mm, smile 4 mm, brows up 4 mm) the skin within 2 mm of an eyeball
+moves toward it by at most 0.17 mm and keeps at least 0.08 mm of its 0.2 mm neutral gap
+(tested).
+
+``landmarks(r)`` is ``v[L] + B[L] @ r`` for the 68 landmark vertices ``L``: the model's
+landmarks after the morph, in model space.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.landmarks import FEATURES, NONRIGID, RIGID
+from models.mesh import Mesh, Tag
+from models.morph import VolumeMorph
+
+ANCHORS = 16  # at most this many anchors
+ANCHOR_CLEARANCE = 40.0  # mm from every face centre
+NECK_BELOW = 25.0  # mm below the lowest face centre counts as neck
+MIDLINE = 10.0  # mm: picks this close to x = 0 snap to the midline
+N_RESIDUALS = len(NONRIGID)
+
+# Columns of the non-rigid feature points among the centres: FEATURES lists RIGID first.
+_NONRIGID_COLUMNS = np.arange(len(RIGID), len(FEATURES))
+
+
+class Rig:
+    """The RBF morph of one mesh driven by the 9 non-rigid feature residuals.
+
+    Args:
+        mesh: the person's (or the generic) head mesh, model space, mm.
+        kernel: ``"multiquadric"`` (default) or ``"gaussian"``, as ``VolumeMorph``.
+        lam: relative Tikhonov weight, as ``VolumeMorph`` (0.01: the paper's).
+
+    Attributes:
+        mesh: the mesh.
+        anchors: (K,) int64 anchor vertex indices, K <= ``ANCHORS``.
+        centres: (M,) int64 vertex indices of all centres: ``mesh.landmarks[FEATURES]``, then
+            ``mesh.phantoms``, then ``anchors`` (M = 31 + K).
+        field: the ``VolumeMorph`` of the centres, evaluated at every vertex.
+        weights: (N, 9) float32, read-only: ``morph(r) == mesh.vertices + weights @ r``.
+        eyeball_vertices: (E,) int64, the vertices of both eyeballs, which never move.
+
+    Raises:
+        ValueError: not a Mesh, or the centres are degenerate (from ``VolumeMorph``).
+    """
+
+    def __init__(self, mesh: Mesh, kernel: str = "multiquadric", lam: float = 0.01) -> None:
+        if not isinstance(mesh, Mesh):
+            raise ValueError(f"mesh: expected a Mesh, got {type(mesh).__name__}")
+        self.mesh = mesh
+        face = np.concatenate([mesh.landmarks[FEATURES], mesh.phantoms]).astype(np.int64)
+        self.anchors = _frozen(anchor_vertices(mesh))
+        self.centres = _frozen(np.concatenate([face, self.anchors]))
+        vertices = mesh.vertices
+        self.field = VolumeMorph(vertices[self.centres], vertices, kernel=kernel, lam=lam)
+        weights = self.field.weights[:, _NONRIGID_COLUMNS].copy()
+        self.eyeball_vertices = _frozen(
+            _tagged_vertices(mesh, (Tag.RIGHT_EYEBALL, Tag.LEFT_EYEBALL)))
+        weights[self.eyeball_vertices] = 0.0
+        self.weights = _frozen(weights)
+        self._neutral = _frozen(vertices.astype(np.float32, copy=True))
+        self._landmark_weights = _frozen(weights[mesh.landmarks].copy())
+        self._landmark_neutral = _frozen(self._neutral[mesh.landmarks].copy())
+
+    def morph(self, residuals: np.ndarray) -> np.ndarray:
+        """Deform the mesh by the non-rigid feature points' residuals.
+
+        Args:
+            residuals: (9, 3) float32 (float64 accepted and rounded) displacements, mm, model
+                space, of the non-rigid feature points in ``NONRIGID`` order.
+
+        Returns:
+            (N, 3) float32 vertices, mm; exactly ``mesh.vertices`` for zero residuals.
+        """
+        out = self.weights @ _check_residuals(residuals)
+        out += self._neutral
+        return out
+
+    def landmarks(self, residuals: np.ndarray) -> np.ndarray:
+        """The 68 landmark vertices after ``morph(residuals)``.
+
+        Args:
+            residuals: (9, 3) float32 displacements, mm, as ``morph``.
+
+        Returns:
+            (68, 3) float32 positions, mm, model space, iBUG order.
+        """
+        out = self._landmark_weights @ _check_residuals(residuals)
+        out += self._landmark_neutral
+        return out
+
+
+def anchor_vertices(mesh: Mesh, count: int = ANCHORS) -> np.ndarray:
+    """The anchor vertices of a mesh (module docstring: candidates, then paired sampling).
+
+    Args:
+        mesh: the head mesh.
+        count: at most this many anchors, >= 0.
+
+    Returns:
+        (K,) int64 vertex indices, K <= count, in the order picked.
+    """
+    if count < 0:
+        raise ValueError(f"count: expected >= 0, got {count}")
+    v = mesh.vertices.astype(np.float64)
+    face = v[np.concatenate([mesh.landmarks[FEATURES], mesh.phantoms])]
+    ring_z = v[mesh.phantoms[:-1], 2].min()  # the crown (last) sits on top, not on the ring
+    candidates = _tagged_vertices(mesh, (Tag.SKIN, Tag.SCALP, Tag.EAR))
+    p = v[candidates]
+    clearance = np.full(len(p), np.inf)
+    for centre in face:
+        clearance = np.minimum(clearance, np.linalg.norm(p - centre, axis=1))
+    behind = (p[:, 2] < ring_z) | (p[:, 1] < face[:, 1].min() - NECK_BELOW)
+    keep = behind & (clearance >= ANCHOR_CLEARANCE)
+    candidates, p, near = candidates[keep], p[keep], clearance[keep]
+    picked: list[int] = []
+    while len(p) and near.max() > 0:
+        best = int(np.argmax(near))
+        i = best
+        if abs(p[i, 0]) < MIDLINE:  # snap to the midline
+            i = int(np.argmin(np.linalg.norm(p - p[i] * (0.0, 1.0, 1.0), axis=1)))
+        mirror = int(np.argmin(np.linalg.norm(p - p[i] * (-1.0, 1.0, 1.0), axis=1)))
+        group = list(dict.fromkeys(g for g in (i, mirror) if near[g] > 0))  # one on the midline
+        if len(picked) + len(group) > count:
+            break
+        for g in group:
+            picked.append(g)
+            near = np.minimum(near, np.linalg.norm(p - p[g], axis=1))
+        near[best] = 0.0  # taken, or its snapped or mirrored partner was taken already
+    return candidates[np.array(picked, dtype=np.int64)]
+
+
+def _tagged_vertices(mesh: Mesh, tags: tuple[Tag, ...]) -> np.ndarray:
+    """(K,) int64 sorted vertices of the triangles carrying any of ``tags``."""
+    mask = np.isin(mesh.tags, np.array(tags, dtype=np.uint8))
+    return np.unique(mesh.triangles[mask]).astype(np.int64)
+
+
+def _check_residuals(r: np.ndarray) -> np.ndarray:
+    """Validate (9, 3) finite float32/float64 residuals; return them as float32."""
+    if not isinstance(r, np.ndarray):
+        raise ValueError(f"residuals: expected a numpy array, got {type(r).__name__}")
+    if r.shape != (N_RESIDUALS, 3):
+        raise ValueError(f"residuals: expected shape ({N_RESIDUALS}, 3), got {r.shape}")
+    if r.dtype not in (np.float32, np.float64):
+        raise ValueError(f"residuals: expected float32 or float64, got {r.dtype.name}")
+    if not np.isfinite(r).all():
+        raise ValueError("residuals: contains NaN or infinity")
+    return r.astype(np.float32, copy=False)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a`` made read-only (the precomputation must not be edited behind our back)."""
+    a.setflags(write=False)
+    return a
