@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import TypeVar
 
 EXIT_USAGE = 2
+T = TypeVar("T")
 
 
 class CommandError(Exception):
@@ -48,6 +50,72 @@ def _keys_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress(items: Iterable[T], label: str, total: int | None) -> Iterator[T]:
+    """A progress bar on stderr, so that stdout keeps only the report."""
+    from tqdm import tqdm
+
+    return tqdm(items, desc=label, total=total, unit="frame", file=sys.stderr, leave=False)
+
+
+def _model_build(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from models.build import build_model
+    from models.video import frame_range
+
+    try:
+        frames = frame_range(args.frames)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    result = build_model(args.video, args.output, frames, progress=_progress)
+    s = result.summary()
+    report(s, [f"model:    {result.path} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
+               f"preview:  {result.preview}",
+               f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
+               f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
+               f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
+               f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
+               f"from the generic head)",
+               f"time:     {s['seconds']} s"], args.json)
+    return 0
+
+
+def _model_info(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from models.modelfile import load_model, model_summary
+
+    model = load_model(args.model)
+    s = {**model_summary(model), "name": model.info.name,
+         "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
+         "texture": list(model.texture.shape[:2]), "creator": model.info.creator}
+    regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
+    report(s, [f"model:    {args.model}", f"person:   {s['name']} (from {s['source_video'] or '-'}, "
+               f"neutral frame {s['neutral_frame']})",
+               f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
+               f"texture:  {s['texture'][1]} x {s['texture'][0]}",
+               f"regions:  {regions or 'none'}",
+               f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
+    return 0
+
+
+def _model_export(args: argparse.Namespace) -> int:
+    from models.gltf import write_glb
+    from models.modelfile import load_model
+
+    model = load_model(args.model)
+    mesh = model.mesh
+    write_glb(args.output, mesh.vertices, mesh.triangles, mesh.uv, model.texture,
+              mesh.vertex_normals())
+    print(f"wrote {args.output}: {len(mesh.vertices):,} vertices, {len(mesh.triangles):,} "
+          f"triangles, texture {model.texture.shape[1]} x {model.texture.shape[0]}")
+    return 0
+
+
+def _bench_speed(args: argparse.Namespace) -> int:
+    from bench.speed import speed
+
+    return speed(args.model, args.source, as_json=args.json, progress=_progress)
+
+
 def _check(_: argparse.Namespace) -> int:
     from models.egl import check_egl
 
@@ -71,15 +139,15 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
-    m.set_defaults(run=_not_implemented("model build", 3))
+    m.set_defaults(run=_model_build)
     m = msub.add_parser("info", help="describe a model file")
     m.add_argument("model", help="model file (.fwm)")
     m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
-    m.set_defaults(run=_not_implemented("model info", 3))
+    m.set_defaults(run=_model_info)
     m = msub.add_parser("export", help="export a model to glTF 2.0 (.glb)")
     m.add_argument("model", help="model file (.fwm)")
     m.add_argument("-o", "--output", required=True, help="glTF binary to write (.glb)")
-    m.set_defaults(run=_not_implemented("model export", 3))
+    m.set_defaults(run=_model_export)
 
     s = sub.add_parser("send", help="track a face and publish packets (camera host)")
     s.add_argument("--model", required=True, help="person model (.fwm)")
@@ -125,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--model", required=True, help="person model (.fwm)")
     bs.add_argument("--source", required=True, help="video file")
     bs.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
-    bs.set_defaults(run=_not_implemented("bench speed", 3))
+    bs.set_defaults(run=_bench_speed)
     bq = bsub.add_parser("quality", help="geometry and appearance fidelity on a real video")
     bq.add_argument("--model", required=True, help="person model (.fwm)")
     bq.add_argument("--source", required=True, help="video file")
@@ -164,7 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """The failures a user can cause: reported as one line, no traceback."""
+    from models.build import BuildError
     from models.egl import EGLUnavailable
+    from models.gltf import GltfError
+    from models.modelfile import ModelFileError
+    from models.video import VideoError
     from protocol.control import ControlError
     from protocol.keys import KeyFileError
     from protocol.log import LogError
@@ -172,7 +244,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from protocol.transport import TransportError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
-            TransportError, FileNotFoundError, PermissionError, IsADirectoryError)
+            TransportError, BuildError, GltfError, ModelFileError, VideoError,
+            FileNotFoundError, PermissionError, IsADirectoryError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,284 @@
+"""``facewire bench speed``: per-frame cost of the pipeline's stages, one core where possible.
+
+Stages measured so far (issue 3); the other keys of the DESIGN.md contract (``pose_ms``,
+``classify_ms``, ``pack_ms``, ``render_ms``, the sender/receiver totals and latency) belong to
+stages that have not landed, are listed under ``not_measured`` and are never estimated.
+
+- ``track_ms``: median wall time of ``LandmarkTracker.track`` on the source video's frames
+  once the face is acquired, i.e. on frames whose ``TrackResult`` says the full-frame detector
+  did not run (``detected`` false) and a face was found. These include the tracker's periodic
+  neighbourhood checks (``verified``, every 5th frame, about +1.4 ms), so the median is the
+  plain tracked frame. Frames where the full-frame detector ran (acquisition, re-acquisition,
+  the periodic search for a larger face) give ``track_detect_ms``. Decoding is not timed.
+- ``morph_ms``: median wall time of one ``Rig.morph`` call (``models/rig.py``: an
+  (N, 9) @ (9, 3) float32 product and an add) on the model's mesh, over ``MORPH_CALLS`` calls
+  cycling through residuals drawn uniformly from +-``RESIDUAL_MM`` mm, after a warm-up.
+
+BLAS threads. The morph's product is a numpy float32 GEMM, run by the OpenBLAS that numpy
+bundles (scipy bundles another). OpenBLAS splits a GEMM over threads once m*n*k exceeds a
+build-time threshold (262,144 with the defaults; the generic head's 11,188 x 9 x 3 is just
+over it), and on a shared 2-core machine the split can cost more than it saves.
+``OPENBLAS_NUM_THREADS`` only acts when the library loads, so in-process we call each loaded
+OpenBLAS's own ``*_set_num_threads`` (found through ``/proc/self/maps`` and ``ctypes``; the
+``get`` twin gives the value restored afterwards). ``morph_ms`` is timed pinned to one thread;
+``morph_ms_default_threads`` is the same timing with the libraries' own setting, for
+comparison. Where no OpenBLAS can be found (another BLAS, another OS) nothing is pinned and
+``threads`` says so. dlib (tracking) is single-threaded and uses no BLAS.
+
+Targets (printed, informative): morph <= 0.2 ms per 10,000 vertices on one core (the time
+is linear in the vertex count, so a mesh of N vertices is judged by ``morph_ms * 10000 / N``),
+tracking <= 2 ms per acquired frame on 640x480. A miss does not fail the command (exit 0):
+wall times on a shared machine vary by +-20 % from run to run, so a hard threshold on them
+would fail at random; the report states whether each target was met in this run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from bench.report import report
+from models.modelfile import load_model
+from models.rig import N_RESIDUALS, Rig
+from models.tracker import LandmarkTracker
+from models.video import VideoError, read_frames, video_info
+
+_T = TypeVar("_T")
+Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
+
+MORPH_CALLS = 300
+MORPH_WARMUP = 30
+RESIDUAL_MM = 5.0
+TARGET_MORPH_MS_PER_10K = 0.2
+TARGET_TRACK_MS = 2.0
+TARGET_SIZE = (640, 480)
+
+# The speed keys of the DESIGN.md contract that no stage measures yet.
+NOT_MEASURED = ("sender_ms_median", "sender_fps", "pose_ms", "classify_ms", "pack_ms",
+                "receiver_ms_median", "receiver_fps", "render_ms", "latency_ms_median",
+                "latency_ms_p95")
+
+# get/set symbol pairs of OpenBLAS builds: plain, numpy's (64-bit ints) and scipy's bundles.
+_BLAS_SYMBOLS = (
+    ("openblas_get_num_threads", "openblas_set_num_threads"),
+    ("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+    ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+)
+
+
+class NoFaceError(VideoError):
+    """The video holds no face the tracker can find; the message names the file."""
+
+
+def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
+    return iter(items)
+
+
+def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+                  frames: slice | None = None, progress: Progress = _no_progress
+                  ) -> dict[str, Any]:
+    """Time tracking on a video and the morph on a model (module docstring).
+
+    Args:
+        model_path: the person model (``.fwm``).
+        source: a video file.
+        frames: the frame range to track (``models.video.frame_range``); all by default.
+        progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+
+    Returns:
+        A dict: ``frames`` (frames tracked), ``tracked_frames``, ``detect_frames``,
+        ``no_face_frames``, ``track_ms`` (None if no frame was tracked after acquisition),
+        ``track_detect_ms``, ``width``, ``height``, ``vertices``, ``morph_ms``,
+        ``morph_ms_default_threads``, ``morph_calls``, ``threads`` (what was pinned),
+        ``targets`` and ``met`` (per target), ``not_measured`` (contract keys not measured
+        yet); times in milliseconds.
+
+    Raises:
+        ModelFileError: the model is missing or corrupt (names the file).
+        VideoError: the video is missing or unreadable, or the range holds no frame;
+            ``NoFaceError`` when no frame holds a face (names the file).
+    """
+    frames = slice(0, None) if frames is None else frames
+    model = load_model(model_path)
+    source = Path(source)
+    info = video_info(source)
+    tracking = _time_tracking(source, frames, info.frames, progress)
+    rig = Rig(model.mesh)
+    n = len(model.mesh.vertices)
+    pinned, threads = _time_morph_pinned(rig)
+    default = _time_morph(rig)
+    morph_per_10k = pinned * 10_000 / n
+    result: dict[str, Any] = {
+        "model": str(model_path),
+        "source": str(source),
+        **tracking,
+        "vertices": n,
+        "morph_ms": round(pinned, 4),
+        "morph_ms_per_10k_vertices": round(morph_per_10k, 4),
+        "morph_ms_default_threads": round(default, 4),
+        "morph_calls": MORPH_CALLS,
+        "threads": threads,
+        "targets": {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K,
+                    "track_ms": TARGET_TRACK_MS},
+        "met": {"morph": morph_per_10k <= TARGET_MORPH_MS_PER_10K,
+                "track": (tracking["track_ms"] is not None
+                          and tracking["track_ms"] <= TARGET_TRACK_MS)},
+        "not_measured": list(NOT_MEASURED),
+    }
+    return result
+
+
+def format_speed(result: dict[str, Any]) -> str:
+    """Human-readable lines of a ``measure_speed`` result (no trailing newline)."""
+    r = result
+    size = f"{r['width']}x{r['height']}"
+    lines = [f"{r['source']}: {r['frames']} frames ({size}): {r['tracked_frames']} tracked, "
+             f"{r['detect_frames']} with a full-frame detection, {r['no_face_frames']} without "
+             f"a face"]
+    if r["track_ms"] is None:
+        lines.append("track:  not measured (no frame was tracked after acquisition)")
+    else:
+        note = "" if (r["width"], r["height"]) == TARGET_SIZE else \
+            f" (target stated for {TARGET_SIZE[0]}x{TARGET_SIZE[1]})"
+        lines.append(f"track:  {r['track_ms']:.3f} ms median per tracked frame; "
+                     f"{_verdict(r['met']['track'])} <= {TARGET_TRACK_MS:g} ms{note}")
+    if r["track_detect_ms"] is not None:
+        lines.append(f"        {r['track_detect_ms']:.3f} ms median with a full-frame detection")
+    lines += [
+        f"morph:  {r['morph_ms']:.4f} ms median per frame, {r['vertices']:,} vertices "
+        f"({r['morph_ms_per_10k_vertices']:.4f} ms per 10k); "
+        f"{_verdict(r['met']['morph'])} <= {TARGET_MORPH_MS_PER_10K:g} ms per 10k vertices",
+        f"        {r['morph_ms_default_threads']:.4f} ms with the default BLAS threads",
+        f"threads: {r['threads']}",
+        f"not measured yet: {', '.join(r['not_measured'])}",
+    ]
+    return "\n".join(lines)
+
+
+def speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+          as_json: bool = False, frames: slice | None = None,
+          progress: Progress = _no_progress) -> int:
+    """Run ``measure_speed`` and print its report; the exit status is 0 (targets inform)."""
+    result = measure_speed(model_path, source, frames, progress)
+    report(result, format_speed(result).splitlines(), as_json)
+    return 0
+
+
+def _verdict(met: bool) -> str:
+    return "met" if met else "MISSED"
+
+
+def _time_tracking(source: Path, frames: slice, count: int, progress: Progress
+                   ) -> dict[str, Any]:
+    """Track every frame of the range; median times of tracked and detection frames."""
+    total = None
+    if count:
+        stop = count if frames.stop is None else min(frames.stop, count)
+        total = max(stop - frames.start, 0)
+    tracker = LandmarkTracker()
+    tracked: list[float] = []
+    detect: list[float] = []
+    missing = 0
+    n = 0
+    shape: tuple[int, ...] = ()
+    for frame in progress(read_frames(source, frames), "tracking", total):
+        n += 1
+        shape = frame.image.shape
+        start = time.perf_counter()
+        result = tracker.track(frame.image)
+        elapsed = (time.perf_counter() - start) * 1000
+        if result.points is None:
+            missing += 1
+        if result.detected:
+            detect.append(elapsed)
+        elif result.points is not None:
+            tracked.append(elapsed)
+    if n == 0:
+        raise VideoError(f"{source}: no frames in range {frames.start}:{frames.stop or ''}")
+    if missing == n:
+        raise NoFaceError(f"{source}: no face found in any of its {n} frames "
+                          f"(range {frames.start}:{frames.stop or ''})")
+    return {
+        "frames": n,
+        "tracked_frames": len(tracked),
+        "detect_frames": len(detect),
+        "no_face_frames": missing,
+        "width": int(shape[1]),
+        "height": int(shape[0]),
+        "track_ms": round(float(np.median(tracked)), 4) if tracked else None,
+        "track_detect_ms": round(float(np.median(detect)), 4) if detect else None,
+    }
+
+
+def _time_morph(rig: Rig) -> float:
+    """Median ms of ``rig.morph`` over ``MORPH_CALLS`` calls with residuals in +-RESIDUAL_MM."""
+    rng = np.random.default_rng(0)
+    pool = rng.uniform(-RESIDUAL_MM, RESIDUAL_MM, (64, N_RESIDUALS, 3)).astype(np.float32)
+    for k in range(MORPH_WARMUP):
+        rig.morph(pool[k % len(pool)])
+    times = np.empty(MORPH_CALLS)
+    for k in range(MORPH_CALLS):
+        r = pool[k % len(pool)]
+        start = time.perf_counter()
+        rig.morph(r)
+        times[k] = time.perf_counter() - start
+    return float(np.median(times)) * 1000
+
+
+def _time_morph_pinned(rig: Rig) -> tuple[float, str]:
+    """``_time_morph`` with every loaded OpenBLAS pinned to one thread; and what was pinned."""
+    with _one_blas_thread() as pinned:
+        ms = _time_morph(rig)
+    if not pinned:
+        return ms, "no OpenBLAS found to pin: morph timed with the default BLAS threads"
+    libs = ", ".join(f"{name} ({before} -> 1)" for name, before in pinned)
+    return ms, f"morph timed with BLAS pinned to 1 thread: {libs}; tracking: dlib, 1 thread"
+
+
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[list[tuple[str, int]]]:
+    """Set every loaded OpenBLAS to one thread; yield [(library name, previous count)]."""
+    controls = []
+    for path in _loaded_openblas():
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for get_name, set_name in _BLAS_SYMBOLS:
+            if hasattr(lib, get_name) and hasattr(lib, set_name):
+                get, put = getattr(lib, get_name), getattr(lib, set_name)
+                get.restype, get.argtypes = ctypes.c_int, []
+                put.restype, put.argtypes = None, [ctypes.c_int]
+                controls.append((Path(path).name, get, put))
+                break
+    pinned = []
+    try:
+        for name, get, put in controls:
+            before = int(get())
+            put(1)
+            pinned.append((name, before, put))
+        yield [(name, before) for name, before, _ in pinned]
+    finally:
+        for _, before, put in pinned:
+            put(before)
+
+
+def _loaded_openblas() -> list[str]:
+    """Paths of the OpenBLAS libraries mapped into this process (Linux); [] elsewhere."""
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError:
+        return []
+    paths = []
+    for line in maps.splitlines():
+        path = line.split(maxsplit=5)[-1] if line.count(" ") >= 5 else ""
+        if "openblas" in Path(path).name.lower() and path not in paths:
+            paths.append(path)
+    return paths

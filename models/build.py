@@ -1,0 +1,222 @@
+"""Enrollment: build a person's model (``.fwm``) from a short video of that person.
+
+The steps, in order (``build_model``):
+
+1. Track: the 68 points of the largest face in every frame of the range
+   (``models.tracker``); frames without a face are kept as ``None``.
+2. Fit: choose the neutral frame, estimate the head pose in every frame and the person's 3D
+   landmarks, and warp the generic head onto them (``models.fit``). The camera is unknown, so
+   its intrinsics are a guess (``models.fit.intrinsics_guess``).
+3. Texture: decode the fit's texture views again (the neutral frame first, then side views),
+   project them onto the fitted mesh's UV layout (``models.texture``) at ``TEXTURE_SIZE``, and
+   fill every texel no view saw, so no black gap or seam shows from any angle.
+4. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
+   the front and from three-quarter view, beside the neutral frame cropped to the face, so a
+   user can see at a glance whether the model is that person.
+
+Failures a user can cause (an unreadable video, no face, too few face frames) raise
+``BuildError`` naming the video.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, TypeVar
+
+import cv2
+import numpy as np
+
+from models.fit import Fit, FitError, fit_person, intrinsics_guess
+from models.head import generic_head
+from models.landmarks import outer_eye_distance
+from models.modelfile import Camera, ModelInfo, PersonModel, model_summary, save_model
+from models.raster import Camera as ViewCamera
+from models.raster import MeshRenderer, orbit_pose
+from models.texture import fill_holes, project_views, uv_surface
+from models.tracker import LandmarkTracker
+from models.video import read_frames, video_info
+
+TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
+PREVIEW_HEIGHT = 480
+PREVIEW_YAWS = (0.0, 35.0)  # degrees: front and three-quarter
+CREATOR = "facewire 0.1.0"
+
+_T = TypeVar("_T")
+Progress = Callable[[Iterable[_T], str, int | None], Iterator[_T]]
+
+
+class BuildError(ValueError):
+    """The video cannot give a model; the message names the video and says why."""
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """What ``build_model`` made and measured.
+
+    Attributes:
+        model: the saved model (with its sha256 and file size).
+        path: the ``.fwm`` file.
+        preview: the preview PNG beside it.
+        fit: the geometry fit (poses, neutral frame, depth mode).
+        frames: video frame indices tracked, in order.
+        face_frames: how many of them had a face.
+        seconds: wall time of the whole build.
+    """
+
+    model: PersonModel
+    path: Path
+    preview: Path
+    fit: Fit
+    frames: tuple[int, ...]
+    face_frames: int
+    seconds: float
+
+    def summary(self) -> dict[str, Any]:
+        """The ``--json`` object: DESIGN.md's model keys, then how the build went."""
+        return {**model_summary(self.model), "path": str(self.path),
+                "preview": str(self.preview), "frames": len(self.frames),
+                "face_frames": self.face_frames,
+                "neutral_frame": self.model.info.neutral_frame, "depth": self.fit.depth,
+                "depth_change_mm": round(self.fit.depth_change_mm, 3),
+                "texture_views": list(self.model.info.frames_used),
+                "seconds": round(self.seconds, 2)}
+
+
+def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
+    return iter(items)
+
+
+def preview_path(model_path: str | os.PathLike[str]) -> Path:
+    """Where the preview of ``MODEL.fwm`` goes: ``MODEL.preview.png`` beside it."""
+    path = Path(model_path)
+    return path.with_name(path.stem + ".preview.png")
+
+
+def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
+                frames: slice = slice(0, None), name: str | None = None,
+                progress: Progress = _no_progress) -> BuildResult:
+    """Build a person's model from a video and save it with its preview.
+
+    Args:
+        video: the enrollment video: one person (the largest face is taken), some seconds of
+            neutral face and expressions, ideally some head turns (for depth and side texture).
+        out: the ``.fwm`` file to write; the preview goes to ``preview_path(out)``.
+        frames: the frame range to use (``models.video.frame_range``).
+        name: the person's name; the video's file name without extension by default.
+        progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+
+    Raises:
+        BuildError: no readable frames, no face, or too few face frames (names the video).
+        VideoError: the video cannot be opened or decoded.
+    """
+    start = time.perf_counter()
+    video = Path(video)
+    info = video_info(video)
+    total = None
+    if info.frames:
+        stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
+        total = max(stop - frames.start, 0)
+
+    tracker = LandmarkTracker()
+    indices: list[int] = []
+    points: list[np.ndarray | None] = []
+    for frame in progress(read_frames(video, frames), "tracking", total):
+        indices.append(frame.index)
+        points.append(tracker.track(frame.image).points)
+    if not indices:
+        raise BuildError(f"{video}: no frames in range {frames.start}:{frames.stop or ''}")
+    face_frames = sum(p is not None for p in points)
+    if face_frames == 0:
+        raise BuildError(f"{video}: no face found in frames {indices[0]}..{indices[-1]}")
+
+    fx, fy, cx, cy = intrinsics_guess(info.width, info.height)
+    try:
+        fit = fit_person(points, fx, fy, cx, cy, head=generic_head())
+    except FitError as exc:
+        raise BuildError(f"{video}: {exc}") from None
+
+    wanted = {indices[i]: i for i in fit.views}
+    images = {frame.index: frame.image for frame in read_frames(
+        video, slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
+    views = []
+    for k in fit.views:
+        pose = fit.poses[k]
+        views.append((images[indices[k]], ViewCamera(fx, fy, cx, cy, info.width, info.height,
+                                                     pose.rotation, pose.translation)))
+    surface = uv_surface(fit.mesh, TEXTURE_SIZE)
+    texture, weight = project_views(fit.mesh, surface, views)
+    texture = fill_holes(texture, weight > 0)
+
+    model = PersonModel(
+        mesh=fit.mesh, texture=texture,
+        camera=Camera(fx, fy, cx, cy, info.width, info.height),
+        info=ModelInfo(name=name or video.stem, source_video=video.name,
+                       frames_used=tuple(sorted(indices[k] for k in fit.views)),
+                       neutral_frame=indices[fit.neutral], creator=CREATOR))
+    out = Path(out)
+    model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
+    preview = preview_path(out)
+    neutral_image = images[indices[fit.neutral]]
+    _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
+    return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
+                       time.perf_counter() - start)
+
+
+def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
+                   neutral_points: np.ndarray | None = None) -> np.ndarray:
+    """The model from the front and from three-quarter view, beside the neutral frame.
+
+    Args:
+        model: the person model.
+        neutral_image: (h, w, 3) uint8 BGR frame the texture's neutral view came from, or None.
+        neutral_points: (68, 2) its landmarks (px), to crop the frame to the face like the
+            renders; the whole frame when None.
+
+    Returns:
+        (PREVIEW_HEIGHT, W, 3) uint8 BGR image: [neutral frame |] front | three-quarter.
+    """
+    mesh = model.mesh
+    size = PREVIEW_HEIGHT
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    centre = (lo + hi) / 2
+    centre[1] += 0.1 * (hi[1] - lo[1])  # frame the face, not the neck
+    distance = 1.9 * (hi[1] - lo[1])
+    panels = []
+    if neutral_image is not None:
+        panels.append(_face_crop(neutral_image, neutral_points, size))
+    with MeshRenderer(size, size, background=(40, 40, 40)) as renderer:
+        renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
+        renderer.set_texture(model.texture)
+        for yaw in PREVIEW_YAWS:
+            rotation, translation = orbit_pose(yaw, 0.0, distance, centre)
+            camera = ViewCamera.virtual(size, size, rotation, translation, fov_y_deg=25.0)
+            panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
+    return np.hstack(panels)
+
+
+def _face_crop(image: np.ndarray, points: np.ndarray | None, size: int) -> np.ndarray:
+    """A square crop of the frame around the face (3.6 eye distances wide), ``size`` px."""
+    h, w = image.shape[:2]
+    if points is None:
+        side, x0, y0 = min(h, w), (w - min(h, w)) // 2, (h - min(h, w)) // 2
+    else:
+        side = int(3.6 * float(outer_eye_distance(points)))
+        cx, cy = points.mean(axis=0)
+        x0, y0 = int(cx - side / 2), int(cy - side / 2 - 0.1 * side)
+    pad = max(0, -x0, -y0, x0 + side - w, y0 + side - h)
+    padded = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
+                                value=(40, 40, 40))
+    crop = padded[y0 + pad:y0 + pad + side, x0 + pad:x0 + pad + side]
+    return cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise BuildError(f"{path}: could not encode the preview")
+    path.write_bytes(data.tobytes())
+

@@ -1,0 +1,122 @@
+"""`facewire model build / info / export` end to end on real video, and their bad inputs."""
+
+from __future__ import annotations
+
+import json
+from fractions import Fraction
+
+import av
+import cv2
+import numpy as np
+import pytest
+
+from facewire.cli import main
+from models.build import PREVIEW_HEIGHT, TEXTURE_SIZE, build_model
+from models.gltf import read_glb
+from models.head import generic_head
+from models.modelfile import load_model
+
+
+def _write_video(path, frames: int, image: np.ndarray) -> None:
+    """A real H.264 file of ``frames`` copies of ``image`` (BGR)."""
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx264", rate=Fraction(25))
+        stream.width, stream.height, stream.pix_fmt = image.shape[1], image.shape[0], "yuv420p"
+        for _ in range(frames):
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")))
+        out.mux(stream.encode(None))
+
+
+@pytest.fixture(scope="module")
+def built(shared_data, tmp_path_factory):
+    """lp_d0.mp4 (78 frames: gaze, smile, closed eyes) built through the command line."""
+    out = tmp_path_factory.mktemp("build") / "lp.fwm"
+    return out, shared_data / "video" / "lp_d0.mp4"
+
+
+def test_build_info_export(built, capsys):
+    out, video = built
+    assert main(["model", "build", str(video), "-o", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    head = generic_head()
+    assert {"vertices", "triangles", "regions", "layers", "bytes", "sha256"} <= summary.keys()
+    assert (summary["vertices"], summary["triangles"]) == (len(head.vertices),
+                                                           len(head.triangles))
+    assert summary["bytes"] == out.stat().st_size
+    assert summary["face_frames"] >= 70
+    model = load_model(out)
+    assert model.sha256 == summary["sha256"]
+    assert model.texture.shape == (*TEXTURE_SIZE, 3)
+    # the texture is filled: no black texel anywhere, the face is skin-coloured, not grey
+    assert model.texture.max(axis=2).min() > 0
+    preview = cv2.imread(str(out.with_name("lp.preview.png")))
+    assert preview.shape == (PREVIEW_HEIGHT, 3 * PREVIEW_HEIGHT, 3)
+    front = preview[:, PREVIEW_HEIGHT:2 * PREVIEW_HEIGHT]
+    face = front[PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3,
+                 PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3].reshape(-1, 3).mean(axis=0)
+    assert face[2] > face[0] + 10  # red over blue: skin seen, not background or grey
+
+    assert main(["model", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert info["sha256"] == summary["sha256"] and info["neutral_frame"] == summary[
+        "neutral_frame"]
+
+    glb = out.with_suffix(".glb")
+    assert main(["model", "export", str(out), "-o", str(glb)]) == 0
+    exported = read_glb(glb)
+    np.testing.assert_allclose(exported.positions, model.mesh.vertices, atol=1e-3)
+    assert exported.texture is not None and exported.texture.shape == model.texture.shape
+
+
+def test_unreadable_video(tmp_path, capsys):
+    bad = tmp_path / "notes.mp4"
+    bad.write_text("this is not a video")
+    assert main(["model", "build", str(bad), "-o", str(tmp_path / "m.fwm")]) == 2
+    err = capsys.readouterr().err
+    assert "notes.mp4" in err and "Traceback" not in err
+    assert not (tmp_path / "m.fwm").exists()
+
+
+def test_video_without_face(tmp_path, capsys):
+    video = tmp_path / "wall.mp4"
+    _write_video(video, 20, np.full((240, 320, 3), 128, np.uint8))
+    assert main(["model", "build", str(video), "-o", str(tmp_path / "m.fwm")]) == 2
+    err = capsys.readouterr().err
+    assert "wall.mp4" in err and "no face" in err
+    assert not (tmp_path / "m.fwm").exists()
+
+
+def test_too_short_for_a_neutral_frame(shared_data, tmp_path, capsys):
+    video = shared_data / "video" / "lp_d0.mp4"
+    assert main(["model", "build", str(video), "-o", str(tmp_path / "m.fwm"),
+                 "--frames", "0:3"]) == 2
+    err = capsys.readouterr().err
+    assert "lp_d0.mp4" in err and "Traceback" not in err
+    assert not (tmp_path / "m.fwm").exists()
+
+
+def test_bad_frame_range(shared_data, tmp_path, capsys):
+    video = shared_data / "video" / "lp_d0.mp4"
+    assert main(["model", "build", str(video), "-o", str(tmp_path / "m.fwm"),
+                 "--frames", "9:2"]) == 2
+    assert "--frames" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_corrupt_model_refused(built, tmp_path, capsys, damage):
+    out, video = built
+    if not out.exists():
+        build_model(video, out)
+    data = bytearray(out.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    else:
+        data[len(data) // 3] ^= 0xFF
+    bad = tmp_path / "bad.fwm"
+    bad.write_bytes(bytes(data))
+    for argv in (["model", "info", str(bad)], ["model", "export", str(bad), "-o",
+                                                str(tmp_path / "x.glb")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "bad.fwm" in err and "Traceback" not in err
+    assert not (tmp_path / "x.glb").exists()

@@ -1,0 +1,126 @@
+"""Tests for models.video: frame ranges, container info and frame-by-frame decoding."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from models.video import VideoError, VideoFrame, frame_range, read_frames, video_info
+
+
+def _write_video(path: Path, frames: list[np.ndarray], rate: int = 25) -> None:
+    """Encode (H, W, 3) uint8 BGR frames as H.264 with PyAV."""
+    h, w = frames[0].shape[:2]
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=rate)
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        for image in frames:
+            frame = av.VideoFrame.from_ndarray(image, format="bgr24")
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
+@pytest.fixture(scope="module")
+def small_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """12 frames of 64x48 whose brightness encodes the frame index (index * 20)."""
+    path = tmp_path_factory.mktemp("video") / "ramp.mp4"
+    _write_video(path, [np.full((48, 64, 3), 10 + 20 * k, np.uint8) for k in range(12)])
+    return path
+
+
+def test_frame_range() -> None:
+    assert frame_range(None) == slice(0, None)
+    assert frame_range("0:180") == slice(0, 180)
+    assert frame_range("5:") == slice(5, None)
+    assert frame_range(":7") == slice(0, 7)
+    assert frame_range(":") == slice(0, None)
+    for bad in ("5:2", "5:5", "x", "-1:", "3", "a:b", "1:2:3", ""):
+        with pytest.raises(ValueError, match="--frames"):
+            frame_range(bad)
+
+
+def test_small_video_counts_order_and_values(small_video: Path) -> None:
+    info = video_info(small_video)
+    assert (info.width, info.height, info.frames) == (64, 48, 12)
+    assert info.rate_hz == pytest.approx(25.0)
+    frames = list(read_frames(small_video))
+    assert [f.index for f in frames] == list(range(12))
+    for f in frames:
+        assert isinstance(f, VideoFrame)
+        assert f.image.shape == (48, 64, 3) and f.image.dtype == np.uint8
+        assert abs(float(f.image.mean()) - (10 + 20 * f.index)) < 4  # the right frame, in order
+    times = np.array([f.time for f in frames])
+    np.testing.assert_allclose(np.diff(times), 1 / 25, atol=1e-6)
+    sliced = list(read_frames(small_video, frame_range("3:6")))
+    assert [f.index for f in sliced] == [3, 4, 5]
+    for f, g in zip(sliced, frames[3:6]):
+        np.testing.assert_array_equal(f.image, g.image)
+        assert f.time == g.time
+    assert [f.index for f in read_frames(small_video, frame_range("10:"))] == [10, 11]
+    assert list(read_frames(small_video, frame_range("20:30"))) == []
+
+
+def test_real_video(shared_data: Path) -> None:
+    path = shared_data / "video" / "lp_d0.mp4"
+    info = video_info(path)
+    assert info.width > 0 and info.height > 0 and info.rate_hz > 0
+    frames = list(read_frames(path))
+    assert len(frames) > 30
+    if info.frames:
+        assert len(frames) == info.frames
+    assert [f.index for f in frames] == list(range(len(frames)))
+    for f in frames[:5]:
+        assert f.image.shape == (info.height, info.width, 3) and f.image.dtype == np.uint8
+    times = np.array([f.time for f in frames])
+    assert (np.diff(times) > 0).all()
+    assert times[-1] - times[0] == pytest.approx((len(frames) - 1) / info.rate_hz, rel=0.05)
+    part = list(read_frames(path, frame_range("10:20")))
+    assert [f.index for f in part] == list(range(10, 20))
+    np.testing.assert_array_equal(part[0].image, frames[10].image)
+
+
+def test_container_without_frame_count(shared_data: Path) -> None:
+    """AVI/WMV containers may not state a frame count: 0 means unknown, frames still come."""
+    path = shared_data / "video" / "openface_default.wmv"
+    info = video_info(path)
+    assert (info.width, info.height) == (640, 480)
+    first = list(read_frames(path, frame_range(":5")))
+    assert [f.index for f in first] == list(range(5))
+    assert first[0].image.shape == (480, 640, 3)
+
+
+def test_missing_and_unreadable_files(tmp_path: Path) -> None:
+    missing = tmp_path / "nothere.mp4"
+    text = tmp_path / "notes.mp4"
+    text.write_text("this is not a video\n")
+    truncated = tmp_path / "cut.mp4"
+    whole = tmp_path / "whole.mp4"
+    _write_video(whole, [np.full((48, 64, 3), 90, np.uint8)] * 5)
+    truncated.write_bytes(whole.read_bytes()[:200])
+    for path, why in ((missing, "no such video file"), (text, "not a readable video"),
+                      (tmp_path, "no such video file"), (truncated, str(truncated))):
+        with pytest.raises(VideoError, match=why) as err:
+            video_info(path)
+        assert str(path) in str(err.value)
+        with pytest.raises(VideoError) as err:
+            list(read_frames(path))
+        assert str(path) in str(err.value)
+
+
+def test_video_without_frames(tmp_path: Path) -> None:
+    """A container whose video stream got no frame at all: a clear error naming the file."""
+    path = tmp_path / "empty.mp4"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=25)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        container.start_encoding()
+    with pytest.raises(VideoError) as err:
+        video_info(path)
+    assert str(path) in str(err.value)
+    with pytest.raises(VideoError):
+        list(read_frames(path))
