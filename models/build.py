@@ -43,6 +43,8 @@ from models.video import read_frames, video_info
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480
 PREVIEW_YAWS = (0.0, 35.0)  # degrees: front and three-quarter
+PREVIEW_FOV_DEG = 25.0
+CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye distances
 CREATOR = "facewire 0.1.0"
 
 _T = TypeVar("_T")
@@ -181,10 +183,12 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
     """
     mesh = model.mesh
     size = PREVIEW_HEIGHT
-    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    centre = (lo + hi) / 2
-    centre[1] += 0.1 * (hi[1] - lo[1])  # frame the face, not the neck
-    distance = 1.9 * (hi[1] - lo[1])
+    # Frame the renders like the crop of the neutral frame (``_face_crop``): a field of
+    # CROP_EYE_DISTANCES outer-eye distances, centred a tenth of it above the landmarks' mean.
+    landmarks = mesh.vertices[mesh.landmarks].astype(np.float64)
+    field = CROP_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
+    centre = landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0]
+    distance = field / (2 * np.tan(np.radians(PREVIEW_FOV_DEG) / 2))
     panels = []
     if neutral_image is not None:
         panels.append(_face_crop(neutral_image, neutral_points, size))
@@ -193,18 +197,20 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
         renderer.set_texture(model.texture)
         for yaw in PREVIEW_YAWS:
             rotation, translation = orbit_pose(yaw, 0.0, distance, centre)
-            camera = ViewCamera.virtual(size, size, rotation, translation, fov_y_deg=25.0)
+            camera = ViewCamera.virtual(size, size, rotation, translation,
+                                        fov_y_deg=PREVIEW_FOV_DEG)
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
     return np.hstack(panels)
 
 
 def _face_crop(image: np.ndarray, points: np.ndarray | None, size: int) -> np.ndarray:
-    """A square crop of the frame around the face (3.6 eye distances wide), ``size`` px."""
+    """A square crop of the frame around the face, ``CROP_EYE_DISTANCES`` outer-eye distances
+    wide, ``size`` px."""
     h, w = image.shape[:2]
     if points is None:
         side, x0, y0 = min(h, w), (w - min(h, w)) // 2, (h - min(h, w)) // 2
     else:
-        side = int(3.6 * float(outer_eye_distance(points)))
+        side = int(CROP_EYE_DISTANCES * float(outer_eye_distance(points)))
         cx, cy = points.mean(axis=0)
         x0, y0 = int(cx - side / 2), int(cy - side / 2 - 0.1 * side)
     pad = max(0, -x0, -y0, x0 + side - w, y0 + side - h)
