@@ -23,6 +23,7 @@ MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags 
 from __future__ import annotations
 
 import re
+import time
 
 import zmq
 import zmq.auth.thread
@@ -168,11 +169,21 @@ class ControlClient(_Socket):
     def request(self, message: Message, timeout_ms: int) -> Message | None:
         """Send a request and wait for its reply; None on timeout.
 
+        The timeout covers the send too: a DEALER with no connected peer (the server is down,
+        or refused our CURVE handshake) cannot take the message and would block forever.
+
         Raises:
             ControlError: the reply is malformed.
         """
-        self.socket.send_multipart([b"", encode_message(message)])
-        if not self.socket.poll(timeout_ms, zmq.POLLIN):
+        deadline = time.monotonic() + timeout_ms / 1000
+        if not self.socket.poll(timeout_ms, zmq.POLLOUT):
+            return None
+        try:
+            self.socket.send_multipart([b"", encode_message(message)], zmq.NOBLOCK)
+        except zmq.Again:
+            return None
+        left = max(0, round((deadline - time.monotonic()) * 1000))
+        if not self.socket.poll(left, zmq.POLLIN):
             return None
         parts = self.socket.recv_multipart(zmq.NOBLOCK)
         return decode_message(parts[-1])
