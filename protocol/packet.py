@@ -11,16 +11,15 @@ version    1      4           1                                   -         -
 flags      1      8           bit set, see ``Flag``               -         -
 seq        1      16          0 .. 65535, wraps                   1         -
 rotation   3      11          -102.4 .. +102.3                    0.1       degree (rotation vector)
-shift_xy   2      11          -256.0 .. +255.75                   0.25      mm
+shift_xy   2      12          -1024.0 .. +1023.5                  0.5       mm
 shift_z    1      11          -2147 .. -100                       1         mm
 residuals  18     8           -32.0 .. +31.75                     0.25      mm
 q          8      7           0 .. 7.9375                         1/16      layer
-(pad)      1      2           0                                   -         -
 crc        1      16          CRC-16/CCITT-FALSE of bytes 0..36   -         -
 =========  =====  ==========  ==================================  ========  =====================
 
 Total 312 bits = 39 bytes. Worst-case quantisation error is half a step: 0.05 degree per
-rotation-vector component (at most 0.087 degree of rotation), 0.125 mm in x and y, 0.5 mm in
+rotation-vector component (at most 0.087 degree of rotation), 0.25 mm in x and y, 0.5 mm in
 depth, 0.125 mm per residual coordinate, 1/32 layer in Q. The tracker's own noise is about a
 pixel, roughly 1 mm at a typical webcam distance, so quantisation stays well below it.
 
@@ -102,7 +101,7 @@ class Quantiser:
 
 QUANTISERS: tuple[Quantiser, ...] = (
     Quantiser("rotation", 3, 11, -102.4, 0.1, "degree"),
-    Quantiser("shift_xy", 2, 11, -256.0, 0.25, "mm"),
+    Quantiser("shift_xy", 2, 12, -1024.0, 0.5, "mm"),
     Quantiser("shift_z", 1, 11, -2147.0, 1.0, "mm"),
     Quantiser("residuals", 2 * N_RESIDUAL_POINTS, 8, -32.0, 0.25, "mm"),
     Quantiser("q", N_REGIONS, 7, 0.0, 1.0 / 16.0, "layer"),
@@ -112,7 +111,6 @@ QUANTISERS: tuple[Quantiser, ...] = (
 _LAYOUT: tuple[tuple[str, int, int], ...] = (
     ("version", 1, 4), ("flags", 1, 8), ("seq", 1, 16),
     *((q.name, q.count, q.bits) for q in QUANTISERS),
-    ("pad", 1, 2),
 )
 _WIDTHS = np.array([bits for _, count, bits in _LAYOUT for _ in range(count)])
 _SLOT = {}  # name -> slice of slots
@@ -251,7 +249,7 @@ def decode_frames(packets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     slots = spread @ (1 << _SHIFTS)
     crc = packets[:, -2].astype(np.int64) << 8 | packets[:, -1]
     errors = np.full(n, None, object)
-    reserved = (slots[:, _SLOT["flags"].start] & RESERVED_FLAGS) | slots[:, _SLOT["pad"].start]
+    reserved = slots[:, _SLOT["flags"].start] & RESERVED_FLAGS
     errors[reserved != 0] = "reserved"
     errors[crc != crc16(packets[:, :_BODY_BYTES])] = "crc"
     errors[slots[:, _SLOT["version"].start] != VERSION] = "version"

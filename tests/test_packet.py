@@ -40,7 +40,7 @@ def _frames() -> st.SearchStrategy[Frame]:
 
 def test_layout_is_39_bytes_under_12_kbps() -> None:
     assert PACKET_BYTES == 39
-    bits = 4 + 8 + 16 + sum(q.count * q.bits for q in QUANTISERS) + 2 + 16
+    bits = 4 + 8 + 16 + sum(q.count * q.bits for q in QUANTISERS) + 16
     assert bits == PACKET_BYTES * 8
     assert PACKET_BYTES * 8 * 30 < 12_000
 
@@ -50,6 +50,8 @@ def test_quantiser_targets() -> None:
     assert Q["rotation"].step <= 0.1
     assert Q["q"].step <= 1 / 16 and Q["q"].hi >= 5  # six layers fit
     assert Q["shift_z"].hi < 0  # faces are in front of the camera (z < 0)
+    # A face at the edge of a 53-degree view 2 m away is 1 m off the axis.
+    assert Q["shift_xy"].lo <= -1000 and Q["shift_xy"].hi >= 1000
 
 
 @settings(max_examples=300, deadline=None)
