@@ -61,6 +61,33 @@ moves toward it by at most 0.17 mm and keeps at least 0.08 mm of its 0.2 mm neut
 
 ``landmarks(r)`` is ``v[L] + B[L] @ r`` for the 68 landmark vertices ``L``: the model's
 landmarks after the morph, in model space.
+
+Tangent frames (the packet's residual coordinates)
+--------------------------------------------------
+The packet carries each non-rigid point's residual as two numbers (u, v): a 2D image residual
+lifted onto a surface has two degrees of freedom. ``tangents`` (9, 2, 3) holds, per point k
+(``NONRIGID`` order), an orthonormal basis (t1_k, t2_k) of the plane through the point's
+NEUTRAL position with normal n_k; the residual (u, v) of point k is the 3D model-space
+displacement
+
+    d_k = u t1_k + v t2_k,
+
+``from_tangent`` computes it, and ``to_tangent`` is the orthogonal projection back,
+(u, v) = (d . t1, d . t2) (exact for displacements in the plane, the normal component is
+dropped otherwise). t1 is the model x axis projected onto the plane and normalised (the y axis
+if x is within 0.1 % of the normal), t2 = n x t1, so (t1, t2, n) is right-handed.
+
+n_k is the area-weighted vertex normal of the neutral mesh (copies of the vertex at the same
+position, e.g. on a UV seam, welded) for the brows and the mouth corners, which slide over
+the forehead and the cheeks. For the lip middles 51, 57 and the chin 8 (``FRONTAL_POINTS``)
+it is the model's forward axis z. Why: those points move mostly up and down (the mouth
+opens, the jaw drops), and on a mesh their surfaces face up or down: on the generic head the
+chin's normal is (0, -0.98, 0.17), the lower lip's (0, -0.75, 0.66), the upper lip's
+(0, 0.58, 0.81). A vertical move is then largely along the normal, which a tangent plane
+cannot carry (the rig's own test expression, chin 8 mm down, would keep 1.4 mm of it), and
+lifting a downward image move onto the chin's plane multiplies it by 1/0.17 along the plane,
+toward the neck: a chin that drops 10 mm would be sent as 58 mm. With n = z the plane is the
+face's frontal plane at the point, so a drop is carried as a drop.
 """
 
 from __future__ import annotations
@@ -76,6 +103,8 @@ ANCHOR_CLEARANCE = 40.0  # mm from every face centre
 NECK_BELOW = 25.0  # mm below the lowest face centre counts as neck
 MIDLINE = 10.0  # mm: picks this close to x = 0 snap to the midline
 N_RESIDUALS = len(NONRIGID)
+FRONTAL_POINTS = (51, 57, 8)  # iBUG points whose lift plane faces the model's z (docstring)
+WELD_MM = 1e-4  # vertices closer than this are copies of one vertex (UV seams)
 
 # Columns of the non-rigid feature points among the centres: FEATURES lists RIGID first.
 _NONRIGID_COLUMNS = np.arange(len(RIGID), len(FEATURES))
@@ -97,6 +126,9 @@ class Rig:
         field: the ``VolumeMorph`` of the centres, evaluated at every vertex.
         weights: (N, 9) float32, read-only: ``morph(r) == mesh.vertices + weights @ r``.
         eyeball_vertices: (E,) int64, the vertices of both eyeballs, which never move.
+        tangents: (9, 2, 3) float32, read-only: per non-rigid point (``NONRIGID`` order) the
+            orthonormal basis (t1, t2) of its lift plane (module docstring); the packet's
+            residual (u, v) of point k is the displacement ``u t1_k + v t2_k``, mm.
 
     Raises:
         ValueError: not a Mesh, or the centres are degenerate (from ``VolumeMorph``).
@@ -119,6 +151,7 @@ class Rig:
         self._neutral = _frozen(vertices.astype(np.float32, copy=True))
         self._landmark_weights = _frozen(weights[mesh.landmarks].copy())
         self._landmark_neutral = _frozen(self._neutral[mesh.landmarks].copy())
+        self.tangents = _frozen(tangent_frames(mesh))
 
     def morph(self, residuals: np.ndarray) -> np.ndarray:
         """Deform the mesh by the non-rigid feature points' residuals.
@@ -146,6 +179,63 @@ class Rig:
         out = self._landmark_weights @ _check_residuals(residuals)
         out += self._landmark_neutral
         return out
+
+    def from_tangent(self, uv: np.ndarray) -> np.ndarray:
+        """Model-space displacements of the packet's tangent-frame residuals.
+
+        Args:
+            uv: (9, 2) finite float32 (float64 accepted) residuals (u, v), mm, NONRIGID order.
+
+        Returns:
+            (9, 3) float32 displacements ``u t1_k + v t2_k``, mm, model space.
+        """
+        uv = _check_array("uv", uv, (N_RESIDUALS, 2))
+        return np.einsum("kc,kcj->kj", uv, self.tangents).astype(np.float32, copy=False)
+
+    def to_tangent(self, d: np.ndarray) -> np.ndarray:
+        """Project model-space displacements on the tangent frames.
+
+        Args:
+            d: (9, 3) finite float32 (float64 accepted) displacements, mm, NONRIGID order.
+
+        Returns:
+            (9, 2) float32 (u, v) = (d . t1, d . t2), mm; the normal component is dropped.
+        """
+        d = _check_array("d", d, (N_RESIDUALS, 3))
+        return np.einsum("kj,kcj->kc", d, self.tangents).astype(np.float32, copy=False)
+
+
+def tangent_frames(mesh: Mesh) -> np.ndarray:
+    """The lift planes' bases (t1, t2) of the 9 non-rigid points (module docstring).
+
+    Args:
+        mesh: the neutral mesh, model space, mm.
+
+    Returns:
+        (9, 2, 3) float32, rows t1 and t2 of each point in ``NONRIGID`` order.
+    """
+    v = mesh.vertices.astype(np.float64)
+    a, b, c = (v[mesh.triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)  # length = twice the area: area-weighted sums
+    out = np.zeros((N_RESIDUALS, 2, 3))
+    for k, point in enumerate(NONRIGID):
+        vertex = mesh.landmarks[point]
+        if int(point) in FRONTAL_POINTS:
+            n = np.array([0.0, 0.0, 1.0])
+        else:
+            copies = np.flatnonzero(np.linalg.norm(v - v[vertex], axis=1) < WELD_MM)
+            n = face[np.isin(mesh.triangles, copies).any(axis=1)].sum(axis=0)
+            length = np.linalg.norm(n)
+            if length < 1e-12:
+                raise ValueError(f"mesh: landmark {point} (vertex {vertex}) has no normal "
+                                 f"(no triangle of non-zero area uses it)")
+            n /= length
+        t1 = np.array([1.0, 0.0, 0.0]) - n[0] * n
+        if np.linalg.norm(t1) < 1e-3:
+            t1 = np.array([0.0, 1.0, 0.0]) - n[1] * n
+        t1 /= np.linalg.norm(t1)
+        out[k] = t1, np.cross(n, t1)
+    return out.astype(np.float32)
 
 
 def anchor_vertices(mesh: Mesh, count: int = ANCHORS) -> np.ndarray:
@@ -196,14 +286,19 @@ def _tagged_vertices(mesh: Mesh, tags: tuple[Tag, ...]) -> np.ndarray:
 
 def _check_residuals(r: np.ndarray) -> np.ndarray:
     """Validate (9, 3) finite float32/float64 residuals; return them as float32."""
+    return _check_array("residuals", r, (N_RESIDUALS, 3))
+
+
+def _check_array(name: str, r: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Validate a finite float32/float64 array of ``shape``; return it as float32."""
     if not isinstance(r, np.ndarray):
-        raise ValueError(f"residuals: expected a numpy array, got {type(r).__name__}")
-    if r.shape != (N_RESIDUALS, 3):
-        raise ValueError(f"residuals: expected shape ({N_RESIDUALS}, 3), got {r.shape}")
+        raise ValueError(f"{name}: expected a numpy array, got {type(r).__name__}")
+    if r.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {r.shape}")
     if r.dtype not in (np.float32, np.float64):
-        raise ValueError(f"residuals: expected float32 or float64, got {r.dtype.name}")
+        raise ValueError(f"{name}: expected float32 or float64, got {r.dtype.name}")
     if not np.isfinite(r).all():
-        raise ValueError("residuals: contains NaN or infinity")
+        raise ValueError(f"{name}: contains NaN or infinity")
     return r.astype(np.float32, copy=False)
 
 

@@ -1,0 +1,287 @@
+"""The sender pipeline: one camera frame in, one packet out.
+
+Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings``, s):
+
+1. ``track``: ``models.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
+2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
+   ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
+   alternated with the lift; started from the previous frame's raw pose and expression) and
+   ``sender.pose.PoseFilter`` (One-Euro).
+3. ``lift``: ``sender.lift.Lifter`` -> (9, 3) model-space residuals of the non-rigid
+   points, lifted again with the filtered pose (the one that is sent, so the receiver's
+   points land on the tracked ones), with per-point validity.
+4. ``heuristics``: ``sender.heuristics.ResidualFilter`` (decay, mirror completion, jump hold,
+   face loss); the residuals it returns are then projected on the rig's tangent planes,
+   ``from_tangent(to_tangent(.))``: ``SenderOutput.residuals`` is exactly the geometry the
+   packet can carry, before quantisation.
+5. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
+
+No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
+face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
+the last sent pose (the protocol's default frontal pose at 600 mm before any). When the
+tracker saw a face but the pose was rejected, ``FACE_PRESENT`` is still set (the flag
+follows the tracker) together with ``TRACKING_LOST``.
+
+Hello: the model's sha256 and size, the rate, the camera, the quantiser table, and the
+model's region names (``PersonModel.regions``, in packet order, the first 8). A model without
+regions (all of them until the appearance work lands) gives an empty list, and every Q slot
+carries 0 (neutral); Q slots beyond the named regions mean nothing. Naming regions the model
+does not have would promise the receiver layers it cannot find.
+
+``encode_video`` runs the pipeline over a video into a packet log (``protocol.log``), each
+record stamped with the frame's presentation time in seconds from the start of the file.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from models.fit import Pose
+from models.landmarks import N_LANDMARKS
+from models.modelfile import PersonModel, load_model, model_summary
+from models.rig import Rig
+from models.tracker import LandmarkTracker
+from protocol.control import Camera, Hello
+from protocol.log import LogWriter
+from protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame
+from sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
+                            scale_intrinsics)
+from sender.heuristics import ResidualFilter
+from sender.lift import Lifter, pose_and_lift
+from sender.pack import pack
+from sender.pose import PoseFilter, PoseSolver
+
+_T = TypeVar("_T")
+Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
+NOMINAL_HZ = 30.0  # the contract's payload_kbps is at 30 Hz
+
+
+@dataclass(frozen=True)
+class SenderOutput:
+    """One processed frame.
+
+    Attributes:
+        frame: what was packed (its flags include CLAMPED when set); pre-quantisation values
+            are in ``rotation``/``translation``/``residuals``.
+        packet: the encoded 39-byte packet.
+        points: (68, 2) float tracker points, pixels, or None (no face).
+        rotation: (3, 3) float64 pre-quantisation pose (model -> GL camera), or None when
+            this frame has no pose (the packet then repeats the last one).
+        translation: (3,) float64 mm, or None.
+        residuals: (9, 3) float32 pre-quantisation model-space displacements after the
+            heuristics, projected on the tangent planes (what the packet can carry).
+        timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``pack``.
+        detected: the tracker ran its full-frame detector on this frame.
+        clamped: values clamped by the quantisers on this frame.
+        grazing: non-rigid points whose lift was capped at a grazing angle.
+    """
+
+    frame: Frame
+    packet: bytes
+    points: np.ndarray | None
+    rotation: np.ndarray | None
+    translation: np.ndarray | None
+    residuals: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+    detected: bool = False
+    clamped: int = 0
+    grazing: int = 0
+
+
+class SenderPipeline:
+    """Track, pose, lift, filter and pack frames of one stream (module docstring).
+
+    Args:
+        model: the person model.
+        camera: the sender camera's intrinsics (``sender.capture.estimate_intrinsics`` or a
+            calibration).
+        rate_hz: the stream's nominal rate (announced in the Hello; the time step of a frame
+            whose time does not advance).
+    """
+
+    def __init__(self, model: PersonModel, camera: Camera, rate_hz: float = 30.0) -> None:
+        if not isinstance(model, PersonModel):
+            raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
+        if not isinstance(camera, Camera):
+            raise ValueError(f"camera: expected a protocol.control.Camera, got "
+                             f"{type(camera).__name__}")
+        if not (np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
+            raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
+        self.model = model
+        self.camera = camera
+        self.rate_hz = float(rate_hz)
+        self.rig = Rig(model.mesh)
+        landmarks = model.mesh.vertices[model.mesh.landmarks].astype(np.float64)
+        self.solver = PoseSolver(landmarks, camera)
+        self.lifter = Lifter(self.rig, camera)
+        self.tracker = LandmarkTracker()
+        self.pose_filter = PoseFilter()
+        self.residual_filter = ResidualFilter()
+        self.reset()
+
+    def hello(self) -> Hello:
+        """The Hello announcing this stream (module docstring)."""
+        summary = model_summary(self.model)
+        regions = tuple(r.name for r in self.model.regions)[:N_REGIONS]
+        return Hello(model_sha256=summary["sha256"], model_bytes=summary["bytes"],
+                     rate_hz=self.rate_hz, camera=self.camera, regions=regions)
+
+    def reset(self) -> None:
+        """Forget the stream: tracker, filters, last pose and the sequence number."""
+        self.tracker.reset()
+        self.pose_filter.reset()
+        self.residual_filter.reset()
+        self._raw: Pose | None = None
+        self._expression: np.ndarray | None = None  # the last raw lift's residuals
+        default = Frame()
+        self._sent = Pose(rotation=np.eye(3), translation=default.translation.astype(np.float64))
+        self._seq = 0
+        self._time: float | None = None
+
+    def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
+        """Process one frame.
+
+        Args:
+            image: (H, W, 3) uint8 BGR frame.
+            time_s: its time, seconds (non-decreasing within a stream).
+
+        Returns:
+            The packet and what went into it.
+        """
+        if not np.isfinite(time_s):
+            raise ValueError(f"time_s: expected a finite time in seconds, got {time_s!r}")
+        dt = 1.0 / self.rate_hz
+        if self._time is not None and time_s > self._time:
+            dt = float(time_s - self._time)
+        self._time = float(time_s)
+        clock = time.perf_counter
+        t0 = clock()
+        tracked = self.tracker.track(image)
+        points = tracked.points
+        t1 = clock()
+        pose = None
+        if points is not None:
+            raw, lifted = pose_and_lift(self.solver, self.lifter, self.rig, points, self._raw,
+                                        self._expression)
+            if raw is None and self._raw is not None:  # re-acquire from scratch
+                raw, lifted = pose_and_lift(self.solver, self.lifter, self.rig, points, None,
+                                            None)
+            self._raw = raw
+            if raw is not None:
+                self._expression = lifted.residuals
+                pose = self.pose_filter.step(raw, dt)
+        if pose is None:
+            self._raw = None
+            self._expression = None
+            self.pose_filter.reset()
+        t2 = clock()
+        lifted = self.lifter.lift(points, pose) if pose is not None else None
+        t3 = clock()
+        if lifted is None:
+            out = self.residual_filter.step(None, None, dt)
+        else:
+            out = self.residual_filter.step(lifted.residuals, lifted.valid, dt)
+        residuals = self.rig.from_tangent(self.rig.to_tangent(out.residuals))
+        flags = out.flags | (Flag.FACE_PRESENT if points is not None else Flag(0))
+        t4 = clock()
+        if pose is not None:
+            self._sent = pose
+        packed = pack(self.rig, self._seq, flags, self._sent, residuals)
+        t5 = clock()
+        self._seq = (self._seq + 1) % (1 << 16)
+        return SenderOutput(
+            frame=packed.frame, packet=packed.packet,
+            points=None if points is None else np.asarray(points, np.float64).reshape(
+                N_LANDMARKS, 2),
+            rotation=None if pose is None else pose.rotation.copy(),
+            translation=None if pose is None else pose.translation.copy(),
+            residuals=residuals,
+            timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
+                     "heuristics": t4 - t3, "pack": t5 - t4},
+            detected=bool(tracked.detected), clamped=packed.clamped,
+            grazing=0 if lifted is None else int(lifted.grazing.sum()))
+
+
+def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
+    return iter(items)
+
+
+def sender_camera(width: int, height: int, focal: float | None = None,
+                  calib: str | os.PathLike[str] | None = None) -> Camera:
+    """The camera of a ``width`` x ``height`` source: a calibration file (scaled to the
+    source's size), else ``--focal``, else the guess (``sender.capture``)."""
+    if calib is not None:
+        if focal is not None:
+            raise ValueError("--focal and --calib: give one or the other, not both")
+        return scale_intrinsics(read_calibration(calib), width, height, name=str(calib))
+    return estimate_intrinsics(width, height, focal)
+
+
+def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+                 out_log: str | os.PathLike[str], frames: slice | None = None,
+                 focal: float | None = None, calib: str | os.PathLike[str] | None = None,
+                 progress: Progress = _no_progress) -> dict[str, Any]:
+    """Run the sender pipeline over a video (or folder of images) into a packet log.
+
+    Args:
+        model_path: the person model (``.fwm``).
+        source: a video file or a folder of images (``sender.capture.open_source``).
+        out_log: the ``.fwlog`` to write (replaced if it exists).
+        frames: which frames (``models.video.frame_range``); all by default.
+        focal: focal length in pixels (``--focal``), else estimated.
+        calib: a calibration JSON file (``--calib``).
+        progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+
+    Returns:
+        ``frames``, ``face_frames`` (the tracker saw a face), ``packets``, ``payload_kbps``
+        (at 30 Hz), ``clamped`` (frames with CLAMPED), ``clamped_values``, ``held``,
+        ``mirrored``, ``tracking_lost`` (frames with that flag), ``grazing`` (capped lifts),
+        ``seconds`` (wall time), ``rate_hz``, ``camera``, ``model_sha256``, ``log``.
+
+    Raises:
+        ModelFileError: the model is missing or corrupt (names the file).
+        CaptureError: the source is missing or unreadable, or holds no frame (names it).
+    """
+    start = time.perf_counter()
+    model = load_model(model_path)
+    src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
+                      pace=False)
+    camera = sender_camera(src.width, src.height, focal, calib)
+    pipeline = SenderPipeline(model, camera, rate_hz=min(max(src.rate_hz, 1e-3), 1000.0))
+    hello = pipeline.hello()
+    counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
+              "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0}
+    with src, LogWriter(out_log, hello) as log:
+        for frame in progress(iter(src), "encoding", src.frames or None):
+            out = pipeline.process(frame.image, frame.time)
+            log.write(out.packet, frame.time)
+            flags = out.frame.flags
+            counts["frames"] += 1
+            counts["packets"] += 1
+            counts["face_frames"] += out.points is not None
+            counts["clamped"] += bool(flags & Flag.CLAMPED)
+            counts["clamped_values"] += out.clamped
+            counts["held"] += bool(flags & Flag.HELD)
+            counts["mirrored"] += bool(flags & Flag.MIRRORED)
+            counts["tracking_lost"] += bool(flags & Flag.TRACKING_LOST)
+            counts["grazing"] += out.grazing
+    if counts["frames"] == 0:
+        Path(out_log).unlink(missing_ok=True)
+        raise CaptureError(f"{source}: no frames to encode")
+    return {
+        **counts,
+        "payload_kbps": round(PACKET_BYTES * 8 * NOMINAL_HZ / 1000, 3),
+        "seconds": round(time.perf_counter() - start, 3),
+        "rate_hz": pipeline.rate_hz,
+        "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                   "width": camera.width, "height": camera.height},
+        "model_sha256": hello.model_sha256,
+        "log": str(out_log),
+    }

@@ -1,0 +1,316 @@
+"""Head pose from the tracked 68 points: weighted, robust Gauss-Newton, then a One-Euro filter.
+
+Frames as DESIGN.md: model space mm (x toward the person's left, y up, z out of the face);
+GL camera frame (x right, y up, z toward the viewer, the camera looks along -z);
+``X_cam = R X + t``, image point ``u = cx + fx X/d``, ``v = cy - fy Y/d``, ``d = -Z_cam``.
+
+Fit
+---
+The model is the person's landmark vertices ``L`` (68, 3): the neutral ones
+(``mesh.vertices[mesh.landmarks]``), or, passed as ``shape``, the landmarks under the
+current expression estimate (``sender.lift.pose_and_lift`` alternates the two). The pose
+minimises the weighted, robust reprojection error
+
+    E(R, t) = sum_i w_i rho(|pi(R L_i + t) - p_i|),
+
+with ``rho`` Huber's loss (quadratic up to ``HUBER`` = 0.05 x the image's outer-eye
+distance, about 5 px on a face whose eyes are 100 px apart, 5 times the tracker's noise;
+linear beyond; iteratively reweighted on the first ``REWEIGHT_ITERATIONS`` = 2 steps, then
+frozen: reweighting every step converges only linearly, by 0.7 a step, when many points
+lie beyond the knee) and ``w_i`` = ``POSE_WEIGHTS``: 1 for the 9 rigid feature
+points (``models.landmarks.RIGID``), lower for the points that move with expression or slide,
+0 for the jaw contour and the inner lips. The weights were measured (``GROUP_WEIGHTS``): on
+6 shared clips (lp_d0, lp_d3, lp_d14, openface_default, openface_gaze, hdtf_katiehill; up to
+600 frames each; generic head; pose from the 9 rigid points alone), the RMS over time of
+each point's reprojection residual about its clip median, in outer-eye distances, averaged
+per group: rigid 0.0130, nose (28, 29, 32, 34) 0.0138, eyelids 0.0205, brows 0.0316, outer
+lip 0.0422, inner lip 0.0437, jaw contour 0.0600. Inverse variance relative to the rigid
+points, ``w = (s_rigid / s_group)^2``, gives 0.89, 0.40, 0.17, 0.095, 0.089, 0.047; the
+weights are those rounded down (nose 0.8, eyelids 0.4, brows 0.15, outer lip 0.05). The jaw
+contour and the inner lips get 0: the contour is a silhouette that slides over the surface
+as the head turns (a bias that follows yaw, not noise that averages out), and the inner lips
+are the edges of the mesh's lip slit, not surface points.
+
+Gauss-Newton on 6 parameters: ``R <- exp([w]_x) R``, ``t <- t + dt``, at most
+``MAX_ITERATIONS`` steps, stopping when the step is below 1e-4 rad and 0.02 mm (a tenth of
+the packet's quanta). No Levenberg-Marquardt damping: the problem is ill-conditioned (a
+small turn about y trades against a shift in x under a near-orthographic view), and damping
+of 1e-3 of the diagonal slowed the steps along that direction to a factor 0.5 each, never
+converging in 10; the start is always close (previous frame, or SQPnP). It starts from the
+previous frame's raw pose; on acquisition (no previous pose, or after a failure) from
+``cv2.solvePnP`` (SQPnP) on the points with weight >= 0.5 (converted from OpenCV's frame by
+``S = diag(1, -1, -1)``). A pose is rejected (None) when a weighted point falls behind the
+camera, the result is not finite, or the median reprojection error of the 9 rigid points
+exceeds ``MAX_POSE_ERROR`` (0.15) of the image eye distance (as ``models.fit``).
+
+Temporal filter
+---------------
+The tracker's points are whole pixels, so a still face's raw pose jitters. ``PoseFilter`` is
+a One-Euro filter (Casiez, Roussel and Vogel 2012) on the rotation and the translation
+separately: each frame the filtered value moves toward the raw one by
+``alpha = 1 / (1 + 1 / (2 pi f_c dt))``, with the cutoff ``f_c = f_min + beta |speed|``
+following the filtered speed (itself low-passed at 1 Hz): a still head gets the low cutoff
+``f_min``, a moving head a high one (little lag). The rotation is filtered on the manifold:
+``R_f <- R_f exp(alpha log(R_f^T R_raw))``. Constants (``ROTATION_FILTER``: f_min 1 Hz,
+beta 2 per rad/s; ``TRANSLATION_FILTER``: f_min 1 Hz, beta 0.05 per mm/s) were chosen on
+openface_gaze.avi, lp_d0.mp4 and lp_d3.mp4 (generic head): on each clip's stillest second
+the raw pose turns 0.54-0.87 deg from frame to frame (median; the points are whole pixels),
+the filtered one 0.15-0.27 deg; during head motion the filtered pose trails the raw one by
+1.7-1.9 deg (95th percentile). f_min 0.5 Hz smooths more (0.13-0.23 deg) but trails more
+(1.9-2.1 deg); beta 0.5 trails 2.2-3.5 deg. The filter costs held-out NME: on
+openface_default.wmv 2.43 % of the eye distance against 2.21 % unfiltered (lp_d0.mp4: no
+change). After a loss the filter restarts at
+the first new pose (no blend: a new acquisition has no history to keep).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from models.fit import Pose
+from models.landmarks import N_LANDMARKS, RIGID
+from protocol.control import Camera
+
+__all__ = ["Pose", "POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver", "PoseFilter",
+           "rotation_vector", "rotation_matrix"]
+
+# Measured weights per landmark group (module docstring); rigid feature points are 1.
+GROUP_WEIGHTS: dict[str, tuple[tuple[int, ...], float]] = {
+    "jaw_contour": (tuple(range(0, 17)), 0.0),
+    "brows": (tuple(range(17, 27)), 0.15),
+    "nose": ((28, 29, 32, 34), 0.8),
+    "eyelids": ((37, 38, 40, 41, 43, 44, 46, 47), 0.4),
+    "outer_lip": (tuple(range(48, 60)), 0.05),
+    "inner_lip": (tuple(range(60, 68)), 0.0),
+}
+
+
+def _pose_weights() -> np.ndarray:
+    w = np.zeros(N_LANDMARKS)
+    for points, weight in GROUP_WEIGHTS.values():
+        w[list(points)] = weight
+    w[RIGID] = 1.0
+    w.setflags(write=False)
+    return w
+
+
+POSE_WEIGHTS = _pose_weights()
+HUBER = 0.05  # of the image outer-eye distance: Huber's knee
+REWEIGHT_ITERATIONS = 2  # Huber weights are recomputed on the first iterations only
+MAX_ITERATIONS = 10
+STEP_RAD = 1e-4  # converged when a step turns less than this (0.006 deg) ...
+STEP_MM = 0.02  # ... and moves less than this (mm); quanta: 0.1 deg, 0.25 mm
+MAX_POSE_ERROR = 0.15
+ACQUIRE_WEIGHT = 0.5
+_S = np.diag([1.0, -1.0, -1.0])
+
+
+def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
+    """(3, 3) float64 rotation of a rotation vector (3,) (axis times angle, radians)."""
+    return cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
+
+
+def rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    """(3,) float64 rotation vector (radians, angle in [0, pi]) of a (3, 3) rotation."""
+    return cv2.Rodrigues(np.asarray(rotation, np.float64))[0].ravel()
+
+
+class PoseSolver:
+    """The weighted robust fit of one model's neutral landmarks (module docstring).
+
+    Args:
+        landmarks3d: (68, 3) neutral landmark positions, model space, mm.
+        camera: the sender camera's intrinsics.
+        weights: (68,) non-negative weights; ``POSE_WEIGHTS`` by default.
+
+    Raises:
+        ValueError: wrong shapes, non-finite values, or fewer than 4 weighted points.
+    """
+
+    def __init__(self, landmarks3d: np.ndarray, camera: Camera,
+                 weights: np.ndarray = POSE_WEIGHTS) -> None:
+        model = np.asarray(landmarks3d, np.float64)
+        if model.shape != (N_LANDMARKS, 3) or not np.isfinite(model).all():
+            raise ValueError(f"landmarks3d: expected finite (68, 3), got {model.shape}")
+        weights = np.asarray(weights, np.float64)
+        if weights.shape != (N_LANDMARKS,) or not (np.isfinite(weights).all()
+                                                  and (weights >= 0).all()):
+            raise ValueError("weights: expected (68,) finite non-negative values")
+        if np.count_nonzero(weights) < 4:
+            raise ValueError("weights: at least 4 points must have a positive weight")
+        if not isinstance(camera, Camera):
+            raise ValueError(f"camera: expected a protocol.control.Camera, got "
+                             f"{type(camera).__name__}")
+        self.camera = camera
+        self._used = np.flatnonzero(weights > 0)
+        self._model = model[self._used]
+        self._weights = weights[self._used]
+        self._rigid = np.searchsorted(self._used, RIGID)
+        self._acquire = np.flatnonzero(weights >= ACQUIRE_WEIGHT)
+        self._acquire_model = np.ascontiguousarray(model[self._acquire])
+        self._k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
+                            [0.0, 0.0, 1.0]])
+
+    def solve(self, points: np.ndarray, start: Pose | None = None,
+              shape: np.ndarray | None = None) -> Pose | None:
+        """The pose of the model against one frame's points.
+
+        Args:
+            points: (68, 2) image points, pixels (origin top-left, y down), finite.
+            start: where to start (the previous frame's raw pose); None to acquire.
+            shape: (68, 3) landmark positions to fit instead of the neutral ones (the
+                model's landmarks under the current expression, ``Rig.landmarks``), mm.
+
+        Returns:
+            The pose, or None when it is rejected (module docstring).
+        """
+        p = np.asarray(points, np.float64)
+        if p.shape != (N_LANDMARKS, 2) or not np.isfinite(p).all():
+            raise ValueError(f"points: expected finite (68, 2), got {p.shape}")
+        model = self._model
+        if shape is not None:
+            shape = np.asarray(shape, np.float64)
+            if shape.shape != (N_LANDMARKS, 3) or not np.isfinite(shape).all():
+                raise ValueError(f"shape: expected finite (68, 3), got {shape.shape}")
+            model = shape[self._used]
+        if start is None:
+            start = self._acquire_pose(p, None if shape is None else shape[self._acquire])
+            if start is None:
+                return None
+        obs = p[self._used]
+        eye_px = float(np.hypot(*(p[36] - p[45])))
+        if eye_px <= 0:
+            return None
+        knee = HUBER * eye_px
+        r, t = start.rotation.copy(), start.translation.copy()
+        fx, fy, cx, cy = self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy
+        k = len(obs)
+        jac = np.empty((2 * k, 6))
+        w2 = np.empty(2 * k)
+        for iteration in range(MAX_ITERATIONS):
+            rx = model @ r.T  # (K, 3) rotated model points
+            x = rx + t
+            d = -x[:, 2]
+            if d.min() <= 0:
+                return None
+            inv = 1.0 / d
+            a, b = x[:, 0] * inv, x[:, 1] * inv
+            res_u = cx + fx * a - obs[:, 0]
+            res_v = cy - fy * b - obs[:, 1]
+            if iteration < REWEIGHT_ITERATIONS:  # Huber weights, then frozen (quadratic steps)
+                norm = np.sqrt(res_u * res_u + res_v * res_v)
+                w = self._weights * np.minimum(1.0, knee / np.maximum(norm, 1e-12))
+                w2[:k] = w
+                w2[k:] = w
+            # rows: d(u, v)/d(w, t) with X = exp([w]) R L + t, dX = w x RL + dt
+            su, sv = fx * inv, -fy * inv
+            ry, rz, rxx = rx[:, 1], rx[:, 2], rx[:, 0]
+            jac[:k, 0] = su * ry * a
+            jac[:k, 1] = su * (rz - rxx * a)
+            jac[:k, 2] = -su * ry
+            jac[:k, 3] = su
+            jac[:k, 4] = 0.0
+            jac[:k, 5] = su * a
+            jac[k:, 0] = sv * (ry * b - rz)
+            jac[k:, 1] = -sv * rxx * b
+            jac[k:, 2] = sv * rxx
+            jac[k:, 3] = 0.0
+            jac[k:, 4] = sv
+            jac[k:, 5] = sv * b
+            jw = jac * w2[:, None]
+            normal = jw.T @ jac
+            grad = jw.T @ np.concatenate([res_u, res_v])
+            try:
+                step = -np.linalg.solve(normal, grad)
+            except np.linalg.LinAlgError:
+                return None
+            r = rotation_matrix(step[:3]) @ r
+            t = t + step[3:]
+            if (iteration >= REWEIGHT_ITERATIONS - 1 and np.abs(step[:3]).max() < STEP_RAD
+                    and np.abs(step[3:]).max() < STEP_MM):
+                break
+        if not (np.isfinite(r).all() and np.isfinite(t).all()):
+            return None
+        pose = Pose(rotation=r, translation=t)
+        x = model @ r.T + t
+        if (-x[:, 2]).min() <= 0:
+            return None
+        proj = np.column_stack([cx + fx * x[:, 0] / -x[:, 2], cy - fy * x[:, 1] / -x[:, 2]])
+        error = np.hypot(*(proj[self._rigid] - obs[self._rigid]).T)
+        if np.sort(error)[len(error) // 2] > MAX_POSE_ERROR * eye_px:  # median (9 points)
+            return None
+        return pose
+
+    def _acquire_pose(self, p: np.ndarray, model: np.ndarray | None) -> Pose | None:
+        """SQPnP on the strongly weighted points, in the GL frame; None on failure."""
+        img = np.ascontiguousarray(p[self._acquire])
+        obj = self._acquire_model if model is None else np.ascontiguousarray(model)
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, self._k, None,
+                                          flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            return None
+        if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+            return None
+        return Pose(rotation=_S @ rotation_matrix(rvec.ravel()), translation=_S @ tvec.ravel())
+
+
+@dataclass(frozen=True)
+class OneEuro:
+    """One-Euro filter constants: cutoff ``f_min + beta |speed|`` Hz, speed low-passed at
+    ``f_speed`` Hz; speed in rad/s (rotation) or mm/s (translation)."""
+
+    f_min: float
+    beta: float
+    f_speed: float = 1.0
+
+
+ROTATION_FILTER = OneEuro(f_min=1.0, beta=2.0)
+TRANSLATION_FILTER = OneEuro(f_min=1.0, beta=0.05)
+
+
+def _alpha(cutoff: float, dt: float) -> float:
+    return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * cutoff * dt))
+
+
+class PoseFilter:
+    """One-Euro smoothing of a pose stream (module docstring); one instance per stream."""
+
+    def __init__(self, rotation: OneEuro = ROTATION_FILTER,
+                 translation: OneEuro = TRANSLATION_FILTER) -> None:
+        for name, f in (("rotation", rotation), ("translation", translation)):
+            if not (f.f_min > 0 and f.beta >= 0 and f.f_speed > 0):
+                raise ValueError(f"{name}: f_min and f_speed must be > 0, beta >= 0")
+        self.rotation_constants = rotation
+        self.translation_constants = translation
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream: the next pose is taken as it is."""
+        self._pose: Pose | None = None
+        self._speed = np.zeros(2)  # filtered rotation (rad/s) and translation (mm/s) speeds
+
+    def step(self, raw: Pose, dt: float) -> Pose:
+        """Filter one raw pose, ``dt`` seconds after the previous one (> 0)."""
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt: expected a positive number of seconds, got {dt!r}")
+        if self._pose is None:
+            self._pose = Pose(rotation=raw.rotation.copy(), translation=raw.translation.copy())
+            self._speed[:] = 0.0
+            return self._pose
+        prev = self._pose
+        delta_r = rotation_vector(prev.rotation.T @ raw.rotation)  # model-frame increment
+        delta_t = raw.translation - prev.translation
+        out = []
+        for k, (delta, c) in enumerate(((delta_r, self.rotation_constants),
+                                        (delta_t, self.translation_constants))):
+            speed = float(np.linalg.norm(delta)) / dt
+            self._speed[k] += _alpha(c.f_speed, dt) * (speed - self._speed[k])
+            out.append(_alpha(c.f_min + c.beta * self._speed[k], dt) * delta)
+        self._pose = Pose(rotation=prev.rotation @ rotation_matrix(out[0]),
+                          translation=prev.translation + out[1])
+        return self._pose

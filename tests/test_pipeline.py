@@ -1,0 +1,151 @@
+"""Tests for sender.pipeline: the whole sender on real video (one packet per frame, flags
+following the tracker, decoded geometry within the quantisation bounds), and its errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from models.head import generic_head
+from models.modelfile import Camera, ModelFileError, ModelInfo, PersonModel, save_model
+from models.tracker import LandmarkTracker
+from models.video import frame_range, read_frames
+from protocol.control import decode_message, encode_message
+from protocol.log import read_log
+from protocol.packet import QUANTISERS, Flag
+from sender.capture import CaptureError, estimate_intrinsics
+from sender.pack import unpack_geometry
+from sender.pipeline import SenderPipeline, encode_video
+from sender.pose import rotation_vector
+
+ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generic head with a flat grey texture, saved as a model file."""
+    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
+                        camera=Camera(512.0, 512.0, 255.5, 255.5, 512, 512),
+                        info=ModelInfo(name="generic"))
+    path = tmp_path_factory.mktemp("model") / "generic.fwm"
+    save_model(model, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def video(shared_data: Path) -> Path:
+    return shared_data / "video" / "lp_d0.mp4"
+
+
+def _grey_video(path: Path, frames: int = 6) -> None:
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=25)
+        stream.width, stream.height, stream.pix_fmt = 160, 120, "yuv420p"
+        for _ in range(frames):
+            image = av.VideoFrame.from_ndarray(np.full((120, 160, 3), 128, np.uint8),
+                                               format="bgr24")
+            for packet in stream.encode(image):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
+def test_encode_real_video(model_path: Path, video: Path, tmp_path: Path) -> None:
+    log_path = tmp_path / "lp_d0.fwlog"
+    seen: list[tuple[str, int | None]] = []
+
+    def progress(items, label, total):
+        seen.append((label, total))
+        return items
+
+    summary = encode_video(model_path, video, log_path, progress=progress)
+    assert seen == [("encoding", 78)]
+    assert summary["frames"] == summary["packets"] == 78
+    log = read_log(log_path)
+    assert log.lost == 0 and len(log.packets) == 78  # exactly one packet per frame
+    assert list(log.frames["seq"]) == list(range(78))
+    assert np.all(np.diff(log.times) > 0)
+    # the face-present flag follows the tracker, frame by frame
+    tracker = LandmarkTracker()
+    present = [tracker.track(f.image).points is not None for f in read_frames(video)]
+    flags = log.frames["flags"].astype(int)
+    assert [bool(f & Flag.FACE_PRESENT) for f in flags] == present
+    assert summary["face_frames"] == sum(present) >= 70
+    assert summary["tracking_lost"] == sum(bool(f & Flag.TRACKING_LOST) for f in flags)
+    assert summary["clamped"] == sum(bool(f & Flag.CLAMPED) for f in flags)
+    assert summary["payload_kbps"] == pytest.approx(9.36)
+    # the Hello: camera guess and the model's id; no regions yet
+    assert log.hello.camera == estimate_intrinsics(512, 512)
+    assert log.hello.model_sha256 == summary["model_sha256"]
+    assert log.hello.regions == ()
+    assert log.hello.rate_hz == pytest.approx(25.0)
+
+
+def test_decoded_geometry_matches_the_senders(model_path: Path, video: Path) -> None:
+    from models.modelfile import load_model
+    model = load_model(model_path)
+    pipeline = SenderPipeline(model, estimate_intrinsics(512, 512), rate_hz=25.0)
+    hello = decode_message(encode_message(pipeline.hello()))
+    assert hello == pipeline.hello()
+    posed = 0
+    last = None
+    for f in read_frames(video, frame_range("0:40")):
+        out = pipeline.process(f.image, f.time)
+        assert set(out.timings) == {"track", "pose", "lift", "heuristics", "pack"}
+        frame, pose, residuals = unpack_geometry(pipeline.rig, out.packet)
+        assert frame.seq == f.index
+        if out.rotation is None:  # no pose: the last one is repeated
+            assert last is not None and np.array_equal(frame.rotation, last.rotation)
+            continue
+        posed += 1
+        assert out.residuals.shape == (9, 3) and out.residuals.dtype == np.float32
+        assert np.abs(np.degrees(rotation_vector(pose.rotation)
+                                 - rotation_vector(out.rotation))).max() <= ROT_DEG + 1e-4
+        err_t = np.abs(pose.translation - out.translation)
+        assert err_t[:2].max() <= SHIFT_XY + 1e-4 and err_t[2] <= SHIFT_Z + 1e-3
+        uv = pipeline.rig.to_tangent(out.residuals)
+        assert np.abs(frame.residuals - uv).max() <= RESIDUAL + 1e-4
+        assert np.linalg.norm(residuals - out.residuals, axis=1).max() <= RESIDUAL * 1.5
+        last = frame
+    assert posed >= 35
+    pipeline.reset()
+    first = pipeline.process(next(iter(read_frames(video))).image, 0.0)
+    assert first.frame.seq == 0
+
+
+def test_video_without_a_face(model_path: Path, tmp_path: Path) -> None:
+    video = tmp_path / "grey.mp4"
+    _grey_video(video)
+    summary = encode_video(model_path, video, tmp_path / "grey.fwlog")
+    assert summary["packets"] == summary["frames"] == 6
+    assert summary["face_frames"] == 0 and summary["tracking_lost"] == 6
+    log = read_log(tmp_path / "grey.fwlog")
+    assert all(int(f) & Flag.TRACKING_LOST and not int(f) & Flag.FACE_PRESENT
+               for f in log.frames["flags"])
+
+
+def test_errors_name_the_file(model_path: Path, video: Path, tmp_path: Path) -> None:
+    text = tmp_path / "clip.mp4"
+    text.write_text("not a video")
+    out = tmp_path / "out.fwlog"
+    with pytest.raises(CaptureError) as err:
+        encode_video(model_path, text, out)
+    assert str(text) in str(err.value)
+    with pytest.raises(CaptureError, match="no such file"):
+        encode_video(model_path, tmp_path / "missing.mp4", out)
+    bad = tmp_path / "broken.fwm"
+    bad.write_bytes(b"PK\x03\x04 not really a zip")
+    for path in (bad, tmp_path / "absent.fwm"):
+        with pytest.raises(ModelFileError) as err:
+            encode_video(path, video, out)
+        assert str(path) in str(err.value)
+    assert not out.exists()  # nothing written on a failed start
+    calib = tmp_path / "calib.json"
+    calib.write_text('{"fx": 500}')
+    with pytest.raises(CaptureError, match="calib.json"):
+        encode_video(model_path, video, out, calib=calib)
+    with pytest.raises(ValueError, match="--focal"):
+        encode_video(model_path, video, out, focal=-3.0)
