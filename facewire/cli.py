@@ -57,15 +57,21 @@ def _progress(items: Iterable[T], label: str, total: int | None) -> Iterator[T]:
     return tqdm(items, desc=label, total=total, unit="frame", file=sys.stderr, leave=False)
 
 
-def _model_build(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from models.build import build_model
+def _frames(text: str | None) -> slice:
+    """The ``--frames A:B`` option as a slice; a bad range is a one-line error."""
     from models.video import frame_range
 
     try:
-        frames = frame_range(args.frames)
+        return frame_range(text)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
+
+
+def _model_build(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from models.build import build_model
+
+    frames = _frames(args.frames)
     result = build_model(args.video, args.output, frames, progress=_progress)
     s = result.summary()
     report(s, [f"model:    {result.path} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
@@ -114,6 +120,31 @@ def _bench_speed(args: argparse.Namespace) -> int:
     from bench.speed import speed
 
     return speed(args.model, args.source, as_json=args.json, progress=_progress)
+
+
+def _encode(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from sender.pipeline import encode_video
+
+    s = encode_video(args.model, args.source, args.output, _frames(args.frames),
+                     focal=args.focal, calib=args.calib, progress=_progress)
+    report(s, [f"log:      {s['log']}",
+               f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
+               f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
+               f"flags:    {s['clamped']} frames clamped ({s['clamped_values']} values), "
+               f"{s['held']} held, {s['mirrored']} mirrored, {s['tracking_lost']} tracking lost",
+               f"time:     {s['seconds']} s"], args.json)
+    return 0
+
+
+def _bench_quality(args: argparse.Namespace) -> int:
+    from bench.quality import quality
+
+    if args.reference:
+        raise CommandError("--reference: Q agreement comes with the appearance work "
+                           "(issue 5); not implemented yet")
+    return quality(args.model, args.source, frames=_frames(args.frames), as_json=args.json,
+                   plot=args.plot, progress=_progress)
 
 
 def _check(_: argparse.Namespace) -> int:
@@ -170,10 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
     e.add_argument("--model", required=True, help="person model (.fwm)")
-    e.add_argument("--source", required=True, help="video file")
+    e.add_argument("--source", required=True, help="video file or folder of images")
     e.add_argument("-o", "--output", required=True, help="packet log to write (.fwlog)")
+    e.add_argument("--frames", help="frame range A:B of the video to encode (default: all)")
+    e.add_argument("--focal", type=float, help="camera focal length in pixels (default: "
+                   "estimated from the image width)")
+    e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
     e.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
-    e.set_defaults(run=_not_implemented("encode", 4))
+    e.set_defaults(run=_encode)
 
     rp = sub.add_parser("replay", help="render a recorded packet log to a video")
     rp.add_argument("log", help="packet log (.fwlog)")
@@ -201,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     bq.add_argument("--reference", help="OpenFace CSV of the same video, for Q agreement")
     bq.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
-    bq.set_defaults(run=_not_implemented("bench quality", 4))
+    bq.set_defaults(run=_bench_quality)
 
     i = sub.add_parser("inspect", help="summarise a packet log; optionally dump it as CSV")
     i.add_argument("log", help="packet log (.fwlog)")
@@ -242,9 +277,10 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from protocol.log import LogError
     from protocol.packet import PacketError
     from protocol.transport import TransportError
+    from sender.capture import CaptureError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
-            TransportError, BuildError, GltfError, ModelFileError, VideoError,
+            TransportError, BuildError, CaptureError, GltfError, ModelFileError, VideoError,
             FileNotFoundError, PermissionError, IsADirectoryError)
 
 

@@ -1,0 +1,372 @@
+"""``facewire bench quality``: how faithfully the packets carry the face's geometry.
+
+Geometry fidelity (DESIGN.md, "How we judge the result"). The real sender pipeline
+(``sender.pipeline.SenderPipeline``) encodes every frame of the video; the packets are then
+decoded with ``protocol.packet.decode_frames``, so the measurement goes through quantisation
+and sees only what a receiver sees. For frame f with decoded rotation vector ``w_f``
+(radians), translation ``t_f`` (mm) and tangent residuals ``r_f`` (9, 2):
+
+    D_f   = rig.from_tangent(r_f)                      (9, 3) model-space displacements
+    X_f   = rig.landmarks(D_f)                          (68, 3) morphed landmark vertices
+    C_f   = X_f R(w_f)^T + t_f                          camera frame (GL: x right, y up,
+                                                        z toward the viewer; d = -z > 0)
+    p_f,i = (cx + fx C_x / d, cy - fy C_y / d)          pixels, with the Hello's camera
+
+(``Rig`` is the model's RBF volume morph, ``models/rig.py``; R(w) is Rodrigues' formula.)
+The reconstruction is compared with the tracker's own 68 points ``q_f`` on that frame:
+
+    NME_f = mean_{i in HELD_OUT} |p_f,i - q_f,i| / |q_f,36 - q_f,45|
+
+over the 50 points the packet never carries (``models.landmarks.HELD_OUT``), normalised by
+the tracked outer-eye-corner distance (``models.landmarks.nme``). ``nme_rigid_only`` is the
+same with zero residuals (``X_f`` = the neutral landmark vertices): what the pose alone
+explains. A frame is measured when its packet says ``FACE_PRESENT`` without
+``TRACKING_LOST`` (the sender had a pose for this frame: with ``TRACKING_LOST`` the packet
+repeats the last good pose, e.g. when the tracker saw a face but its pose was rejected) and
+the tracker gave points; other frames are NaN per frame, left out of the statistics and
+counted (``pose_lost_frames``: face seen, no pose).
+
+Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldout_median``,
+``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``; and
+``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
+30 Hz, from the packets themselves). The appearance keys of the DESIGN.md contract
+(``face_ssim_mean``, ``face_psnr_mean``, the x264 comparison, ``q_reference``) need the
+receiver's renderer and the classifier; they are listed under ``not_measured`` and never
+estimated.
+
+Targets (issue 4; printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
+``nme_rigid_only_mean``. A miss does not fail the command (exit 0): the target is judged
+over the shared videos, not one clip.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple, TypeVar
+
+import cv2
+import numpy as np
+
+from bench.bandwidth import NOMINAL_HZ, kbps
+from bench.report import report
+from bench.speed import NoFaceError
+from models.landmarks import HELD_OUT, N_LANDMARKS, nme
+from models.modelfile import load_model
+from models.rig import N_RESIDUALS, Rig
+from models.video import VideoError
+from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
+from sender.capture import open_source
+from sender.pipeline import SenderPipeline, sender_camera
+
+_T = TypeVar("_T")
+Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
+
+TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
+# The quality keys of the DESIGN.md contract that belong to later issues.
+NOT_MEASURED = ("face_ssim_mean", "face_psnr_mean", "h264_kbps", "h264_face_ssim_mean",
+                "h264_face_psnr_mean", "q_reference")
+
+
+class GeometryNME(NamedTuple):
+    """Per-frame NME (fractions of the outer-eye distance; NaN where not measured).
+
+    Attributes:
+        heldout: (F,) float64, pose and residuals.
+        rigid_only: (F,) float64, pose alone.
+    """
+
+    heldout: np.ndarray
+    rigid_only: np.ndarray
+
+
+def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
+    return iter(items)
+
+
+def _intrinsics(camera: Any) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) from a camera object with those attributes or a 4-sequence."""
+    if all(hasattr(camera, k) for k in ("fx", "fy", "cx", "cy")):
+        values = (camera.fx, camera.fy, camera.cx, camera.cy)
+    else:
+        values = tuple(np.asarray(camera, np.float64).reshape(-1))
+    if len(values) != 4 or not np.isfinite(values).all() or min(values[:2]) <= 0:
+        raise ValueError(f"camera: expected finite (fx, fy, cx, cy) with fx, fy > 0, "
+                         f"got {camera!r}")
+    fx, fy, cx, cy = (float(v) for v in values)
+    return fx, fy, cx, cy
+
+
+def _records(decoded: np.ndarray | Sequence[Frame]) -> np.ndarray:
+    """(F,) ``FRAME_DTYPE`` from a decoded record array or a list of ``Frame``s."""
+    if isinstance(decoded, np.ndarray):
+        if decoded.dtype != FRAME_DTYPE or decoded.ndim != 1:
+            raise ValueError(f"decoded: expected a 1-D FRAME_DTYPE array, got "
+                             f"{decoded.shape} {decoded.dtype}")
+        return decoded
+    records = np.zeros(len(decoded), FRAME_DTYPE)
+    for i, frame in enumerate(decoded):
+        if not isinstance(frame, Frame):
+            raise ValueError(f"decoded[{i}]: expected a protocol.packet.Frame, "
+                             f"got {type(frame).__name__}")
+        records[i] = frame.to_record()
+    return records
+
+
+def project_landmarks(rig: Rig, camera: Any, rotation: np.ndarray, translation: np.ndarray,
+                      residuals: np.ndarray | None) -> np.ndarray:
+    """The model's 68 landmarks as one packet describes them, in the sender's image.
+
+    Args:
+        rig: the person model's rig.
+        camera: (fx, fy, cx, cy) pixels, or an object with those attributes (the Hello's).
+        rotation: (3,) rotation vector, radians, model -> GL camera frame.
+        translation: (3,) model origin in the camera frame, mm (z < 0).
+        residuals: (9, 2) tangent-frame residuals, mm; None for the pose alone.
+
+    Returns:
+        (68, 2) float64 pixel positions (u right, v down), iBUG order.
+
+    Raises:
+        ValueError: a landmark is not in front of the camera, or bad shapes.
+    """
+    fx, fy, cx, cy = _intrinsics(camera)
+    r = np.zeros((N_RESIDUALS, 3), np.float32) if residuals is None else \
+        rig.from_tangent(np.asarray(residuals, np.float32))
+    x = rig.landmarks(r).astype(np.float64)
+    w = np.asarray(rotation, np.float64).reshape(3, 1)
+    t = np.asarray(translation, np.float64).reshape(3)
+    cam = x @ cv2.Rodrigues(w)[0].T + t
+    depth = -cam[:, 2]
+    if not (depth > 0).all():
+        raise ValueError(f"translation {t.tolist()}: landmarks behind the camera (need z < 0)")
+    return np.column_stack([cx + fx * cam[:, 0] / depth, cy - fy * cam[:, 1] / depth])
+
+
+def geometry_nme(rig: Rig, camera: Any, decoded: np.ndarray | Sequence[Frame],
+                 tracked: Sequence[np.ndarray | None]) -> GeometryNME:
+    """Per-frame held-out NME of the packets' geometry against the tracker (module docstring).
+
+    Args:
+        rig: the person model's rig (``models.rig.Rig``).
+        camera: the sender's intrinsics (fx, fy, cx, cy), pixels, or an object with them.
+        decoded: F decoded frames: the (F,) ``FRAME_DTYPE`` array of ``decode_frames``, or a
+            list of ``protocol.packet.Frame``.
+        tracked: F tracker results: (68, 2) pixel points, or None where no face was found.
+
+    Returns:
+        ``GeometryNME``: (F,) held-out and rigid-only NME as fractions; NaN where the packet
+        has no ``FACE_PRESENT`` flag or has ``TRACKING_LOST`` (no pose of its own), or
+        ``tracked`` is None.
+
+    Raises:
+        ValueError: lengths differ, bad shapes, or a face-present pose is behind the camera.
+    """
+    records = _records(decoded)
+    if len(tracked) != len(records):
+        raise ValueError(f"tracked: {len(tracked)} entries for {len(records)} decoded frames")
+    heldout = np.full(len(records), np.nan)
+    rigid = np.full(len(records), np.nan)
+    for f, (rec, points) in enumerate(zip(records, tracked)):
+        flags = Flag(int(rec["flags"]))
+        if points is None or Flag.TRACKING_LOST in flags or Flag.FACE_PRESENT not in flags:
+            continue
+        truth = np.asarray(points, np.float64)
+        if truth.shape != (N_LANDMARKS, 2):
+            raise ValueError(f"tracked[{f}]: expected shape (68, 2), got {truth.shape}")
+        full = project_landmarks(rig, camera, rec["rotation"], rec["translation"],
+                                 rec["residuals"])
+        pose = project_landmarks(rig, camera, rec["rotation"], rec["translation"], None)
+        heldout[f] = nme(full, truth, HELD_OUT)
+        rigid[f] = nme(pose, truth, HELD_OUT)
+    return GeometryNME(heldout, rigid)
+
+
+class _Series(NamedTuple):
+    """Per-frame results behind a summary (for the plot)."""
+
+    indices: np.ndarray  # (F,) video frame indices
+    face: np.ndarray  # (F,) bool, packet FACE_PRESENT without TRACKING_LOST
+    nme: GeometryNME
+
+
+def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+                    frames: slice | None = None, progress: Progress = _no_progress
+                    ) -> dict[str, Any]:
+    """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
+
+    Args:
+        model_path: the person model (``.fwm``).
+        source: a video file (or a folder of images, as ``sender.capture.open_source``).
+        frames: the frame range (``models.video.frame_range``); all by default.
+        progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+
+    Returns:
+        A dict: ``frames``, ``face_frames``, ``tracked_frames``, ``pose_lost_frames``,
+        ``measured_frames``,
+        ``clamped_frames``, ``packet_bytes``, ``payload_kbps``, ``nme_heldout_mean``,
+        ``nme_heldout_median``, ``nme_heldout_p95``, ``nme_rigid_only_mean``,
+        ``nme_rigid_only_median``, ``nme_rigid_only_p95`` (percent; None when no frame was
+        measured), ``camera``, ``targets``, ``met``, ``not_measured``, ``model``, ``source``.
+
+    Raises:
+        ModelFileError: the model is missing or corrupt (names the file).
+        CaptureError / VideoError: the source is missing, unreadable or holds no frame in the
+            range; ``NoFaceError`` when the tracker finds no face in any frame (names the file).
+    """
+    return _measure(model_path, source, frames, progress)[0]
+
+
+def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+             frames: slice | None, progress: Progress) -> tuple[dict[str, Any], _Series]:
+    frames = slice(0, None) if frames is None else frames
+    model = load_model(model_path)
+    src = open_source(str(source), pace=False, frames=frames)
+    pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
+                              rate_hz=min(max(src.rate_hz, 1e-3), 1000.0))
+    camera = pipeline.hello().camera
+    indices: list[int] = []
+    packets: list[bytes] = []
+    tracked: list[np.ndarray | None] = []
+    with src:
+        for frame in progress(src, "encoding", src.frames or None):
+            out = pipeline.process(frame.image, frame.time)
+            indices.append(frame.index)
+            packets.append(out.packet)
+            tracked.append(out.points)
+    span = f"range {frames.start}:{'' if frames.stop is None else frames.stop}"
+    if not packets:
+        raise VideoError(f"{source}: no frames in {span}")
+    if all(p is None for p in tracked):
+        raise NoFaceError(f"{source}: no face found in any of its {len(packets)} frames ({span})")
+    sizes = {len(p) for p in packets}
+    if sizes != {PACKET_BYTES}:
+        raise ValueError(f"sender produced packets of {sorted(sizes)} bytes, "
+                         f"expected {PACKET_BYTES}")
+    decoded, errors = decode_frames(np.frombuffer(b"".join(packets), np.uint8)
+                                    .reshape(len(packets), PACKET_BYTES))
+    bad = [i for i, e in enumerate(errors) if e is not None]
+    if bad:
+        raise ValueError(f"sender packet of frame {indices[bad[0]]} does not decode: "
+                         f"{errors[bad[0]]} ({len(bad)} such packets)")
+
+    result = geometry_nme(Rig(model.mesh), camera, decoded, tracked)
+    flags = decoded["flags"].astype(np.int64)
+    face = (flags & Flag.FACE_PRESENT) != 0
+    posed = face & ((flags & Flag.TRACKING_LOST) == 0)
+    summary: dict[str, Any] = {
+        "model": str(model_path),
+        "source": str(source),
+        "frames": len(packets),
+        "face_frames": int(face.sum()),
+        "tracked_frames": sum(p is not None for p in tracked),
+        "pose_lost_frames": int((face & ~posed).sum()),
+        "measured_frames": int(np.isfinite(result.heldout).sum()),
+        "clamped_frames": int(((flags & Flag.CLAMPED) != 0).sum()),
+        "packet_bytes": PACKET_BYTES,
+        "payload_kbps": round(kbps(float(np.mean([len(p) for p in packets])), NOMINAL_HZ), 3),
+        "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                   "width": camera.width, "height": camera.height},
+        **_stats("nme_heldout", result.heldout),
+        **_stats("nme_rigid_only", result.rigid_only),
+        "unit": "percent of the outer-eye distance",
+        "targets": {"nme_heldout_mean": TARGET_NME_HELDOUT},
+    }
+    mean, rigid = summary["nme_heldout_mean"], summary["nme_rigid_only_mean"]
+    summary["met"] = {
+        "nme_heldout": mean is not None and mean <= TARGET_NME_HELDOUT,
+        "below_rigid_only": mean is not None and mean < rigid,
+    }
+    summary["not_measured"] = list(NOT_MEASURED)
+    return summary, _Series(np.array(indices), posed, result)
+
+
+def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
+    """Mean, median and 95th percentile of the finite values, in percent (None if none)."""
+    v = values[np.isfinite(values)] * 100
+    if v.size == 0:
+        return {f"{name}_mean": None, f"{name}_median": None, f"{name}_p95": None}
+    return {f"{name}_mean": round(float(v.mean()), 4),
+            f"{name}_median": round(float(np.median(v)), 4),
+            f"{name}_p95": round(float(np.percentile(v, 95)), 4)}
+
+
+def format_quality(result: dict[str, Any]) -> str:
+    """Human-readable lines of a ``measure_quality`` result (no trailing newline)."""
+    r = result
+    lines = [
+        f"{r['source']}: {r['frames']} frames, {r['face_frames']} with a face in the packet, "
+        f"{r['tracked_frames']} tracked, {r['pose_lost_frames']} without a pose, "
+        f"{r['measured_frames']} measured; {r['clamped_frames']} with clamped values",
+        f"payload: {r['packet_bytes']} bytes a packet, {r['payload_kbps']:.2f} kbit/s at 30 Hz",
+    ]
+    if r["nme_heldout_mean"] is None:
+        lines.append("geometry: not measured (no frame had both a face packet and tracked points)")
+    else:
+        lines += [
+            f"held-out NME (pose + residuals): mean {r['nme_heldout_mean']:.2f} %, "
+            f"median {r['nme_heldout_median']:.2f} %, p95 {r['nme_heldout_p95']:.2f} %",
+            f"rigid-only NME (pose alone):     mean {r['nme_rigid_only_mean']:.2f} %, "
+            f"median {r['nme_rigid_only_median']:.2f} %, p95 {r['nme_rigid_only_p95']:.2f} %",
+            f"target: held-out mean <= {TARGET_NME_HELDOUT:g} %: "
+            f"{_verdict(r['met']['nme_heldout'])}; below rigid-only: "
+            f"{_verdict(r['met']['below_rigid_only'])}",
+        ]
+    lines.append(f"not measured yet: {', '.join(r['not_measured'])}")
+    return "\n".join(lines)
+
+
+def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
+            frames: slice | None = None, as_json: bool = False,
+            plot: str | os.PathLike[str] | None = None,
+            progress: Progress = _no_progress) -> int:
+    """Run ``measure_quality``, print its report (JSON last with ``as_json``), optionally plot.
+
+    Returns:
+        The exit status, 0 (targets inform; see the module docstring).
+    """
+    result, series = _measure(model_path, source, frames, progress)
+    lines = format_quality(result).splitlines()
+    if plot is not None:
+        _plot(series, result, Path(plot))
+        lines.append(f"plot: {plot}")
+    report(result, lines, as_json)
+    return 0
+
+
+def _verdict(met: bool) -> str:
+    return "met" if met else "MISSED"
+
+
+def _plot(series: _Series, result: dict[str, Any], path: Path) -> None:
+    """Held-out and rigid-only NME against the frame index, face- or pose-lost frames marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = series.indices
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(x, series.nme.rigid_only * 100, lw=1, color="tab:orange",
+            label=f"rigid-only (mean {_pct(result['nme_rigid_only_mean'])})")
+    ax.plot(x, series.nme.heldout * 100, lw=1, color="tab:blue",
+            label=f"held-out, pose + residuals (mean {_pct(result['nme_heldout_mean'])})")
+    ax.axhline(TARGET_NME_HELDOUT, color="red", ls="--", lw=1,
+               label=f"target {TARGET_NME_HELDOUT:g} %")
+    lost = ~series.face
+    if lost.any():
+        ax.vlines(x[lost], 0, 1, transform=ax.get_xaxis_transform(), color="grey",
+                  alpha=0.3, lw=1.5, label="face or pose lost")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("NME, % of outer-eye distance")
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper right", fontsize="small")
+    ax.set_title(f"facewire geometry fidelity: {Path(result['source']).name}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _pct(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f} %"

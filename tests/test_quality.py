@@ -1,0 +1,246 @@
+"""Tests for bench.quality: the packet-geometry NME core, the real benchmark, its errors."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench.quality import (NOT_MEASURED, TARGET_NME_HELDOUT, format_quality, geometry_nme,
+                           project_landmarks, quality)
+from bench.speed import NoFaceError
+from models.build import build_model
+from models.head import generic_head
+from models.landmarks import HELD_OUT, outer_eye_distance
+from models.modelfile import Camera, ModelFileError, ModelInfo, PersonModel, save_model
+from models.raster import Camera as ViewCamera
+from models.rig import Rig
+from protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
+
+FX, FY, CX, CY, W, H = 640.0, 640.0, 319.5, 239.5, 640, 480
+# Quantisation half-steps of protocol.packet (its docstring): rotation-vector component
+# (degrees), translation x/y and z (mm), residual coordinate (mm).
+HALF_ROTATION_DEG, HALF_SHIFT_XY, HALF_SHIFT_Z, HALF_RESIDUAL = 0.05, 0.125, 0.5, 0.125
+
+# (rotation vector in degrees, translation mm, residual scale mm): frontal and neutral, then
+# turned, tilted and expressive heads at webcam distances.
+POSES = [
+    ((0.0, 0.0, 0.0), (0.0, 0.0, -600.0), 0.0),
+    ((-10.0, 25.0, 3.0), (20.0, -15.0, -650.0), 6.0),
+    ((15.0, -8.0, 10.0), (-30.0, 10.0, -500.0), 6.0),
+    ((5.0, -30.0, -6.0), (12.5, 40.0, -720.0), 4.0),
+    ((-4.0, 12.0, 0.0), (-5.0, -5.0, -450.0), 8.0),
+]
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return Rig(generic_head())
+
+
+def _truth(rig: Rig, rotvec_deg, translation, residuals) -> np.ndarray:
+    """Exact projection of the morphed model (scipy rotation, raster camera)."""
+    rotation = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    camera = ViewCamera(FX, FY, CX, CY, W, H, rotation, np.asarray(translation, float))
+    return camera.project(rig.landmarks(rig.from_tangent(residuals)))
+
+
+@pytest.fixture(scope="module")
+def synthetic(rig: Rig) -> dict:
+    """Known poses and residuals, encoded and decoded; the exact landmarks they describe."""
+    rng = np.random.default_rng(4)
+    sent = np.zeros(len(POSES), FRAME_DTYPE)
+    truths, residuals = [], []
+    for f, (rotvec_deg, translation, scale) in enumerate(POSES):
+        r = rng.uniform(-scale, scale, (9, 2))
+        sent[f] = Frame(seq=f, flags=Flag.FACE_PRESENT, rotation=np.radians(rotvec_deg),
+                        translation=np.array(translation), residuals=r).to_record()
+        truths.append(_truth(rig, rotvec_deg, translation, r))
+        residuals.append(r)
+    packets, clamped = encode_frames(sent)
+    assert not clamped.any()
+    decoded, errors = decode_frames(packets)
+    assert all(e is None for e in errors)
+    return {"decoded": decoded, "truth": truths, "residuals": residuals}
+
+
+def _quantisation_bound(rig: Rig, pose: tuple, residuals: np.ndarray,
+                        truth: np.ndarray) -> float:
+    """An upper bound of the held-out NME that quantisation alone can cause.
+
+    Per landmark i at model position X_i and camera position C_i (depth d_i = -C_z):
+    - a rotation-vector error of at most h = 0.05 deg per component is a rotation by at most
+      sqrt(3) h (the exponential map does not stretch), moving X_i by <= sqrt(3) h |X_i|;
+    - the translation moves it by <= 0.125 mm in x and y, 0.5 mm in depth;
+    - each residual coordinate is off by <= 0.125 mm, so point k's displacement (orthonormal
+      tangents) by <= 0.125 sqrt(2), and landmark i by <= sum_k |B[i, k]| 0.125 sqrt(2).
+    The lateral (x, y) and depth parts of a camera-frame error, e_xy and e_z, move the
+    projection f C_xy / d by at most f (e_xy + |C_xy| e_z / d) / (d - e_z).
+    """
+    rotvec_deg, translation, _ = pose
+    x = rig.landmarks(rig.from_tangent(residuals)).astype(np.float64)
+    rotation = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    cam = x @ rotation.T + np.asarray(translation)
+    weights = np.abs(rig.weights[rig.mesh.landmarks]).sum(axis=1)
+    shape = (math.sqrt(3) * math.radians(HALF_ROTATION_DEG) * np.linalg.norm(x, axis=1)
+             + weights * HALF_RESIDUAL * math.sqrt(2))
+    e_xy = shape + math.hypot(HALF_SHIFT_XY, HALF_SHIFT_XY)
+    e_z = shape + HALF_SHIFT_Z
+    d = -cam[:, 2]
+    lateral = np.linalg.norm(cam[:, :2], axis=1)
+    pixels = max(FX, FY) * (e_xy + lateral * e_z / d) / (d - e_z)
+    return float(pixels[HELD_OUT].mean() / outer_eye_distance(truth))
+
+
+def test_decoded_packets_rebuild_the_landmarks_within_quantisation(rig: Rig,
+                                                                   synthetic: dict) -> None:
+    result = geometry_nme(rig, (FX, FY, CX, CY), synthetic["decoded"], synthetic["truth"])
+    bounds = np.array([_quantisation_bound(rig, pose, r, t) for pose, r, t in
+                       zip(POSES, synthetic["residuals"], synthetic["truth"])])
+    assert np.isfinite(result.heldout).all()
+    assert (result.heldout <= bounds).all(), (result.heldout, bounds)
+    assert bounds.max() < 0.0075  # the bound is tight enough to mean something: < 0.75 %
+    # The neutral frontal frame carries no expression: pose alone explains it as well.
+    assert result.rigid_only[0] == pytest.approx(result.heldout[0], abs=1e-12)
+    # Expressive frames: the residuals explain what the pose alone cannot.
+    assert (result.rigid_only[1:] > 2 * bounds[1:]).all()
+    assert (result.heldout[1:] < result.rigid_only[1:] / 10).all()
+
+
+def test_a_wrong_residual_sign_or_a_dropped_rotation_is_caught(rig: Rig,
+                                                               synthetic: dict) -> None:
+    bounds = np.array([_quantisation_bound(rig, pose, r, t) for pose, r, t in
+                       zip(POSES, synthetic["residuals"], synthetic["truth"])])
+    flipped = synthetic["decoded"].copy()
+    flipped["residuals"] *= -1
+    wrong = geometry_nme(rig, (FX, FY, CX, CY), flipped, synthetic["truth"]).heldout
+    assert (wrong[1:] > 3 * bounds[1:]).all(), (wrong, bounds)
+    unrotated = synthetic["decoded"].copy()
+    unrotated["rotation"] = 0.0
+    wrong = geometry_nme(rig, (FX, FY, CX, CY), unrotated, synthetic["truth"]).heldout
+    assert wrong[0] <= bounds[0]  # the frontal frame had no rotation to drop
+    assert (wrong[1:] > 0.03).all(), wrong  # > 3 % of the eye distance
+
+
+def test_frames_without_a_face_or_a_pose_are_not_measured(rig: Rig, synthetic: dict) -> None:
+    decoded = synthetic["decoded"].copy()
+    decoded["flags"][1] = Flag.TRACKING_LOST  # last good pose, no face this frame
+    decoded["flags"][3] = Flag.FACE_PRESENT | Flag.TRACKING_LOST  # a face, its pose rejected
+    tracked = list(synthetic["truth"])
+    tracked[2] = None
+    result = geometry_nme(rig, (FX, FY, CX, CY), decoded, tracked)
+    assert np.isnan(result.heldout[[1, 2, 3]]).all()
+    assert np.isnan(result.rigid_only[[1, 2, 3]]).all()
+    assert np.isfinite(result.heldout[[0, 4]]).all()
+    # A list of Frames gives the same as the record array.
+    frames = [Frame.from_record(r) for r in decoded]
+    again = geometry_nme(rig, (FX, FY, CX, CY), frames, tracked)
+    np.testing.assert_array_equal(again.heldout, result.heldout)
+
+
+def test_project_landmarks_matches_the_raster_camera(rig: Rig) -> None:
+    rotvec_deg, translation, _ = POSES[1]
+    got = project_landmarks(rig, (FX, FY, CX, CY), np.radians(rotvec_deg),
+                            np.array(translation), None)
+    np.testing.assert_allclose(got, _truth(rig, rotvec_deg, translation, np.zeros((9, 2))),
+                               atol=1e-3)
+    with pytest.raises(ValueError, match="behind the camera"):
+        project_landmarks(rig, (FX, FY, CX, CY), np.zeros(3), np.array([0.0, 0.0, 600.0]),
+                          None)
+
+
+def test_bad_inputs_are_refused(rig: Rig, synthetic: dict) -> None:
+    with pytest.raises(ValueError, match="tracked: 4 entries for 5"):
+        geometry_nme(rig, (FX, FY, CX, CY), synthetic["decoded"], synthetic["truth"][:4])
+    with pytest.raises(ValueError, match=r"tracked\[0\]: expected shape \(68, 2\)"):
+        geometry_nme(rig, (FX, FY, CX, CY), synthetic["decoded"],
+                     [np.zeros((5, 2))] + synthetic["truth"][1:])
+    with pytest.raises(ValueError, match="camera"):
+        geometry_nme(rig, (FX, -FY, CX, CY), synthetic["decoded"], synthetic["truth"])
+    with pytest.raises(ValueError, match="decoded"):
+        geometry_nme(rig, (FX, FY, CX, CY), np.zeros(5), synthetic["truth"])
+
+
+# --- the real benchmark -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def lp_d0_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A model of lp_d0 built from its frames 0:40 (about 6 s)."""
+    out = tmp_path_factory.mktemp("quality") / "lp_d0.fwm"
+    build_model(shared_data / "video" / "lp_d0.mp4", out, frames=slice(0, 40))
+    return out
+
+
+def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_path: Path,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    plot = tmp_path / "nme.png"
+    status = quality(lp_d0_model, shared_data / "video" / "lp_d0.mp4", frames=slice(40, 78),
+                     as_json=True, plot=plot)
+    assert status == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    r = json.loads(out[-1])
+    assert r["frames"] == 38
+    assert r["face_frames"] == r["tracked_frames"] >= 35
+    assert r["measured_frames"] == r["face_frames"] - r["pose_lost_frames"] >= 35
+    assert r["payload_kbps"] == pytest.approx(39 * 8 * 30 / 1000)
+    for key in ("nme_heldout_mean", "nme_heldout_median", "nme_heldout_p95",
+                "nme_rigid_only_mean"):
+        assert isinstance(r[key], float) and math.isfinite(r[key]) and r[key] > 0, key
+    assert r["nme_heldout_median"] <= r["nme_heldout_p95"]
+    assert r["nme_heldout_mean"] < r["nme_rigid_only_mean"]
+    assert r["met"]["below_rigid_only"]
+    assert r["met"]["nme_heldout"] == (r["nme_heldout_mean"] <= TARGET_NME_HELDOUT)
+    assert set(r["not_measured"]) == set(NOT_MEASURED)
+    assert not set(NOT_MEASURED) & set(r)  # never faked
+    text = "\n".join(out[:-1])
+    assert text == format_quality(r) + f"\nplot: {plot}"
+    assert f"mean {r['nme_heldout_mean']:.2f} %" in text
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generic head with a flat grey texture, saved as a model file."""
+    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
+                        camera=Camera(160.0, 160.0, 79.5, 59.5, 160, 120),
+                        info=ModelInfo(name="generic"))
+    path = tmp_path_factory.mktemp("model") / "generic.fwm"
+    save_model(model, path)
+    return path
+
+
+def test_missing_or_corrupt_model(tmp_path: Path) -> None:
+    missing = tmp_path / "nobody.fwm"
+    with pytest.raises(ModelFileError, match="nobody.fwm"):
+        quality(missing, tmp_path / "any.mp4")
+    corrupt = tmp_path / "corrupt.fwm"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(ModelFileError, match="corrupt.fwm"):
+        quality(corrupt, tmp_path / "any.mp4")
+
+
+def test_unreadable_video_or_no_face(generic_model: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="absent.mp4"):
+        quality(generic_model, tmp_path / "absent.mp4")
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video")
+    with pytest.raises(ValueError, match="notes.mp4"):
+        quality(generic_model, text)
+    grey = tmp_path / "grey.mp4"
+    with av.open(str(grey), "w") as container:
+        stream = container.add_stream("libx264", rate=25)
+        stream.width, stream.height, stream.pix_fmt = 160, 120, "yuv420p"
+        for _ in range(6):
+            image = av.VideoFrame.from_ndarray(np.full((120, 160, 3), 128, np.uint8),
+                                               format="bgr24")
+            for packet in stream.encode(image):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    with pytest.raises(NoFaceError, match="grey.mp4: no face"):
+        quality(generic_model, grey)
