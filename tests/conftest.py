@@ -1,4 +1,4 @@
-"""Shared fixtures: where the real third-party material lives, and how its absence is handled.
+"""Shared fixtures: the real third-party material, a generic model and synthetic videos.
 
 Tests that need ``../shared/data`` ask for the ``shared_data`` fixture. Without the folder they
 skip with a reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (set by CI), where they fail.
@@ -7,8 +7,11 @@ skip with a reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (set by CI), w
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
+import av
+import numpy as np
 import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -23,3 +26,39 @@ def shared_data() -> Path:
             pytest.fail(message + " (FACEWIRE_REQUIRE_REAL_DATA=1)")
         pytest.skip(message)
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generic head with a flat grey texture, saved as a model file."""
+    from models.head import generic_head
+    from models.modelfile import Camera, ModelInfo, PersonModel, save_model
+
+    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
+                        camera=Camera(640.0, 640.0, 319.5, 239.5, 640, 480),
+                        info=ModelInfo(name="generic"))
+    path = tmp_path_factory.mktemp("model") / "generic.fwm"
+    save_model(model, path)
+    return path
+
+
+def write_video(path: Path, images: list[np.ndarray], rate: int = 25) -> Path:
+    """Encode (H, W, 3) uint8 BGR images as a real H.264 file with PyAV."""
+    h, w = images[0].shape[:2]
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=rate)
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        for image in images:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+@pytest.fixture
+def grey_video(tmp_path: Path) -> Callable[..., Path]:
+    """``grey_video(name, frames=6)``: an H.264 file of a flat grey 160x120 image: no face."""
+    def make(name: str = "grey.mp4", frames: int = 6) -> Path:
+        return write_video(tmp_path / name, [np.full((120, 160, 3), 128, np.uint8)] * frames)
+    return make

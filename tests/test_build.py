@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-from fractions import Fraction
 
-import av
 import cv2
 import numpy as np
 import pytest
@@ -15,16 +13,6 @@ from models.build import PREVIEW_HEIGHT, TEXTURE_SIZE, build_model
 from models.gltf import read_glb
 from models.head import generic_head
 from models.modelfile import load_model
-
-
-def _write_video(path, frames: int, image: np.ndarray) -> None:
-    """A real H.264 file of ``frames`` copies of ``image`` (BGR)."""
-    with av.open(str(path), "w") as out:
-        stream = out.add_stream("libx264", rate=Fraction(25))
-        stream.width, stream.height, stream.pix_fmt = image.shape[1], image.shape[0], "yuv420p"
-        for _ in range(frames):
-            out.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")))
-        out.mux(stream.encode(None))
 
 
 @pytest.fixture(scope="module")
@@ -77,9 +65,8 @@ def test_unreadable_video(tmp_path, capsys):
     assert not (tmp_path / "m.fwm").exists()
 
 
-def test_video_without_face(tmp_path, capsys):
-    video = tmp_path / "wall.mp4"
-    _write_video(video, 20, np.full((240, 320, 3), 128, np.uint8))
+def test_video_without_face(grey_video, tmp_path, capsys):
+    video = grey_video("wall.mp4", frames=20)
     assert main(["model", "build", str(video), "-o", str(tmp_path / "m.fwm")]) == 2
     err = capsys.readouterr().err
     assert "wall.mp4" in err and "no face" in err

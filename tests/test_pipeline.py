@@ -5,12 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import av
 import numpy as np
 import pytest
 
-from models.head import generic_head
-from models.modelfile import Camera, ModelFileError, ModelInfo, PersonModel, save_model
+from models.modelfile import ModelFileError
 from models.tracker import LandmarkTracker
 from models.video import frame_range, read_frames
 from protocol.control import decode_message, encode_message
@@ -25,35 +23,11 @@ ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The generic head with a flat grey texture, saved as a model file."""
-    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
-                        camera=Camera(512.0, 512.0, 255.5, 255.5, 512, 512),
-                        info=ModelInfo(name="generic"))
-    path = tmp_path_factory.mktemp("model") / "generic.fwm"
-    save_model(model, path)
-    return path
-
-
-@pytest.fixture(scope="module")
 def video(shared_data: Path) -> Path:
     return shared_data / "video" / "lp_d0.mp4"
 
 
-def _grey_video(path: Path, frames: int = 6) -> None:
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=25)
-        stream.width, stream.height, stream.pix_fmt = 160, 120, "yuv420p"
-        for _ in range(frames):
-            image = av.VideoFrame.from_ndarray(np.full((120, 160, 3), 128, np.uint8),
-                                               format="bgr24")
-            for packet in stream.encode(image):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
-
-
-def test_encode_real_video(model_path: Path, video: Path, tmp_path: Path) -> None:
+def test_encode_real_video(generic_model: Path, video: Path, tmp_path: Path) -> None:
     log_path = tmp_path / "lp_d0.fwlog"
     seen: list[tuple[str, int | None]] = []
 
@@ -61,7 +35,7 @@ def test_encode_real_video(model_path: Path, video: Path, tmp_path: Path) -> Non
         seen.append((label, total))
         return items
 
-    summary = encode_video(model_path, video, log_path, progress=progress)
+    summary = encode_video(generic_model, video, log_path, progress=progress)
     assert seen == [("encoding", 78)]
     assert summary["frames"] == summary["packets"] == 78
     log = read_log(log_path)
@@ -84,9 +58,9 @@ def test_encode_real_video(model_path: Path, video: Path, tmp_path: Path) -> Non
     assert log.hello.rate_hz == pytest.approx(25.0)
 
 
-def test_decoded_geometry_matches_the_senders(model_path: Path, video: Path) -> None:
+def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) -> None:
     from models.modelfile import load_model
-    model = load_model(model_path)
+    model = load_model(generic_model)
     pipeline = SenderPipeline(model, estimate_intrinsics(512, 512), rate_hz=25.0)
     hello = decode_message(encode_message(pipeline.hello()))
     assert hello == pipeline.hello()
@@ -116,10 +90,9 @@ def test_decoded_geometry_matches_the_senders(model_path: Path, video: Path) -> 
     assert first.frame.seq == 0
 
 
-def test_video_without_a_face(model_path: Path, tmp_path: Path) -> None:
-    video = tmp_path / "grey.mp4"
-    _grey_video(video)
-    summary = encode_video(model_path, video, tmp_path / "grey.fwlog")
+def test_video_without_a_face(generic_model: Path, grey_video, tmp_path: Path) -> None:
+    video = grey_video()
+    summary = encode_video(generic_model, video, tmp_path / "grey.fwlog")
     assert summary["packets"] == summary["frames"] == 6
     assert summary["face_frames"] == 0 and summary["tracking_lost"] == 6
     log = read_log(tmp_path / "grey.fwlog")
@@ -127,15 +100,15 @@ def test_video_without_a_face(model_path: Path, tmp_path: Path) -> None:
                for f in log.frames["flags"])
 
 
-def test_errors_name_the_file(model_path: Path, video: Path, tmp_path: Path) -> None:
+def test_errors_name_the_file(generic_model: Path, video: Path, tmp_path: Path) -> None:
     text = tmp_path / "clip.mp4"
     text.write_text("not a video")
     out = tmp_path / "out.fwlog"
     with pytest.raises(CaptureError) as err:
-        encode_video(model_path, text, out)
+        encode_video(generic_model, text, out)
     assert str(text) in str(err.value)
     with pytest.raises(CaptureError, match="no such file"):
-        encode_video(model_path, tmp_path / "missing.mp4", out)
+        encode_video(generic_model, tmp_path / "missing.mp4", out)
     bad = tmp_path / "broken.fwm"
     bad.write_bytes(b"PK\x03\x04 not really a zip")
     for path in (bad, tmp_path / "absent.fwm"):
@@ -146,6 +119,6 @@ def test_errors_name_the_file(model_path: Path, video: Path, tmp_path: Path) -> 
     calib = tmp_path / "calib.json"
     calib.write_text('{"fx": 500}')
     with pytest.raises(CaptureError, match="calib.json"):
-        encode_video(model_path, video, out, calib=calib)
+        encode_video(generic_model, video, out, calib=calib)
     with pytest.raises(ValueError, match="--focal"):
-        encode_video(model_path, video, out, focal=-3.0)
+        encode_video(generic_model, video, out, focal=-3.0)

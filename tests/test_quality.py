@@ -6,7 +6,6 @@ import json
 import math
 from pathlib import Path
 
-import av
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -17,7 +16,7 @@ from bench.speed import NoFaceError
 from models.build import build_model
 from models.head import generic_head
 from models.landmarks import HELD_OUT, outer_eye_distance
-from models.modelfile import Camera, ModelFileError, ModelInfo, PersonModel, save_model
+from models.modelfile import ModelFileError
 from models.raster import Camera as ViewCamera
 from models.rig import Rig
 from protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
@@ -203,17 +202,6 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_pa
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.fixture(scope="module")
-def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The generic head with a flat grey texture, saved as a model file."""
-    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
-                        camera=Camera(160.0, 160.0, 79.5, 59.5, 160, 120),
-                        info=ModelInfo(name="generic"))
-    path = tmp_path_factory.mktemp("model") / "generic.fwm"
-    save_model(model, path)
-    return path
-
-
 def test_missing_or_corrupt_model(tmp_path: Path) -> None:
     missing = tmp_path / "nobody.fwm"
     with pytest.raises(ModelFileError, match="nobody.fwm"):
@@ -224,23 +212,13 @@ def test_missing_or_corrupt_model(tmp_path: Path) -> None:
         quality(corrupt, tmp_path / "any.mp4")
 
 
-def test_unreadable_video_or_no_face(generic_model: Path, tmp_path: Path) -> None:
+def test_unreadable_video_or_no_face(generic_model: Path, grey_video, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="absent.mp4"):
         quality(generic_model, tmp_path / "absent.mp4")
     text = tmp_path / "notes.mp4"
     text.write_text("not a video")
     with pytest.raises(ValueError, match="notes.mp4"):
         quality(generic_model, text)
-    grey = tmp_path / "grey.mp4"
-    with av.open(str(grey), "w") as container:
-        stream = container.add_stream("libx264", rate=25)
-        stream.width, stream.height, stream.pix_fmt = 160, 120, "yuv420p"
-        for _ in range(6):
-            image = av.VideoFrame.from_ndarray(np.full((120, 160, 3), 128, np.uint8),
-                                               format="bgr24")
-            for packet in stream.encode(image):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+    grey = grey_video()
     with pytest.raises(NoFaceError, match="grey.mp4: no face"):
         quality(generic_model, grey)

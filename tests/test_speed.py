@@ -6,44 +6,18 @@ import json
 import math
 from pathlib import Path
 
-import av
-import numpy as np
 import pytest
 
 from bench.speed import (NOT_MEASURED, NoFaceError, _one_blas_thread, format_speed,
                          measure_speed, speed)
 from models.head import generic_head
-from models.modelfile import Camera, ModelFileError, ModelInfo, PersonModel, save_model
+from models.modelfile import ModelFileError
 from models.video import VideoError, frame_range
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The generic head with a flat grey texture, saved as a model file."""
-    model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
-                        camera=Camera(500.0, 500.0, 320.0, 240.0, 640, 480),
-                        info=ModelInfo(name="generic"))
-    path = tmp_path_factory.mktemp("model") / "generic.fwm"
-    save_model(model, path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def result(model_path: Path, shared_data: Path) -> dict:
-    return measure_speed(model_path, shared_data / "video" / "lp_d0.mp4", frame_range("0:60"))
-
-
-def _grey_video(path: Path, frames: int = 8) -> None:
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=25)
-        stream.width, stream.height, stream.pix_fmt = 160, 120, "yuv420p"
-        for _ in range(frames):
-            image = av.VideoFrame.from_ndarray(np.full((120, 160, 3), 128, np.uint8),
-                                               format="bgr24")
-            for packet in stream.encode(image):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+def result(generic_model: Path, shared_data: Path) -> dict:
+    return measure_speed(generic_model, shared_data / "video" / "lp_d0.mp4", frame_range("0:60"))
 
 
 def test_keys_and_values(result: dict) -> None:
@@ -68,12 +42,12 @@ def test_keys_and_values(result: dict) -> None:
     assert result["threads"]
 
 
-def test_report_lines_and_json(result: dict, model_path: Path, shared_data: Path,
+def test_report_lines_and_json(result: dict, generic_model: Path, shared_data: Path,
                                capsys: pytest.CaptureFixture[str]) -> None:
     text = format_speed(result)
     assert "track:" in text and "morph:" in text and "not measured yet: classify_ms" in text
     assert f"{result['morph_ms']:.4f} ms" in text
-    status = speed(model_path, shared_data / "video" / "lp_d0.mp4", as_json=True,
+    status = speed(generic_model, shared_data / "video" / "lp_d0.mp4", as_json=True,
                    frames=frame_range("0:12"))
     assert status == 0
     out = capsys.readouterr().out.strip().splitlines()
@@ -91,27 +65,25 @@ def test_blas_pinning_is_restored() -> None:
         assert any("openblas" in name.lower() for name, _ in inside)
 
 
-def test_video_without_a_face(model_path: Path, tmp_path: Path) -> None:
-    video = tmp_path / "grey.mp4"
-    _grey_video(video)
+def test_video_without_a_face(generic_model: Path, grey_video) -> None:
+    video = grey_video()
     with pytest.raises(NoFaceError, match="no face") as err:
-        measure_speed(model_path, video)
+        measure_speed(generic_model, video)
     assert str(video) in str(err.value)
     assert isinstance(err.value, VideoError)
 
 
-def test_unreadable_inputs(model_path: Path, tmp_path: Path) -> None:
+def test_unreadable_inputs(generic_model: Path, grey_video, tmp_path: Path) -> None:
     text = tmp_path / "clip.mp4"
     text.write_text("not a video")
     with pytest.raises(VideoError, match="not a readable video") as err:
-        measure_speed(model_path, text)
+        measure_speed(generic_model, text)
     assert str(text) in str(err.value)
     with pytest.raises(VideoError, match="no such video file"):
-        measure_speed(model_path, tmp_path / "missing.mp4")
-    video = tmp_path / "grey.mp4"
-    _grey_video(video, frames=3)
+        measure_speed(generic_model, tmp_path / "missing.mp4")
+    video = grey_video(frames=3)
     with pytest.raises(VideoError, match="no frames in range"):
-        measure_speed(model_path, video, frame_range("10:20"))
+        measure_speed(generic_model, video, frame_range("10:20"))
     bad_model = tmp_path / "broken.fwm"
     bad_model.write_bytes(b"PK\x03\x04 not really a zip")
     for path in (bad_model, tmp_path / "absent.fwm"):

@@ -8,28 +8,15 @@ import av
 import numpy as np
 import pytest
 
+from conftest import write_video
 from models.video import VideoError, VideoFrame, frame_range, read_frames, video_info
-
-
-def _write_video(path: Path, frames: list[np.ndarray], rate: int = 25) -> None:
-    """Encode (H, W, 3) uint8 BGR frames as H.264 with PyAV."""
-    h, w = frames[0].shape[:2]
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=rate)
-        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
-        for image in frames:
-            frame = av.VideoFrame.from_ndarray(image, format="bgr24")
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
 
 
 @pytest.fixture(scope="module")
 def small_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """12 frames of 64x48 whose brightness encodes the frame index (index * 20)."""
     path = tmp_path_factory.mktemp("video") / "ramp.mp4"
-    _write_video(path, [np.full((48, 64, 3), 10 + 20 * k, np.uint8) for k in range(12)])
+    write_video(path, [np.full((48, 64, 3), 10 + 20 * k, np.uint8) for k in range(12)])
     return path
 
 
@@ -100,7 +87,7 @@ def test_missing_and_unreadable_files(tmp_path: Path) -> None:
     text.write_text("this is not a video\n")
     truncated = tmp_path / "cut.mp4"
     whole = tmp_path / "whole.mp4"
-    _write_video(whole, [np.full((48, 64, 3), 90, np.uint8)] * 5)
+    write_video(whole, [np.full((48, 64, 3), 90, np.uint8)] * 5)
     truncated.write_bytes(whole.read_bytes()[:200])
     for path, why in ((missing, "no such video file"), (text, "not a readable video"),
                       (tmp_path, "no such video file"), (truncated, str(truncated))):
