@@ -11,11 +11,12 @@ Centres (M of them, in this order)
 - K anchors (``ANCHORS`` = 16 at most): vertices on the back and top of the scalp, the ears and
   the neck, far from the face.
 
-Only the 9 non-rigid feature points ever move: the pose carries all rigid motion, so the
-rigid feature points, the phantoms and the anchors always have zero displacement. The anchors
-exist because Hardy's multiquadric grows with distance: with the 31 face centres alone, a
-5 mm mouth-corner move drags the back of the head about 2 mm (measured on the generic head);
-with the anchors it moves at most about 0.2 mm there.
+Only the 9 non-rigid feature points are driven: the pose carries all rigid motion, so the
+rigid feature points, the phantoms of the skull and the anchors always have zero displacement
+(the mandible phantoms follow the chin, below). The anchors exist because Hardy's
+multiquadric grows with distance: with the 31 face centres alone, a 5 mm mouth-corner move
+drags the back of the head about 2 mm (measured on the generic head); with the anchors it
+moves at most about 0.2 mm there.
 
 Anchor selection (deterministic, from the mesh alone). Candidates are the vertices of SKIN,
 SCALP and EAR triangles (never eyeballs or the mouth cavity) that lie
@@ -35,19 +36,38 @@ candidate is left (a mesh without a back of the head gets fewer, possibly no, an
 generic head gets 15: back of the head, occiput, nape and neck, crown-side, ears, temples
 behind the hairline.
 
+Mandible phantoms (a departure from the paper, where all 13 phantoms move rigidly with the
+head). Five phantoms sit on the lower jaw, which the chin belongs to: the jaw angles (gonion),
+jaw_right/left (below the mouth corners) and under_chin (``MANDIBLE_PHANTOMS``). Held at zero
+they pin the jaw line while the chin drops: measured on the held-out frames of four shared
+clips (hdtf_katiehill, openface_default, lp_d3, lp_d0; slope of each tracked contour
+point's vertical image motion, relative to the pose-only projection, against the chin's), the
+tracker's contour points 4-6 and 10-12 follow the chin by 0.2-0.84 (0.4-0.73 at 5 and 11),
+the rig with rigid phantoms by 0.01-0.44 (0.04-0.23 at 5 and 11; on lp_d0, where the mouth
+opens wide, the lower lip's column even pushed them up, -0.13 to -0.24). So each mandible
+phantom moves with the chin's residual, scaled by ``follow`` = its distance from the jaw's
+hinge axis divided by the chin's: the mandible turns about the temporomandibular joints, and
+a rotation moves a point in proportion to its distance from the axis. The axis is the line
+through the two cheekbone phantoms (the outer end of the zygomatic arch, in front of the ear,
+just above the joint). On the generic head ``follow`` is 0.56 at the jaw angles, 0.79 at
+jaw_right/left and 0.85 under the chin; the direction is the chin's own (the packet carries
+the chin's frontal-plane move only). With it the rig's contour follows by 0.34-0.74 at points
+3-6 and 10-13 on hdtf_katiehill (tracker 0.37-0.84; before, 0.04-0.44).
+
 Per-frame math
 --------------
 ``VolumeMorph`` (``models/morph.py``) gives the (N, M) matrix ``W`` of cardinal weights:
-moving every centre by ``d`` (M, 3) moves vertex n to ``v_n + W[n] @ d``. Here ``d`` is zero
-except in the 9 rows of the non-rigid feature points, which hold the residuals ``r`` (9, 3).
-Hence, with ``B = W[:, cols]`` (N, 9) the columns of those centres,
+moving every centre by ``d`` (M, 3) moves vertex n to ``v_n + W[n] @ d``. Here ``d``
+(``Rig.centre_displacements``) is zero except in the 9 rows of the non-rigid feature points,
+which hold the residuals ``r`` (9, 3), and the rows of the mandible phantoms, ``follow_j r_chin``.
+Hence, with ``B = W[:, cols]`` (N, 9) the columns of the non-rigid centres and the chin's
+column plus ``sum_j follow_j W[:, phantom_j]``,
 
     morph(r) = v + B @ r,
 
-which equals ``VolumeMorph.apply`` of the full displacement array (zeros elsewhere) for every
-vertex but the eyeballs': dropping the columns multiplied by zero leaves the same sums (equal
-up to float32 summation order; bit-equal in the test). One
-(N, 9) @ (9, 3) float32 product and one add per frame.
+which equals ``VolumeMorph.apply`` of the full displacement array for every vertex but the
+eyeballs' (equal up to float32 summation order). One (N, 9) @ (9, 3) float32 product and one
+add per frame.
 
 Eyeballs do not deform and do not move: their rows of ``B`` are zero. An eyeball sits in
 the bony orbit, which is part of the skull: expressions move the lids over it, not the eyeball
@@ -56,8 +76,9 @@ Bending it would distort the iris; translating it with the field (at its centre,
 field's mean over it) would make the iris drift with the brows and the mouth. The lids and
 the socket cup around it (SKIN) still follow the field; under a strong expression (mouth
 open 10 mm, chin down 8 mm, smile 4 mm, brows up 4 mm) the skin within 2 mm of an eyeball
-moves toward it by at most 0.17 mm and keeps at least 0.08 mm of its 0.2 mm neutral gap
-(tested).
+moves toward it by at most 0.25 mm and keeps at least 0.03 mm of its 0.2 mm neutral gap
+(tested; 0.17 and 0.08 mm before the mandible phantoms followed the chin: the jaw's pull
+reaches the lower lids, 0.12 mm on average).
 
 ``landmarks(r)`` is ``v[L] + B[L] @ r`` for the 68 landmark vertices ``L``: the model's
 landmarks after the morph, in model space.
@@ -94,7 +115,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.landmarks import FEATURES, NONRIGID, RIGID
+from models.landmarks import FEATURES, NONRIGID, PHANTOM_NAMES, RIGID
 from models.mesh import Mesh, Tag
 from models.morph import VolumeMorph
 
@@ -105,9 +126,14 @@ MIDLINE = 10.0  # mm: picks this close to x = 0 snap to the midline
 N_RESIDUALS = len(NONRIGID)
 FRONTAL_POINTS = (51, 57, 8)  # iBUG points whose lift plane faces the model's z (docstring)
 WELD_MM = 1e-4  # vertices closer than this are copies of one vertex (UV seams)
+# Phantoms on the lower jaw: they follow the chin (docstring, "Mandible phantoms").
+MANDIBLE_PHANTOMS = ("jaw_angle_right", "jaw_angle_left", "jaw_right", "jaw_left", "under_chin")
+HINGE_PHANTOMS = ("cheekbone_right", "cheekbone_left")  # the jaw's hinge axis runs through these
+CHIN = 8
 
 # Columns of the non-rigid feature points among the centres: FEATURES lists RIGID first.
 _NONRIGID_COLUMNS = np.arange(len(RIGID), len(FEATURES))
+_CHIN_SLOT = int(np.flatnonzero(NONRIGID == CHIN)[0])
 
 
 class Rig:
@@ -129,6 +155,8 @@ class Rig:
         tangents: (9, 2, 3) float32, read-only: per non-rigid point (``NONRIGID`` order) the
             orthonormal basis (t1, t2) of its lift plane (module docstring); the packet's
             residual (u, v) of point k is the displacement ``u t1_k + v t2_k``, mm.
+        follow: (13,) float64, read-only: per phantom, the fraction of the chin's residual it
+            moves by (``mandible_follow``; 0 for the phantoms of the skull).
 
     Raises:
         ValueError: not a Mesh, or the centres are degenerate (from ``VolumeMorph``).
@@ -143,7 +171,11 @@ class Rig:
         self.centres = _frozen(np.concatenate([face, self.anchors]))
         vertices = mesh.vertices
         self.field = VolumeMorph(vertices[self.centres], vertices, kernel=kernel, lam=lam)
+        self.follow = _frozen(mandible_follow(mesh))
+        phantom_columns = len(FEATURES) + np.arange(len(mesh.phantoms))
         weights = self.field.weights[:, _NONRIGID_COLUMNS].copy()
+        weights[:, _CHIN_SLOT] += (self.field.weights[:, phantom_columns]
+                                   @ self.follow.astype(np.float32))
         self.eyeball_vertices = _frozen(
             _tagged_vertices(mesh, (Tag.RIGHT_EYEBALL, Tag.LEFT_EYEBALL)))
         weights[self.eyeball_vertices] = 0.0
@@ -179,6 +211,24 @@ class Rig:
         out = self._landmark_weights @ _check_residuals(residuals)
         out += self._landmark_neutral
         return out
+
+    def centre_displacements(self, residuals: np.ndarray) -> np.ndarray:
+        """The displacement of every centre under ``residuals`` (module docstring).
+
+        Args:
+            residuals: (9, 3) float32 displacements, mm, as ``morph``.
+
+        Returns:
+            (M, 3) float32: ``residuals`` at the non-rigid feature points, ``follow_j`` times
+            the chin's residual at phantom j, zero elsewhere; ``field.apply`` of it equals
+            ``morph(residuals)`` except at the eyeballs.
+        """
+        r = _check_residuals(residuals)
+        d = np.zeros((len(self.centres), 3), np.float32)
+        d[_NONRIGID_COLUMNS] = r
+        d[len(FEATURES): len(FEATURES) + len(self.follow)] = \
+            self.follow[:, None] * r[_CHIN_SLOT]
+        return d
 
     def from_tangent(self, uv: np.ndarray) -> np.ndarray:
         """Model-space displacements of the packet's tangent-frame residuals.
@@ -236,6 +286,43 @@ def tangent_frames(mesh: Mesh) -> np.ndarray:
         t1 /= np.linalg.norm(t1)
         out[k] = t1, np.cross(n, t1)
     return out.astype(np.float32)
+
+
+def mandible_follow(mesh: Mesh) -> np.ndarray:
+    """Per phantom, the fraction of the chin's residual it follows (module docstring).
+
+    ``MANDIBLE_PHANTOMS`` get their distance from the hinge axis (the line through the
+    ``HINGE_PHANTOMS``) over the chin's (landmark 8), capped at 1; the others get 0.
+
+    Args:
+        mesh: the neutral mesh, model space, mm.
+
+    Returns:
+        (13,) float64, ``PHANTOM_NAMES`` order.
+
+    Raises:
+        ValueError: the hinge phantoms coincide, or the chin lies on the axis.
+    """
+    v = mesh.vertices.astype(np.float64)
+    index = {name: i for i, name in enumerate(PHANTOM_NAMES)}
+    a, b = (v[mesh.phantoms[index[name]]] for name in HINGE_PHANTOMS)
+    axis = b - a
+    length = np.linalg.norm(axis)
+    if length < 1e-6:
+        raise ValueError("mesh: the cheekbone phantoms coincide; no jaw hinge axis")
+    axis /= length
+
+    def distance(p: np.ndarray) -> float:
+        q = p - a
+        return float(np.linalg.norm(q - (q @ axis) * axis))
+
+    chin = distance(v[mesh.landmarks[CHIN]])
+    if chin < 1e-6:
+        raise ValueError("mesh: the chin lies on the jaw hinge axis")
+    out = np.zeros(len(mesh.phantoms))
+    for name in MANDIBLE_PHANTOMS:
+        out[index[name]] = min(1.0, distance(v[mesh.phantoms[index[name]]]) / chin)
+    return out
 
 
 def anchor_vertices(mesh: Mesh, count: int = ANCHORS) -> np.ndarray:
