@@ -141,7 +141,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     except FitError as exc:
         raise BuildError(f"{video}: {exc}") from None
 
-    wanted = {indices[i]: i for i in fit.views}
+    wanted = {indices[k] for k in fit.views}
     images = {frame.index: frame.image for frame in read_frames(
         video, slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
     views = []
