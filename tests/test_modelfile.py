@@ -373,21 +373,22 @@ def test_unknown_and_duplicate_members_are_refused(saved: Path, tmp_path: Path) 
     _refused(path, "arrays/uv.npy", "twice")
 
 
-class _Evil:
-    """Unpickling this creates the file at ``target``."""
+def _hostile_npy(target: Path) -> bytes:
+    """An object-dtype .npy whose payload, if unpickled, would create ``target``.
 
-    def __init__(self, target: Path) -> None:
-        self.target = target
-
-    def __reduce__(self) -> tuple:
-        return (open, (str(self.target), "w"))
+    Written by hand (header, then protocol-0 pickle opcodes calling ``open(target, "w")``),
+    so the test itself never pickles anything.
+    """
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        out, {"descr": "|O", "fortran_order": False, "shape": (1,)})
+    out.write(b"cbuiltins\nopen\n(V" + str(target).encode() + b"\nVw\ntR.")
+    return out.getvalue()
 
 
 def test_pickled_npy_is_refused_without_unpickling(saved: Path, tmp_path: Path) -> None:
     sentinel = tmp_path / "pwned"
-    out = io.BytesIO()
-    np.save(out, np.array([_Evil(sentinel)], dtype=object), allow_pickle=True)
-    path = _edit(saved, tmp_path / "pickle.fwm", {"arrays/vertices.npy": out.getvalue()})
+    path = _edit(saved, tmp_path / "pickle.fwm", {"arrays/vertices.npy": _hostile_npy(sentinel)})
     _refused(path, "arrays/vertices.npy", "pickle")
     assert not sentinel.exists()
 
