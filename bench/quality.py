@@ -42,9 +42,9 @@ over the shared videos, not one clip.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -54,14 +54,13 @@ from bench.report import report
 from bench.speed import NoFaceError
 from models.landmarks import HELD_OUT, N_LANDMARKS, nme
 from models.modelfile import load_model
+from models.progress import Progress, no_progress
 from models.rig import N_RESIDUALS, Rig
 from models.video import VideoError
 from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
 from sender.capture import open_source
 from sender.pipeline import SenderPipeline, sender_camera
 
-_T = TypeVar("_T")
-Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 # The quality keys of the DESIGN.md contract that belong to later issues.
@@ -79,10 +78,6 @@ class GeometryNME(NamedTuple):
 
     heldout: np.ndarray
     rigid_only: np.ndarray
-
-
-def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
-    return iter(items)
 
 
 def _intrinsics(camera: Any) -> tuple[float, float, float, float]:
@@ -192,7 +187,7 @@ class _Series(NamedTuple):
 
 
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-                    frames: slice | None = None, progress: Progress = _no_progress
+                    frames: slice | None = None, progress: Progress = no_progress
                     ) -> dict[str, Any]:
     """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
 
@@ -320,7 +315,7 @@ def format_quality(result: dict[str, Any]) -> str:
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
             frames: slice | None = None, as_json: bool = False,
             plot: str | os.PathLike[str] | None = None,
-            progress: Progress = _no_progress) -> int:
+            progress: Progress = no_progress) -> int:
     """Run ``measure_quality``, print its report (JSON last with ``as_json``), optionally plot.
 
     Returns:

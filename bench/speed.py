@@ -49,21 +49,20 @@ import contextlib
 import ctypes
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from bench.report import report
 from models.modelfile import load_model
+from models.progress import Progress, no_progress
 from models.rig import N_RESIDUALS, Rig
 from models.video import VideoError, read_frames, video_info
 from sender.capture import estimate_intrinsics
 from sender.pipeline import SenderPipeline
 
-_T = TypeVar("_T")
-Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
 
 MORPH_CALLS = 300
 MORPH_WARMUP = 30
@@ -90,12 +89,8 @@ class NoFaceError(VideoError):
     """The video holds no face the tracker can find; the message names the file."""
 
 
-def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
-    return iter(items)
-
-
 def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-                  frames: slice | None = None, progress: Progress = _no_progress
+                  frames: slice | None = None, progress: Progress = no_progress
                   ) -> dict[str, Any]:
     """Time tracking on a video and the morph on a model (module docstring).
 
@@ -185,7 +180,7 @@ def format_speed(result: dict[str, Any]) -> str:
 
 def speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
           as_json: bool = False, frames: slice | None = None,
-          progress: Progress = _no_progress) -> int:
+          progress: Progress = no_progress) -> int:
     """Run ``measure_speed`` and print its report; the exit status is 0 (targets inform)."""
     result = measure_speed(model_path, source, frames, progress)
     report(result, format_speed(result).splitlines(), as_json)

@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import cv2
 import numpy as np
@@ -34,6 +33,7 @@ from models.fit import Fit, FitError, fit_person, intrinsics_guess
 from models.head import generic_head
 from models.landmarks import outer_eye_distance
 from models.modelfile import Camera, ModelInfo, PersonModel, model_summary, save_model
+from models.progress import Progress, no_progress
 from models.raster import Camera as ViewCamera
 from models.raster import MeshRenderer, orbit_pose
 from models.texture import fill_holes, project_views, uv_surface
@@ -47,8 +47,6 @@ PREVIEW_FOV_DEG = 25.0
 CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye distances
 CREATOR = "facewire 0.1.0"
 
-_T = TypeVar("_T")
-Progress = Callable[[Iterable[_T], str, int | None], Iterator[_T]]
 
 
 class BuildError(ValueError):
@@ -88,10 +86,6 @@ class BuildResult:
                 "seconds": round(self.seconds, 2)}
 
 
-def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
-    return iter(items)
-
-
 def preview_path(model_path: str | os.PathLike[str]) -> Path:
     """Where the preview of ``MODEL.fwm`` goes: ``MODEL.preview.png`` beside it."""
     path = Path(model_path)
@@ -100,7 +94,7 @@ def preview_path(model_path: str | os.PathLike[str]) -> Path:
 
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
-                progress: Progress = _no_progress) -> BuildResult:
+                progress: Progress = no_progress) -> BuildResult:
     """Build a person's model from a video and save it with its preview.
 
     Args:

@@ -36,16 +36,16 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from models.fit import Pose
 from models.landmarks import N_LANDMARKS
 from models.modelfile import PersonModel, load_model, model_summary
+from models.progress import Progress, no_progress
 from models.rig import Rig
 from models.tracker import LandmarkTracker
 from protocol.control import Camera, Hello
@@ -58,8 +58,6 @@ from sender.lift import Lifter, pose_and_lift
 from sender.pack import pack
 from sender.pose import PoseFilter, PoseSolver
 
-_T = TypeVar("_T")
-Progress = Callable[[Iterable[_T], str, "int | None"], Iterable[_T]]
 NOMINAL_HZ = 30.0  # the contract's payload_kbps is at 30 Hz
 
 
@@ -209,10 +207,6 @@ class SenderPipeline:
             grazing=0 if lifted is None else int(lifted.grazing.sum()))
 
 
-def _no_progress(items: Iterable[_T], label: str, total: int | None) -> Iterator[_T]:
-    return iter(items)
-
-
 def sender_camera(width: int, height: int, focal: float | None = None,
                   calib: str | os.PathLike[str] | None = None) -> Camera:
     """The camera of a ``width`` x ``height`` source: a calibration file (scaled to the
@@ -227,7 +221,7 @@ def sender_camera(width: int, height: int, focal: float | None = None,
 def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
-                 progress: Progress = _no_progress) -> dict[str, Any]:
+                 progress: Progress = no_progress) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log.
 
     Args:
