@@ -16,6 +16,14 @@ import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+# A synthetic scene for the sender's tests: the 640x480 intrinsics guess (fx = fy = width) as
+# the Hello carries it and as a matrix, and an expression in tangent coordinates (u, v), mm,
+# NONRIGID order: brows up, smile, mouth open.
+SYNTH_FX = 640.0
+SYNTH_K = np.array([[SYNTH_FX, 0, 319.5], [0, SYNTH_FX, 239.5], [0, 0, 1]])
+EXPRESSION_UV = np.array([[0.0, 3.0], [0.5, 2.0], [-0.5, 2.0], [0.0, 3.0], [-3.0, 2.0],
+                          [3.0, 2.0], [0.0, 1.5], [0.0, -6.0], [0.0, -5.0]], np.float32)
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
@@ -26,6 +34,15 @@ def shared_data() -> Path:
             pytest.fail(message + " (FACEWIRE_REQUIRE_REAL_DATA=1)")
         pytest.skip(message)
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def rig():
+    """The animation rig of the generic head (``models.rig.Rig``)."""
+    from models.head import generic_head
+    from models.rig import Rig
+
+    return Rig(generic_head())
 
 
 @pytest.fixture(scope="session")

@@ -6,22 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
 from models.fit import Pose, project
-from models.head import generic_head
 from models.rig import Rig
 from protocol.control import Camera
 from sender.lift import GRAZING_COS, Lifter, pose_and_lift
 from sender.pose import PoseSolver, rotation_matrix, rotation_vector
 
-CAMERA = Camera(640.0, 640.0, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
-K = np.array([[640.0, 0, 319.5], [0, 640.0, 239.5], [0, 0, 1]])
-EXPRESSION_UV = np.array([[0.0, 3.0], [0.5, 2.0], [-0.5, 2.0], [0.0, 3.0], [-3.0, 2.0],
-                          [3.0, 2.0], [0.0, 1.5], [0.0, -6.0], [0.0, -5.0]], np.float32)
-
-
-@pytest.fixture(scope="module")
-def rig() -> Rig:
-    return Rig(generic_head())
+CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
+K = SYNTH_K
 
 
 def _image(rig: Rig, pose: Pose, uv: np.ndarray) -> np.ndarray:

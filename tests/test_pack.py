@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from models.fit import Pose
-from models.head import generic_head
 from models.rig import Rig
 from protocol.packet import PACKET_BYTES, QUANTISERS, Flag, PacketError
 from sender.pack import pack, unpack_geometry
@@ -15,11 +14,6 @@ from sender.pose import rotation_matrix, rotation_vector
 
 # Half steps of the quantisers (protocol.packet): rotation, shift_xy, shift_z, residuals.
 ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
-
-
-@pytest.fixture(scope="module")
-def rig() -> Rig:
-    return Rig(generic_head())
 
 
 def test_decoded_geometry_within_bounds(rig: Rig) -> None:

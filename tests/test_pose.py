@@ -6,24 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
 from models.fit import Pose, project
-from models.head import generic_head
 from models.landmarks import NONRIGID, RIGID
 from models.rig import FRONTAL_POINTS, Rig
 from protocol.control import Camera
 from sender.pose import (POSE_WEIGHTS, PoseFilter, PoseSolver, rotation_matrix,
                          rotation_vector)
 
-CAMERA = Camera(640.0, 640.0, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
-K = np.array([[640.0, 0, 319.5], [0, 640.0, 239.5], [0, 0, 1]])
-# An expression in tangent coordinates (u, v), mm, NONRIGID order: brows up, smile, mouth open.
-EXPRESSION_UV = np.array([[0.0, 3.0], [0.5, 2.0], [-0.5, 2.0], [0.0, 3.0], [-3.0, 2.0],
-                          [3.0, 2.0], [0.0, 1.5], [0.0, -6.0], [0.0, -5.0]], np.float32)
-
-
-@pytest.fixture(scope="module")
-def rig() -> Rig:
-    return Rig(generic_head())
+CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
+K = SYNTH_K
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:

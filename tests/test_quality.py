@@ -14,7 +14,6 @@ from bench.quality import (NOT_MEASURED, TARGET_NME_HELDOUT, format_quality, geo
                            project_landmarks, quality)
 from bench.speed import NoFaceError
 from models.build import build_model
-from models.head import generic_head
 from models.landmarks import HELD_OUT, outer_eye_distance
 from models.modelfile import ModelFileError
 from models.raster import Camera as ViewCamera
@@ -35,11 +34,6 @@ POSES = [
     ((5.0, -30.0, -6.0), (12.5, 40.0, -720.0), 4.0),
     ((-4.0, 12.0, 0.0), (-5.0, -5.0, -450.0), 8.0),
 ]
-
-
-@pytest.fixture(scope="module")
-def rig() -> Rig:
-    return Rig(generic_head())
 
 
 def _truth(rig: Rig, rotvec_deg, translation, residuals) -> np.ndarray:
