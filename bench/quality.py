@@ -30,13 +30,22 @@ Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldou
 ``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``; and
 ``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
 30 Hz, from the packets themselves). The appearance keys of the DESIGN.md contract
-(``face_ssim_mean``, ``face_psnr_mean``, the x264 comparison, ``q_reference``) need the
-receiver's renderer and the classifier; they are listed under ``not_measured`` and never
-estimated.
+(``face_ssim_mean``, ``face_psnr_mean``, the x264 comparison) need the receiver's renderer;
+they are listed under ``not_measured`` and never estimated.
 
-Targets (issue 4; printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
-``nme_rigid_only_mean``. A miss does not fail the command (exit 0): the target is judged
-over the shared videos, not one clip.
+Appearance classification. ``q_regions`` gives, per region of the model, its layer count
+and the mean, standard deviation, minimum and maximum of the decoded Q over the measured
+frames. With ``--reference OPENFACE.csv``, ``q_reference`` is the agreement of the decoded
+Q with OpenFace's action units on the same frames (``bench.reference.q_agreement``:
+eyelids vs AU45, forehead vs AU01 + AU02, mouth vs AU25 + AU26, blink-event F1). The plot
+(``--plot P.png``) goes with a second one, ``P-q.png``: every region's Q over time with six
+frames of the eyes evenly spaced through the clip (``bench.qplot``).
+
+Targets (printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
+``nme_rigid_only_mean`` (issue 4); with a reference, eyelid-vs-AU45 r >= 0.6, blink F1 >=
+0.7 and forehead r >= 0.4 (issue 5, stated for openface_default.wmv with a model built from
+its first 6 s). A miss does not fail the command (exit 0): the targets are judged over the
+shared videos, not one clip.
 """
 
 from __future__ import annotations
@@ -50,6 +59,8 @@ import cv2
 import numpy as np
 
 from bench.bandwidth import NOMINAL_HZ, kbps
+from bench.qplot import plot_q
+from bench.reference import q_agreement, read_openface
 from bench.report import report
 from bench.speed import NoFaceError
 from models.landmarks import HELD_OUT, N_LANDMARKS, nme
@@ -63,9 +74,11 @@ from sender.pipeline import SenderPipeline, sender_camera
 
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
+TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
+THUMBNAILS = 6
 # The quality keys of the DESIGN.md contract that belong to later issues.
 NOT_MEASURED = ("face_ssim_mean", "face_psnr_mean", "h264_kbps", "h264_face_ssim_mean",
-                "h264_face_psnr_mean", "q_reference")
+                "h264_face_psnr_mean")
 
 
 class GeometryNME(NamedTuple):
@@ -182,13 +195,17 @@ class _Series(NamedTuple):
     """Per-frame results behind a summary (for the plot)."""
 
     indices: np.ndarray  # (F,) video frame indices
+    times: np.ndarray  # (F,) seconds
     face: np.ndarray  # (F,) bool, packet FACE_PRESENT without TRACKING_LOST
     nme: GeometryNME
+    q: dict[str, np.ndarray]  # region -> (F,) decoded Q, NaN where not measured
+    layers: dict[str, int]
+    eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
 
 
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-                    frames: slice | None = None, progress: Progress = no_progress
-                    ) -> dict[str, Any]:
+                    frames: slice | None = None, progress: Progress = no_progress,
+                    reference: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
 
     Args:
@@ -196,6 +213,7 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         source: a video file (or a folder of images, as ``sender.capture.open_source``).
         frames: the frame range (``models.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+        reference: an OpenFace CSV of the same video, for ``q_reference``.
 
     Returns:
         A dict: ``frames``, ``face_frames``, ``tracked_frames``, ``pose_lost_frames``,
@@ -203,31 +221,41 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``clamped_frames``, ``packet_bytes``, ``payload_kbps``, ``nme_heldout_mean``,
         ``nme_heldout_median``, ``nme_heldout_p95``, ``nme_rigid_only_mean``,
         ``nme_rigid_only_median``, ``nme_rigid_only_p95`` (percent; None when no frame was
-        measured), ``camera``, ``targets``, ``met``, ``not_measured``, ``model``, ``source``.
+        measured), ``q_regions``, ``q_reference`` (with a reference), ``camera``,
+        ``targets``, ``met``, ``not_measured``, ``model``, ``source``.
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
         CaptureError / VideoError: the source is missing, unreadable or holds no frame in the
             range; ``NoFaceError`` when the tracker finds no face in any frame (names the file).
+        OpenFaceError: the reference is missing or malformed (names the file).
     """
-    return _measure(model_path, source, frames, progress)[0]
+    return _measure(model_path, source, frames, progress, reference)[0]
 
 
 def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-             frames: slice | None, progress: Progress) -> tuple[dict[str, Any], _Series]:
+             frames: slice | None, progress: Progress,
+             reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False
+             ) -> tuple[dict[str, Any], _Series]:
     frames = slice(0, None) if frames is None else frames
+    openface = None if reference is None else read_openface(reference)
     model = load_model(model_path)
     src = open_source(str(source), pace=False, frames=frames)
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
                               rate_hz=min(max(src.rate_hz, 1e-3), 1000.0))
     camera = pipeline.hello().camera
     indices: list[int] = []
+    times: list[float] = []
     packets: list[bytes] = []
     tracked: list[np.ndarray | None] = []
+    eyes: dict[int, np.ndarray] = {}
     with src:
         for frame in progress(src, "encoding", src.frames or None):
             out = pipeline.process(frame.image, frame.time)
+            if keep_eyes and out.points is not None:
+                eyes[len(indices)] = _eye_crop(frame.image, out.points)
             indices.append(frame.index)
+            times.append(frame.time)
             packets.append(out.packet)
             tracked.append(out.points)
     span = f"range {frames.start}:{'' if frames.stop is None else frames.stop}"
@@ -273,8 +301,46 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         "nme_heldout": mean is not None and mean <= TARGET_NME_HELDOUT,
         "below_rigid_only": mean is not None and mean < rigid,
     }
+    names = pipeline.hello().regions
+    layers = {r.name: int(r.layers.shape[0]) for r in model.regions}
+    q = {name: np.where(posed, decoded["q"][:, k].astype(np.float64), np.nan)
+         for k, name in enumerate(names)}
+    summary["q_regions"] = {name: _q_stats(q[name], layers[name]) for name in names}
+    if openface is not None:
+        agreement = q_agreement(q, np.array(indices), layers, openface)
+        summary["q_reference"] = agreement
+        summary["targets"].update(TARGET_Q)
+        summary["met"].update({key: _at_least(agreement[key], target)
+                               for key, target in TARGET_Q.items()})
     summary["not_measured"] = list(NOT_MEASURED)
-    return summary, _Series(np.array(indices), posed, result)
+    return summary, _Series(np.array(indices), np.array(times), posed, result, q, layers, eyes)
+
+
+def _q_stats(q: np.ndarray, layers: int) -> dict[str, Any]:
+    v = q[np.isfinite(q)]
+    if v.size == 0:
+        return {"layers": layers, "mean": None, "std": None, "min": None, "max": None}
+    return {"layers": layers, "mean": round(float(v.mean()), 4), "std": round(float(v.std()), 4),
+            "min": round(float(v.min()), 4), "max": round(float(v.max()), 4)}
+
+
+def _at_least(entry: Any, target: float) -> bool:
+    value = entry["r"] if isinstance(entry, dict) else entry
+    return value is not None and value >= target
+
+
+def _eye_crop(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """A 2:1 crop of the frame around both eyes (iBUG 36-47), 240 x 120 px."""
+    eyes = points[36:48]
+    cx, cy = eyes.mean(axis=0)
+    half = max(float(np.ptp(eyes[:, 0])) * 0.7, 8.0)
+    x0, y0 = int(cx - half), int(cy - half / 2)
+    x1, y1 = int(cx + half), int(cy + half / 2)
+    h, w = image.shape[:2]
+    crop = image[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)]
+    if crop.size == 0:
+        return np.zeros((120, 240, 3), np.uint8)
+    return cv2.resize(crop, (240, 120), interpolation=cv2.INTER_AREA)
 
 
 def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
@@ -308,6 +374,24 @@ def format_quality(result: dict[str, Any]) -> str:
             f"{_verdict(r['met']['nme_heldout'])}; below rigid-only: "
             f"{_verdict(r['met']['below_rigid_only'])}",
         ]
+    for name, q in r["q_regions"].items():
+        if q["mean"] is not None:
+            lines.append(f"Q {name}: {q['layers']} layers, mean {q['mean']:.2f}, "
+                         f"std {q['std']:.2f}, range {q['min']:.2f} .. {q['max']:.2f}")
+    if "q_reference" in r:
+        a = r["q_reference"]
+        for key in ("eyelid_au45", "forehead_au01_au02", "mouth_au25_au26"):
+            e = a[key]
+            value = "n/a (" + e["reason"] + ")" if e["r"] is None else \
+                f"r = {e['r']:.3f} over {e['frames']} frames"
+            target = TARGET_Q.get(key)
+            verdict = "" if target is None else \
+                f"; target >= {target:g}: {_verdict(r['met'][key])}"
+            lines.append(f"vs OpenFace {key}: {value}{verdict}")
+        f1 = "n/a" if a["blink_f1"] is None else f"{a['blink_f1']:.3f}"
+        lines.append(f"blinks: F1 {f1} ({a['blink_matched']} matched of "
+                     f"{a['blink_events']} ours, {a['blink_events_reference']} OpenFace's); "
+                     f"target >= {TARGET_Q['blink_f1']:g}: {_verdict(r['met']['blink_f1'])}")
     lines.append(f"not measured yet: {', '.join(r['not_measured'])}")
     return "\n".join(lines)
 
@@ -315,17 +399,28 @@ def format_quality(result: dict[str, Any]) -> str:
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
             frames: slice | None = None, as_json: bool = False,
             plot: str | os.PathLike[str] | None = None,
-            progress: Progress = no_progress) -> int:
+            progress: Progress = no_progress,
+            reference: str | os.PathLike[str] | None = None) -> int:
     """Run ``measure_quality``, print its report (JSON last with ``as_json``), optionally plot.
 
     Returns:
         The exit status, 0 (targets inform; see the module docstring).
     """
-    result, series = _measure(model_path, source, frames, progress)
+    result, series = _measure(model_path, source, frames, progress, reference,
+                              keep_eyes=plot is not None)
     lines = format_quality(result).splitlines()
     if plot is not None:
         _plot(series, result, Path(plot))
         lines.append(f"plot: {plot}")
+        if series.q:
+            q_path = Path(plot).with_name(Path(plot).stem + "-q.png")
+            shown = sorted(series.eyes)
+            picks = [shown[int(i)] for i in np.linspace(0, len(shown) - 1, THUMBNAILS)] \
+                if len(shown) >= THUMBNAILS else shown
+            plot_q(series.times, series.q, series.layers,
+                   [(float(series.times[i]), series.eyes[i]) for i in picks], q_path,
+                   title=f"facewire appearance classification: {Path(source).name}")
+            lines.append(f"plot: {q_path}")
     report(result, lines, as_json)
     return 0
 

@@ -70,10 +70,15 @@ def _frames(text: str | None) -> slice:
 def _model_build(args: argparse.Namespace) -> int:
     from bench.report import report
     from models.build import build_model
+    from sender.enroll import enroll_regions
 
     frames = _frames(args.frames)
-    result = build_model(args.video, args.output, frames, progress=_progress)
+    result = build_model(args.video, args.output, frames, progress=_progress,
+                         appearance=enroll_regions)
     s = result.summary()
+    regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
+               + (" (weak: the video barely shows it)" if r["weak"] else "")
+               for name, r in s["appearance"].items()]
     report(s, [f"model:    {result.path} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
                f"preview:  {result.preview}",
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
@@ -81,6 +86,8 @@ def _model_build(args: argparse.Namespace) -> int:
                f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
                f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
                f"from the generic head)",
+               f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
+               *regions,
                f"time:     {s['seconds']} s"], args.json)
     return 0
 
@@ -140,11 +147,8 @@ def _encode(args: argparse.Namespace) -> int:
 def _bench_quality(args: argparse.Namespace) -> int:
     from bench.quality import quality
 
-    if args.reference:
-        raise CommandError("--reference: Q agreement comes with the appearance work "
-                           "(issue 5); not implemented yet")
     return quality(args.model, args.source, frames=_frames(args.frames), as_json=args.json,
-                   plot=args.plot, progress=_progress)
+                   plot=args.plot, progress=_progress, reference=args.reference)
 
 
 def _check(_: argparse.Namespace) -> int:
@@ -277,11 +281,14 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from protocol.log import LogError
     from protocol.packet import PacketError
     from protocol.transport import TransportError
+    from bench.reference import OpenFaceError
+    from models.regions import RegionError
     from sender.capture import CaptureError
+    from sender.enroll import EnrollError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
-            TransportError, BuildError, CaptureError, GltfError, ModelFileError, VideoError,
-            FileNotFoundError, PermissionError, IsADirectoryError)
+            TransportError, BuildError, CaptureError, EnrollError, GltfError, ModelFileError,
+            OpenFaceError, RegionError, VideoError, FileNotFoundError, PermissionError, IsADirectoryError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -10,9 +10,15 @@ The steps, in order (``build_model``):
 3. Texture: decode the fit's texture views again (the neutral frame first, then side views),
    project them onto the fitted mesh's UV layout (``models.texture``) at ``TEXTURE_SIZE``, and
    fill every texel no view saw, so no black gap or seam shows from any angle.
-4. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
+4. Appearance (when an ``appearance`` step is given; ``facewire model build`` gives
+   ``sender.enroll.enroll_regions``): the texture regions' layers and classification
+   templates. It runs the sender's own pose, lift and sampler on the video, which ``models``
+   may not import, so the caller hands it in.
+5. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
    the front and from three-quarter view, beside the neutral frame cropped to the face, so a
-   user can see at a glance whether the model is that person.
+   user can see at a glance whether the model is that person; below, one row per region
+   with its layers in order (as drawn over the neutral texture: layer times its opacity and
+   alpha ramp).
 
 Failures a user can cause (an unreadable video, no face, too few face frames) raise
 ``BuildError`` naming the video.
@@ -24,7 +30,7 @@ import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -32,7 +38,7 @@ import numpy as np
 from models.fit import Fit, FitError, fit_person, intrinsics_guess
 from models.head import generic_head
 from models.landmarks import outer_eye_distance
-from models.modelfile import Camera, ModelInfo, PersonModel, model_summary, save_model
+from models.modelfile import Camera, ModelInfo, PersonModel, Region, model_summary, save_model
 from models.progress import Progress, no_progress
 from models.raster import Camera as ViewCamera
 from models.raster import MeshRenderer, orbit_pose
@@ -46,7 +52,12 @@ PREVIEW_YAWS = (0.0, 35.0)  # degrees: front and three-quarter
 PREVIEW_FOV_DEG = 25.0
 CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye distances
 CREATOR = "facewire 0.1.0"
+REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
+REGION_LABEL_WIDTH = 150
 
+# The appearance step: (geometry model, video, frame range, progress) -> (regions, report).
+Appearance = Callable[[PersonModel, Path, slice, Progress],
+                      tuple[tuple[Region, ...], dict[str, Any]]]
 
 
 class BuildError(ValueError):
@@ -65,6 +76,7 @@ class BuildResult:
         frames: video frame indices tracked, in order.
         face_frames: how many of them had a face.
         seconds: wall time of the whole build.
+        appearance: the appearance step's report per region ({} without one).
     """
 
     model: PersonModel
@@ -74,6 +86,7 @@ class BuildResult:
     frames: tuple[int, ...]
     face_frames: int
     seconds: float
+    appearance: dict[str, Any]
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object: DESIGN.md's model keys, then how the build went."""
@@ -83,7 +96,7 @@ class BuildResult:
                 "neutral_frame": self.model.info.neutral_frame, "depth": self.fit.depth,
                 "depth_change_mm": round(self.fit.depth_change_mm, 3),
                 "texture_views": list(self.model.info.frames_used),
-                "seconds": round(self.seconds, 2)}
+                "appearance": self.appearance, "seconds": round(self.seconds, 2)}
 
 
 def preview_path(model_path: str | os.PathLike[str]) -> Path:
@@ -94,7 +107,8 @@ def preview_path(model_path: str | os.PathLike[str]) -> Path:
 
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
-                progress: Progress = no_progress) -> BuildResult:
+                progress: Progress = no_progress,
+                appearance: Appearance | None = None) -> BuildResult:
     """Build a person's model from a video and save it with its preview.
 
     Args:
@@ -104,6 +118,8 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         frames: the frame range to use (``models.video.frame_range``).
         name: the person's name; the video's file name without extension by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+        appearance: the appearance step (module docstring, 4); None builds geometry and the
+            neutral texture only (a model without regions).
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
@@ -153,13 +169,17 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         info=ModelInfo(name=name or video.stem, source_video=video.name,
                        frames_used=tuple(sorted(indices[k] for k in fit.views)),
                        neutral_frame=indices[fit.neutral], creator=CREATOR))
+    report: dict[str, Any] = {}
+    if appearance is not None:
+        regions, report = appearance(model, video, frames, progress)
+        model = replace(model, regions=regions)
     out = Path(out)
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
     preview = preview_path(out)
     neutral_image = images[indices[fit.neutral]]
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start)
+                       time.perf_counter() - start, report)
 
 
 def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
@@ -173,7 +193,8 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
             renders; the whole frame when None.
 
     Returns:
-        (PREVIEW_HEIGHT, W, 3) uint8 BGR image: [neutral frame |] front | three-quarter.
+        (PREVIEW_HEIGHT + R * REGION_ROW_HEIGHT, W, 3) uint8 BGR image: [neutral frame |]
+        front | three-quarter, then a row per region of its R regions (module docstring).
     """
     mesh = model.mesh
     size = PREVIEW_HEIGHT
@@ -194,7 +215,35 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
             camera = ViewCamera.virtual(size, size, rotation, translation,
                                         fov_y_deg=PREVIEW_FOV_DEG)
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
-    return np.hstack(panels)
+    top = np.hstack(panels)
+    rows = [_region_row(model.texture, r, top.shape[1]) for r in model.regions]
+    return np.vstack([top, *rows])
+
+
+def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
+    """(REGION_ROW_HEIGHT, width, 3) BGR: the region's name, then its layers in order, each
+    drawn over the neutral texture as the receiver blends it."""
+    h, w = region.mask.shape
+    u0, _, _, v1 = region.uv_rect
+    r0, c0 = int(round((1.0 - v1) * texture.shape[0])), int(round(u0 * texture.shape[1]))
+    base = texture[r0:r0 + h, c0:c0 + w].astype(np.float32)
+    row = np.full((REGION_ROW_HEIGHT, width, 3), 24, np.uint8)
+    cv2.putText(row, region.name, (6, REGION_ROW_HEIGHT // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX,
+                0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    k = len(region.layers)
+    room = width - REGION_LABEL_WIDTH - 4 * k
+    scale = min((REGION_ROW_HEIGHT - 4) / h, room / (k * w))
+    size = (max(1, int(w * scale)), max(1, int(h * scale)))
+    x = REGION_LABEL_WIDTH
+    for layer, opacity in zip(region.layers, region.opacity):
+        alpha = opacity * region.mask[..., None].astype(np.float32) / 255.0
+        drawn = base * (1.0 - alpha) + layer.astype(np.float32) * alpha
+        tile = cv2.resize(np.clip(drawn, 0, 255).astype(np.uint8)[..., ::-1], size,
+                          interpolation=cv2.INTER_AREA)
+        y = (REGION_ROW_HEIGHT - size[1]) // 2
+        row[y:y + size[1], x:x + size[0]] = tile
+        x += size[0] + 4
+    return row
 
 
 def _face_crop(image: np.ndarray, points: np.ndarray | None, size: int) -> np.ndarray:

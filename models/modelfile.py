@@ -38,7 +38,7 @@ N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy for
 2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
 their header before that). Manifest ``model.json``, every key required and no others::
 
-    {"format": "facewire-model", "format_version": 1,
+    {"format": "facewire-model", "format_version": 2,
      "camera":  {"fx", "fy": focal lengths, px, > 0; "cx", "cy": principal point, px
                  (image origin top-left); "width", "height": image size, px},
      "info":    {"name": person, "source_video": enrollment video's name ("" if none),
@@ -47,17 +47,20 @@ their header before that). Manifest ``model.json``, every key required and no ot
                  or ""},
      "members": {member name: {"dtype": numpy dtype name, "shape": [int, ...]}},
      "regions": [{"name": R, "uv_rect": [u0, v0, u1, v1], "template_rect": [u0, v0, u1, v1],
-                  "layers": k}, ...]}
+                  "layers": k, "opacity": [k numbers in [0, 1]]}, ...]}
 
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
 empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
-0 <= v0 < v1 <= 1, and ``template_rect`` lies inside ``uv_rect``. The reader checks each
+0 <= v0 < v1 <= 1, and ``template_rect`` lies inside ``uv_rect``. ``opacity`` scales the
+mask per layer (a layer's alpha is ``opacity[j] * mask``; the eyelids' open state is
+transparent so the eyeball shows through it). The reader checks each
 member against a schema table (member-name pattern, kind, dtype, shape with named
 dimensions, size limit) and against its ``members`` entry; the mesh arrays then go through
 ``Mesh``'s own checks (finiteness, index ranges). A later addition (e.g. per-landmark neutral
 data) is a new row of that table and a new manifest key, with ``format_version`` raised: a
-reader accepts only the versions it knows, and keeps reading the older ones.
+reader accepts only the versions it knows, and keeps reading the older ones. Version 1 had
+no ``opacity`` (read as all ones); nothing ever wrote a version-1 model with regions.
 
 The zip itself must be plain: it ends with its end-of-archive record (no comment, nothing
 before or after the archive), members are stored or deflated, never encrypted, and no name
@@ -98,7 +101,8 @@ import numpy as np
 from models.mesh import Mesh, MeshError
 
 FORMAT = "facewire-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
 MAX_FILE_BYTES = 256 * 1024**2
 MAX_TOTAL_BYTES = 256 * 1024**2
 MAX_MEMBER_BYTES = 64 * 1024**2
@@ -213,6 +217,8 @@ class Region:
             (the layers of its 3D texture), row 0 at v = v1; 1 <= k <= 64, 1 <= h, w <= 4096.
         mask: (h, w) uint8, the layers' alpha over the neutral texture (255 = layer).
         templates: (k, 16, 16) float32, finite, the classification template of each state.
+        opacity: k numbers in [0, 1], each layer's alpha scale (``mask`` times it); all ones
+            when not given.
     """
 
     name: str
@@ -221,6 +227,7 @@ class Region:
     layers: np.ndarray
     mask: np.ndarray
     templates: np.ndarray
+    opacity: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         _region_name(self.name, "region")
@@ -249,6 +256,13 @@ class Region:
                              f"{(k, TEMPLATE_SIZE, TEMPLATE_SIZE)}, got {self.templates.shape}")
         if not np.isfinite(self.templates).all():
             raise ModelError(f"{field}: templates: contains NaN or infinity")
+        opacity = (1.0,) * k if len(self.opacity) == 0 else self.opacity
+        if not isinstance(opacity, (tuple, list)) or len(opacity) != k:
+            raise ModelError(f"{field}: opacity: expected {k} numbers, one per layer")
+        opacity = tuple(_number(a, f"{field}: opacity[{j}]") for j, a in enumerate(opacity))
+        if not all(0.0 <= a <= 1.0 for a in opacity):
+            raise ModelError(f"{field}: opacity: expected numbers in [0, 1], got {opacity}")
+        object.__setattr__(self, "opacity", opacity)
 
 
 @dataclass(frozen=True, eq=False)
@@ -398,8 +412,9 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
         regions = tuple(
             Region(name, uv_rect, template_rect,
                    np.stack([arrays[f"regions/{name}/layer_{j:02d}.png"] for j in range(k)]),
-                   arrays[f"regions/{name}/mask.png"], arrays[f"regions/{name}/templates.npy"])
-            for name, uv_rect, template_rect, k in manifest.regions)
+                   arrays[f"regions/{name}/mask.png"], arrays[f"regions/{name}/templates.npy"],
+                   opacity)
+            for name, uv_rect, template_rect, k, opacity in manifest.regions)
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            regions, hashlib.sha256(data).hexdigest(), len(data))
     except ModelError as e:
@@ -462,9 +477,9 @@ def _spec(name: str) -> _Spec | None:
     return next((s for s in _SPECS if s.pattern.fullmatch(name)), None)
 
 
-def _expected_members(regions: list[tuple[str, Any, Any, int]]) -> set[str]:
+def _expected_members(regions: list[tuple[str, Any, Any, int, Any]]) -> set[str]:
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
-    for name, _, _, k in regions:
+    for name, _, _, k, _ in regions:
         names |= {f"regions/{name}/layer_{j:02d}.png" for j in range(k)}
         names |= {f"regions/{name}/mask.png", f"regions/{name}/templates.npy"}
     return names
@@ -501,7 +516,8 @@ def _encode(model: PersonModel) -> bytes:
                  "creator": i.creator, "created": i.created},
         "members": declared,
         "regions": [{"name": r.name, "uv_rect": list(r.uv_rect),
-                     "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0])}
+                     "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0]),
+                     "opacity": list(r.opacity)}
                     for r in model.regions],
     }
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
@@ -614,7 +630,7 @@ class _Manifest(NamedTuple):
     camera: Camera
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
-    regions: list[tuple[str, Any, Any, int]]
+    regions: list[tuple[str, Any, Any, int, tuple[Any, ...]]]  # name, rects, layers, opacity
 
 
 def _parse_manifest(raw: bytes) -> _Manifest:
@@ -636,9 +652,9 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     if doc["format"] != FORMAT:
         raise ModelError(f"format: expected {FORMAT!r}, got {doc['format']!r:.80}")
     version = _integer(doc["format_version"], "format_version", 0, 2**31)
-    if version != FORMAT_VERSION:
+    if version not in READ_VERSIONS:
         raise ModelError(f"format_version: unsupported version {version} "
-                         f"(this reader knows {FORMAT_VERSION})")
+                         f"(this reader knows {', '.join(map(str, READ_VERSIONS))})")
     camera = Camera(**_keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"}))
     info = ModelInfo(**_keys(doc["info"], "info", {"name", "source_video", "frames_used",
                                                    "neutral_frame", "creator", "created"}))
@@ -672,12 +688,16 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     regions = []
     for i, entry in enumerate(doc["regions"]):
         field = f"regions[{i}]"
-        _keys(entry, field, {"name", "uv_rect", "template_rect", "layers"})
+        keys = {"name", "uv_rect", "template_rect", "layers"}
+        _keys(entry, field, keys | {"opacity"} if version >= 2 else keys)
         name = _region_name(entry["name"], f"{field}.name")
         if any(name == r[0] for r in regions):
             raise ModelError(f"{field}.name: {name!r} appears twice")
         k = _integer(entry["layers"], f"{field}.layers", 1, MAX_LAYERS)
-        regions.append((name, entry["uv_rect"], entry["template_rect"], k))
+        opacity = entry.get("opacity", [1.0] * k)
+        if not isinstance(opacity, list):
+            raise ModelError(f"{field}.opacity: expected a list, got {_kind(opacity)}")
+        regions.append((name, entry["uv_rect"], entry["template_rect"], k, tuple(opacity)))
     return _Manifest(camera, info, members, regions)
 
 
@@ -695,7 +715,7 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
             raise ModelFileError(f"{where}: {name}: missing")
         if name not in manifest.members:
             raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
-    for region, _, _, k in manifest.regions:
+    for region, _, _, k, _ in manifest.regions:
         size = manifest.members[f"regions/{region}/mask.png"]
         for j in range(k):
             name = f"regions/{region}/layer_{j:02d}.png"

@@ -14,19 +14,23 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    face loss); the residuals it returns are then projected on the rig's tangent planes,
    ``from_tangent(to_tangent(.))``: ``SenderOutput.residuals`` is exactly the geometry the
    packet can carry, before quantisation.
-5. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
+5. ``sample``: ``sender.appearance.AppearanceSampler`` reads every region's five offset
+   16 x 16 samples from the grey frame at the sent pose and residuals.
+6. ``classify``: ``sender.classify.RegionClassifiers`` -> one Q per region, in the model's
+   region order (the packet's Q slots).
+7. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
 face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
-the last sent pose (the protocol's default frontal pose at 600 mm before any). When the
-tracker saw a face but the pose was rejected, ``FACE_PRESENT`` is still set (the flag
-follows the tracker) together with ``TRACKING_LOST``.
+the last sent pose (the protocol's default frontal pose at 600 mm before any) and the last
+Q values (0 before any). When the tracker saw a face but the pose was rejected,
+``FACE_PRESENT`` is still set (the flag follows the tracker) together with ``TRACKING_LOST``.
 
 Hello: the model's sha256 and size, the rate, the camera, the quantiser table, and the
 model's region names (``PersonModel.regions``, in packet order, the first 8). A model without
-regions (all of them until the appearance work lands) gives an empty list, and every Q slot
-carries 0 (neutral); Q slots beyond the named regions mean nothing. Naming regions the model
-does not have would promise the receiver layers it cannot find.
+regions (built without appearance) gives an empty list, and every Q slot carries 0
+(neutral); Q slots beyond the named regions carry 0 and mean nothing. Naming regions the
+model does not have would promise the receiver layers it cannot find.
 
 ``encode_video`` runs the pipeline over a video into a packet log (``protocol.log``), each
 record stamped with the frame's presentation time in seconds from the start of the file.
@@ -40,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from models.fit import Pose
@@ -51,8 +56,10 @@ from models.tracker import LandmarkTracker
 from protocol.control import Camera, Hello
 from protocol.log import LogWriter
 from protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame
+from sender.appearance import AppearanceSampler
 from sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
                             scale_intrinsics)
+from sender.classify import RegionClassifiers
 from sender.heuristics import ResidualFilter
 from sender.lift import Lifter, pose_and_lift
 from sender.pack import pack
@@ -71,11 +78,15 @@ class SenderOutput:
         packet: the encoded 39-byte packet.
         points: (68, 2) float tracker points, pixels, or None (no face).
         rotation: (3, 3) float64 pre-quantisation pose (model -> GL camera), or None when
-            this frame has no pose (the packet then repeats the last one).
+            this frame has no pose (the packet then repeats the last one, and its Q).
         translation: (3,) float64 mm, or None.
         residuals: (9, 3) float32 pre-quantisation model-space displacements after the
             heuristics, projected on the tangent planes (what the packet can carry).
-        timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``pack``.
+        q: (R,) float32 pre-quantisation Q of the model's R regions (packet order).
+        offsets: (R,) int64 the winning sample offset of each region (``models.regions``
+            ``OFFSETS``), or None when this frame was not classified.
+        timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
+            ``classify``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
         clamped: values clamped by the quantisers on this frame.
         grazing: non-rigid points whose lift was capped at a grazing angle.
@@ -87,6 +98,8 @@ class SenderOutput:
     rotation: np.ndarray | None
     translation: np.ndarray | None
     residuals: np.ndarray
+    q: np.ndarray
+    offsets: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     detected: bool = False
     clamped: int = 0
@@ -122,6 +135,11 @@ class SenderPipeline:
         self.tracker = LandmarkTracker()
         self.pose_filter = PoseFilter()
         self.residual_filter = ResidualFilter()
+        regions = model.regions[:N_REGIONS]
+        self.sampler = AppearanceSampler(model.mesh, self.rig, camera,
+                                         tuple(r.name for r in regions))
+        self.classifiers = RegionClassifiers([r.templates for r in regions]) if regions \
+            else None
         self.reset()
 
     def hello(self) -> Hello:
@@ -142,6 +160,7 @@ class SenderPipeline:
         self._sent = Pose(rotation=np.eye(3), translation=default.translation.astype(np.float64))
         self._seq = 0
         self._time: float | None = None
+        self._q = np.zeros(len(self.sampler.names), np.float32)
 
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
         """Process one frame.
@@ -189,10 +208,22 @@ class SenderPipeline:
         residuals = self.rig.from_tangent(self.rig.to_tangent(out.residuals))
         flags = out.flags | (Flag.FACE_PRESENT if points is not None else Flag(0))
         t4 = clock()
+        offsets = None
+        t5 = t4
         if pose is not None:
             self._sent = pose
-        packed = pack(self.rig, self._seq, flags, self._sent, residuals)
-        t5 = clock()
+            if self.classifiers is not None:
+                gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+                samples = self.sampler.sample(gray, pose.rotation, pose.translation,
+                                              residuals)
+                t5 = clock()
+                result = self.classifiers.classify(samples)
+                self._q, offsets = result.q, result.offset
+        t6 = clock()
+        q = np.zeros(N_REGIONS, np.float32)
+        q[:len(self._q)] = self._q
+        packed = pack(self.rig, self._seq, flags, self._sent, residuals, q)
+        t7 = clock()
         self._seq = (self._seq + 1) % (1 << 16)
         return SenderOutput(
             frame=packed.frame, packet=packed.packet,
@@ -200,9 +231,10 @@ class SenderPipeline:
                 N_LANDMARKS, 2),
             rotation=None if pose is None else pose.rotation.copy(),
             translation=None if pose is None else pose.translation.copy(),
-            residuals=residuals,
+            residuals=residuals, q=self._q.copy(), offsets=offsets,
             timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
-                     "heuristics": t4 - t3, "pack": t5 - t4},
+                     "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
+                     "pack": t7 - t6},
             detected=bool(tracked.detected), clamped=packed.clamped,
             grazing=0 if lifted is None else int(lifted.grazing.sum()))
 

@@ -59,6 +59,18 @@ def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def person_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A full model (geometry, texture, appearance regions) built from lp_d0.mp4's 78 frames
+    (gaze left and right, a smile, eyes closed), as ``facewire model build`` makes it."""
+    from models.build import build_model
+    from sender.enroll import enroll_regions
+
+    path = tmp_path_factory.mktemp("person") / "lp_d0.fwm"
+    build_model(shared_data / "video" / "lp_d0.mp4", path, appearance=enroll_regions)
+    return path
+
+
 def write_video(path: Path, images: list[np.ndarray], rate: int = 25) -> Path:
     """Encode (H, W, 3) uint8 BGR images as a real H.264 file with PyAV."""
     h, w = images[0].shape[:2]

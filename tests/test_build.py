@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
-from models.build import PREVIEW_HEIGHT, TEXTURE_SIZE, build_model
+from models.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
 from models.gltf import read_glb
 from models.head import generic_head
 from models.modelfile import load_model
+from models.regions import REGION_NAMES, spec
+from sender.classify import RegionClassifiers
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +39,25 @@ def test_build_info_export(built, capsys):
     assert model.texture.shape == (*TEXTURE_SIZE, 3)
     # the texture is filled: no black texel anywhere, the face is skin-coloured, not grey
     assert model.texture.max(axis=2).min() > 0
+    # appearance: every region of models.regions, its states from distinct frames, and the
+    # templates are what the sender samples, so each classifies as its own state
+    assert [r.name for r in model.regions] == list(REGION_NAMES)
+    assert summary["regions"] == len(REGION_NAMES) and summary["layers"] == sum(
+        len(r.layers) for r in model.regions)
+    classifiers = RegionClassifiers([r.templates for r in model.regions])
+    for r, region in enumerate(model.regions):
+        report = summary["appearance"][region.name]
+        assert len(set(report["frames"])) == len(region.layers) == spec(region.name).layers
+        samples = np.zeros((len(model.regions), 1, 16, 16), np.float32)
+        for j, template in enumerate(region.templates):
+            samples[r, 0] = template
+            assert classifiers.classify(samples).q[r] == j
+        assert region.opacity[0] == (0.0 if region.name.startswith("eyelid") else 1.0)
+    closed = summary["appearance"]["eyelid_left"]["cue"]
+    assert closed[-1] > closed[0] + 0.05  # lp_d0 closes its eyes: the last state is closed
     preview = cv2.imread(str(out.with_name("lp.preview.png")))
-    assert preview.shape == (PREVIEW_HEIGHT, 3 * PREVIEW_HEIGHT, 3)
+    assert preview.shape == (PREVIEW_HEIGHT + len(REGION_NAMES) * REGION_ROW_HEIGHT,
+                             3 * PREVIEW_HEIGHT, 3)
     front = preview[:, PREVIEW_HEIGHT:2 * PREVIEW_HEIGHT]
     face = front[PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3,
                  PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3].reshape(-1, 3).mean(axis=0)

@@ -44,7 +44,8 @@ def _model(name: str = "alice", regions: bool = True) -> PersonModel:
         "forehead", (0.2, 0.6, 0.8, 0.9), (0.4, 0.7, 0.6, 0.8),
         layers=rng.integers(0, 256, (3, 10, 20, 3), dtype=np.uint8),
         mask=rng.integers(0, 256, (10, 20), dtype=np.uint8),
-        templates=rng.standard_normal((3, 16, 16)).astype(np.float32))
+        templates=rng.standard_normal((3, 16, 16)).astype(np.float32),
+        opacity=(0.0, 1.0, 0.5))
     return PersonModel(
         mesh=_grid_mesh(),
         texture=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
@@ -481,9 +482,9 @@ def test_index_outside_the_mesh_is_refused(saved: Path, tmp_path: Path) -> None:
 
 def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
-    manifest["format_version"] = 2
+    manifest["format_version"] = 3
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest),
-             "model.json: format_version: unsupported version 2")
+             "model.json: format_version: unsupported version 3")
     manifest["format_version"] = "1"
     _refused(_edit(saved, tmp_path / "b.fwm", manifest=manifest),
              "model.json: format_version: expected an integer")
@@ -503,6 +504,10 @@ def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     (lambda m: m.update(regions={}), "regions: expected a list"),
     (lambda m: m["regions"][0].update(name="../x"), "regions[0].name"),
     (lambda m: m["regions"][0].update(layers=0), "regions[0].layers"),
+    (lambda m: m["regions"][0].update(opacity=[0.0, 1.0]), "opacity: expected 3 numbers"),
+    (lambda m: m["regions"][0].update(opacity=[0.0, 1.0, 1.5]), "opacity: expected numbers in"),
+    (lambda m: m["regions"][0].update(opacity="1"), "regions[0].opacity: expected a list"),
+    (lambda m: m["regions"][0].pop("opacity"), "regions[0]: missing key 'opacity'"),
     (lambda m: m["regions"][0].update(uv_rect=[0.5, 0.5, 0.4, 0.9]), "uv_rect"),
     (lambda m: m["regions"][0].update(template_rect=[0.0, 0.0, 1.0, 1.0]),
      "template_rect: not inside uv_rect"),
@@ -515,6 +520,18 @@ def test_manifest_schema_is_enforced(saved: Path, tmp_path: Path, edit, fragment
     manifest = _manifest(saved)
     edit(manifest)
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest), fragment)
+
+
+def test_version_1_is_read_with_opaque_layers(saved: Path, tmp_path: Path) -> None:
+    manifest = _manifest(saved)
+    manifest["format_version"] = 1
+    manifest["regions"][0].pop("opacity")
+    model = load_model(_edit(saved, tmp_path / "v1.fwm", manifest=manifest))
+    assert model.regions[0].opacity == (1.0, 1.0, 1.0)
+    assert load_model(saved).regions[0].opacity == (0.0, 1.0, 0.5)
+    manifest["regions"][0]["opacity"] = [1.0, 1.0, 1.0]
+    _refused(_edit(saved, tmp_path / "v1b.fwm", manifest=manifest),
+             "regions[0]: unknown key 'opacity'")
 
 
 def test_invalid_json_is_refused(saved: Path, tmp_path: Path) -> None:

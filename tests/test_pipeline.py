@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.landmarks import eye_aspect_ratio
 from models.modelfile import ModelFileError
 from models.tracker import LandmarkTracker
 from models.video import frame_range, read_frames
@@ -68,8 +69,10 @@ def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) 
     last = None
     for f in read_frames(video, frame_range("0:40")):
         out = pipeline.process(f.image, f.time)
-        assert set(out.timings) == {"track", "pose", "lift", "heuristics", "pack"}
+        assert set(out.timings) == {"track", "pose", "lift", "heuristics", "sample",
+                                    "classify", "pack"}
         frame, pose, residuals = unpack_geometry(pipeline.rig, out.packet)
+        assert out.q.shape == (0,) and not frame.q.any()  # no regions: Q slots stay 0
         assert frame.seq == f.index
         if out.rotation is None:  # no pose: the last one is repeated
             assert last is not None and np.array_equal(frame.rotation, last.rotation)
@@ -88,6 +91,38 @@ def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) 
     pipeline.reset()
     first = pipeline.process(next(iter(read_frames(video))).image, 0.0)
     assert first.frame.seq == 0
+
+
+def test_packets_carry_each_regions_q(person_model: Path, video: Path, tmp_path: Path) -> None:
+    from models.modelfile import load_model
+    model = load_model(person_model)
+    pipeline = SenderPipeline(model, estimate_intrinsics(512, 512), rate_hz=25.0)
+    names = tuple(r.name for r in model.regions)
+    assert pipeline.hello().regions == names
+    layers = np.array([len(r.layers) for r in model.regions])
+    step = next(q.step for q in QUANTISERS if q.name == "q")
+    qs, ratios = [], []
+    for f in read_frames(video):
+        out = pipeline.process(f.image, f.time)
+        ratios.append(eye_aspect_ratio(out.points).mean() if out.points is not None else np.nan)
+        frame, _, _ = unpack_geometry(pipeline.rig, out.packet)
+        assert out.q.shape == (len(names),)
+        assert np.all((out.q >= 0) & (out.q <= layers - 1))
+        assert np.abs(frame.q[:len(names)] - out.q).max() <= step / 2 + 1e-6
+        assert not frame.q[len(names):].any()
+        qs.append(out.q)
+    qs = np.array(qs)
+    # lp_d0 closes its eyes: the eyelids' Q follows the tracker's eye aspect ratio (which
+    # only chose the states at enrollment; at run time the wavelet classifier alone decides)
+    lids = qs[:, [names.index("eyelid_left"), names.index("eyelid_right")]].mean(axis=1)
+    ratios = np.array(ratios)
+    seen = np.isfinite(ratios)
+    assert lids.max() >= 2.0
+    assert np.corrcoef(lids[seen], ratios[seen])[0, 1] < -0.7
+    assert all(np.ptp(qs[:, k]) > 0 for k in range(len(names)))  # every region varies
+    # a frame without a face holds the last Q
+    held = pipeline.process(np.zeros((512, 512, 3), np.uint8), 100.0)
+    assert held.offsets is None and np.array_equal(held.q, qs[-1])
 
 
 def test_video_without_a_face(generic_model: Path, grey_video, tmp_path: Path) -> None:

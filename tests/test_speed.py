@@ -37,15 +37,31 @@ def test_keys_and_values(result: dict) -> None:
     assert set(result["not_measured"]) == set(NOT_MEASURED)
     assert not {"track_ms", "morph_ms"} & set(result["not_measured"])
     assert not set(NOT_MEASURED) & set(result)  # never faked
-    assert set(result["met"]) == {"morph", "track", "sender"}
+    assert set(result["met"]) == {"morph", "track", "sender", "classify"}
     assert result["met"]["morph"] == (result["morph_ms_per_10k_vertices"] <= 0.2)
     assert result["threads"]
+    # the generic model has no regions: nothing is sampled or classified, nothing is faked
+    assert result["regions"] == 0
+    assert result["classify_ms"] is None and result["sample_ms"] is None
+    assert result["met"]["classify"] is False
+
+
+def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
+                                                         shared_data: Path) -> None:
+    result = measure_speed(person_model, shared_data / "video" / "lp_d0.mp4",
+                           frame_range("0:30"))
+    assert result["regions"] == 7
+    for key in ("sample_ms", "classify_ms"):
+        assert isinstance(result[key], float) and 0 < result[key] < result["sender_ms_median"]
+    assert result["met"]["classify"] == (result["classify_ms"] <= 1.0)
+    assert "classify: " in format_speed(result)
 
 
 def test_report_lines_and_json(result: dict, generic_model: Path, shared_data: Path,
                                capsys: pytest.CaptureFixture[str]) -> None:
     text = format_speed(result)
-    assert "track:" in text and "morph:" in text and "not measured yet: classify_ms" in text
+    assert "track:" in text and "morph:" in text and "not measured yet: receiver_ms" in text
+    assert "classify: not measured (the model has no regions" in text
     assert f"{result['morph_ms']:.4f} ms" in text
     status = speed(generic_model, shared_data / "video" / "lp_d0.mp4", as_json=True,
                    frames=frame_range("0:12"))

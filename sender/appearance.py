@@ -1,0 +1,172 @@
+"""Locating and sampling appearance: the regions' template grids read from each frame.
+
+Appearance areas do not track well, so they are not tracked: each sample point is stored
+once as a triangle of the model and barycentric weights (a, b, c) of its vertices
+(``models.regions.template_samples``; S x S = 32 x 32 points for each of a region's five
+offset grids). Per frame, with the pose and residuals the packet carries:
+
+    P      = P0 + W r                   the points on the morphed mesh, model space, mm
+                                        (P0 = sum a V, W = sum a B: the rig's morph
+                                        ``V + B r`` restricted to the points, precomputed)
+    X      = R P + t                    GL camera frame
+    (x, y) = (cx + fx X / d, cy - fy Y / d),   d = -Z
+
+and the grey frame is read at (x, y) by bilinear interpolation, all regions and offsets in
+one ``cv2.remap``; each template cell is the mean of its SUPERSAMPLE x SUPERSAMPLE points.
+A point behind the camera (d < 1 mm) or off the image reads the nearest border pixel (such
+a sample matches no template well and loses to the others). Because the points ride on the
+morphed, posed mesh, a sample is normalised against head pose and expression: the same
+skin lands in the same template cell.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from models.mesh import Mesh
+from models.regions import SUPERSAMPLE, TEMPLATE_SIZE, spec, template_samples
+from models.rig import Rig
+from protocol.control import Camera
+
+N_OFFSETS = 5
+
+
+class SurfacePoints:
+    """Points fixed on a mesh by barycentric weights, followed through the rig's morph.
+
+    Args:
+        mesh: the model's mesh (neutral).
+        rig: its rig (``Rig(mesh)``).
+        triangles: (...,) int triangle indices.
+        bary: (..., 3) barycentric weights of the triangles' vertices.
+    """
+
+    def __init__(self, mesh: Mesh, rig: Rig, triangles: np.ndarray, bary: np.ndarray) -> None:
+        triangles = np.asarray(triangles)
+        bary = np.asarray(bary, np.float32)
+        if bary.shape != (*triangles.shape, 3):
+            raise ValueError(f"bary: expected shape {(*triangles.shape, 3)}, got {bary.shape}")
+        if triangles.size and not (0 <= triangles.min() and triangles.max() < len(mesh.triangles)):
+            raise ValueError(f"triangles: indices outside [0, {len(mesh.triangles)})")
+        self.shape = triangles.shape
+        corners = mesh.triangles[triangles.ravel()]  # (n, 3)
+        b = bary.reshape(-1, 3, 1)
+        self.neutral = np.ascontiguousarray((b * mesh.vertices[corners]).sum(axis=1), np.float32)
+        self.weights = np.ascontiguousarray((b * rig.weights[corners]).sum(axis=1), np.float32)
+
+        self._stacked = np.ascontiguousarray(np.hstack([self.neutral, self.weights]))
+
+    def positions(self, residuals: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 model-space positions after the morph by (9, 3) ``residuals``, mm."""
+        return self.neutral + self.weights @ np.asarray(residuals, np.float32)
+
+    def project(self, residuals: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """``project(positions(residuals), ...)`` in one product: R (P0 + W r) + t =
+        [P0 W] [R^T; r R^T] + t.
+
+        Returns:
+            x, y: (n,) float32 pixel coordinates.
+        """
+        rt = np.asarray(rotation, np.float32).T
+        cam = self._stacked @ np.vstack([rt, np.asarray(residuals, np.float32) @ rt])
+        cam += np.asarray(translation, np.float32)
+        return _pixels(cam, camera)
+
+
+def project(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+            camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of model-space points (module docstring).
+
+    Args:
+        points: (n, 3) float32 model space, mm.
+        rotation: (3, 3) model -> GL camera.
+        translation: (3,) mm.
+        camera: the intrinsics.
+
+    Returns:
+        x, y: (n,) float32 pixel coordinates, origin top-left (points less than 1 mm in front
+        of the camera are pushed to 1 mm).
+    """
+    cam = points @ np.asarray(rotation, np.float32).T + np.asarray(translation, np.float32)
+    return _pixels(cam, camera)
+
+
+def _pixels(cam: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 GL camera-frame points -> pixel x, y (n,) float32."""
+    inverse = np.float32(-1.0) / np.maximum(-cam[:, 2], np.float32(1.0))
+    x = cam[:, 0] * inverse
+    x *= -np.float32(camera.fx)
+    x += np.float32(camera.cx)
+    y = cam[:, 1] * inverse
+    y *= np.float32(camera.fy)
+    y += np.float32(camera.cy)
+    return x, y
+
+
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Read an image at float pixel positions, bilinearly (borders replicated).
+
+    Args:
+        image: (H, W) or (H, W, C) uint8 or float32.
+        x, y: (...) float32 pixel coordinates, the same shape; (0, 0) the top-left pixel's
+            centre.
+
+    Returns:
+        (...,) or (..., C) float32 values.
+    """
+    shape = x.shape
+    columns = shape[-1] if x.ndim >= 2 else max(x.size, 1)  # remap wants sides < 32767
+    mx = np.ascontiguousarray(x.reshape(-1, columns), np.float32)
+    my = np.ascontiguousarray(y.reshape(-1, columns), np.float32)
+    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(*shape, *image.shape[2:]).astype(np.float32, copy=False)
+
+
+class AppearanceSampler:
+    """The five offset samples of every region, per frame (module docstring).
+
+    Args:
+        mesh: the model's mesh.
+        rig: its rig.
+        camera: the sender camera's intrinsics.
+        names: the regions to sample, in packet order (``models.regions.REGIONS`` names).
+
+    Raises:
+        RegionError: a name is not a known region.
+    """
+
+    def __init__(self, mesh: Mesh, rig: Rig, camera: Camera, names: tuple[str, ...]) -> None:
+        self.names = tuple(names)
+        self.camera = camera
+        grids = [template_samples(spec(name)) for name in self.names]
+        if grids:
+            triangles = np.stack([t for t, _ in grids])
+            bary = np.stack([b for _, b in grids])
+        else:
+            triangles = np.zeros((0, N_OFFSETS, 1, 1), np.int64)
+            bary = np.zeros((0, N_OFFSETS, 1, 1, 3), np.float32)
+        self.points = SurfacePoints(mesh, rig, triangles, bary)
+
+    def sample(self, gray: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+               residuals: np.ndarray) -> np.ndarray:
+        """Sample every region's five offset grids from one frame.
+
+        Args:
+            gray: (H, W) uint8 grey frame.
+            rotation: (3, 3) the pose's rotation, model -> GL camera.
+            translation: (3,) mm.
+            residuals: (9, 3) model-space residuals, mm (``NONRIGID`` order), as sent.
+
+        Returns:
+            (R, 5, 16, 16) float32 grey levels, 0..255, R = len(names).
+        """
+        r = len(self.names)
+        if r == 0:
+            return np.zeros((0, N_OFFSETS, TEMPLATE_SIZE, TEMPLATE_SIZE), np.float32)
+        n, s = TEMPLATE_SIZE, SUPERSAMPLE
+        x, y = self.points.project(residuals, rotation, translation, self.camera)
+        values = bilinear(gray, x.reshape(-1, n * s), y.reshape(-1, n * s))
+        cells = cv2.resize(values, (n, values.shape[0] // s), interpolation=cv2.INTER_AREA)
+        return cells.reshape(r, N_OFFSETS, n, n)

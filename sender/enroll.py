@@ -1,0 +1,325 @@
+"""Appearance enrollment: a person's region layers and classification templates from video.
+
+``facewire model build`` first fits the geometry and the neutral texture
+(``models.build``), then calls ``enroll_regions`` on the same frames. The templates must be
+what the sender will sample at run time, so enrollment runs the sender itself: the real
+``SenderPipeline`` (tracker, pose, lift, filters) on the model being built and the real
+``AppearanceSampler``. That is also why it lives in ``sender``: ``models`` may not import
+the sender's pose and lift.
+
+1. Observe. Every frame of the range goes through the pipeline; each frame with a pose
+   gives its pose, residuals, the (centre-offset) sample of every region and five cues.
+2. Cues (landmark-derived, used only here; at run time only the classifier decides Q):
+
+   =============  =========================================================================
+   region         cue, growing along the region's axis
+   =============  =========================================================================
+   forehead       brow raise: mean y residual of the brow points 19, 21, 22, 24 (mm)
+   brow_furrow    brows drawn together: x residual of 21 minus that of 22 (mm)
+   eyelid_*       eye closure: minus the eye aspect ratio of that eye
+   eyeball_*      gaze: where the iris lies across the eyeball's sample, 0 .. 1 along the
+                  model's +x: the centroid of the darkness (below the median) of the
+                  columns of its middle 8 rows (frames with the lid open only: aspect
+                  ratio over 0.8 of the median)
+   mouth          opening: inner-lip gap |p66 - p62| over the outer-eye distance
+   =============  =========================================================================
+
+3. States. A region of k states spans its cue from a *rest* level to an *extreme* level, at
+   k evenly spaced cue levels: eyelids from the 10th percentile (wide open: a typical open
+   eye then lies a little way into the range, and a wide-open one is no stranger to the
+   templates than a half-closed one) to the 99th (closed: blinks are brief, so the extreme
+   is rare); forehead and brow furrow from
+   the median to the 98th percentile; mouth from the 5th to the 98th percentile; gaze from
+   the 5th to the 95th percentile. Each level takes the frame whose cue is nearest to it
+   (ties broken toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each
+   frame at most once per region. A region whose span is below ``MIN_SPAN`` (the video
+   does not show that expression) still gets its k states, and the report says it is weak.
+4. Layers. Each state's frame is projected onto the region's UV rectangle: every texel's
+   surface point (its triangle and barycentric weights, from ``models.texture.uv_surface``
+   of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
+   frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
+   mouth interior, which is what the sender's camera sees there). Texels off the image or
+   facing away keep the neutral texture. Each layer is then scaled per colour channel by
+   g = sum(base) / sum(layer) over the region's border ramp (clipped to [0.5, 2]), so an
+   exposure change between frames leaves no step at the border. The mask is the region's
+   ``ramp_mask``; the eyelids' first (open) state has opacity 0.
+5. Templates: each state's frame's centre sample, 16 x 16 raw grey levels.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+
+from models.landmarks import eye_aspect_ratio, outer_eye_distance
+from models.mesh import Mesh
+from models.modelfile import PersonModel, Region
+from models.progress import Progress, no_progress
+from models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
+from models.rig import Rig
+from models.texture import uv_surface
+from models.video import read_frames, video_info
+from protocol.control import Camera
+from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from sender.pipeline import SenderPipeline
+
+OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
+MIN_SPAN = {"forehead": 1.5, "brow_furrow": 1.0, "eyelid": 0.08, "eyeball": 0.1,
+            "mouth": 0.08}  # cue units (module docstring)
+_LEVELS = {"forehead": (50, 98), "brow_furrow": (50, 98), "eyelid": (10, 99),
+           "eyeball": (5, 95), "mouth": (5, 98)}  # percentiles: rest, extreme
+_EYEBALL_LEFT = REGION_NAMES.index("eyeball_left")
+_EYEBALL_RIGHT = REGION_NAMES.index("eyeball_right")
+
+
+class EnrollError(ValueError):
+    """The video cannot give appearance states; the message says why."""
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One frame of the enrollment video with a pose.
+
+    Attributes:
+        index: the video frame index.
+        image_size: (width, height) px.
+        rotation: (3, 3) the sent pose's rotation; translation: (3,) mm.
+        residuals: (9, 3) float32 the sent residuals, model space, mm.
+        samples: (R, 16, 16) float32 each region's centre sample (``REGIONS`` order).
+        cues: (R,) float64 each region's cue (module docstring); NaN when not defined.
+        eye_ratio: (2,) the eye aspect ratios (right eye, left eye).
+        yaw_deg: the head's yaw, degrees.
+    """
+
+    index: int
+    rotation: np.ndarray
+    translation: np.ndarray
+    residuals: np.ndarray
+    samples: np.ndarray
+    cues: np.ndarray
+    eye_ratio: np.ndarray
+    yaw_deg: float
+
+
+class Enrollment(NamedTuple):
+    """What ``enroll_regions`` made: the regions and, per region, how they were chosen (the
+    ``models.build.Appearance`` result)."""
+
+    regions: tuple[Region, ...]
+    report: dict[str, dict[str, Any]]
+
+
+def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
+                   frames: slice = slice(0, None), progress: Progress = no_progress
+                   ) -> Enrollment:
+    """Choose every region's states in a video and extract their layers and templates.
+
+    Args:
+        model: the person's geometry model (mesh, neutral texture, enrollment camera);
+            its own regions are ignored.
+        video: the enrollment video.
+        frames: the frame range to use.
+        progress: wraps an iterable to show progress.
+
+    Returns:
+        The regions in ``REGIONS`` order, and a report per region: the chosen frames, their
+        cue values, the span and whether it is weak.
+
+    Raises:
+        EnrollError: fewer than 2 frames with a pose.
+        VideoError: the video cannot be decoded.
+    """
+    video = Path(video)
+    c = model.camera
+    camera = Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
+    observations = _observe(model, camera, video, frames, progress)
+    if len(observations) < 2:
+        raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
+                          f"{frames.start}:{frames.stop or ''}; appearance needs at least 2")
+    cues = np.array([o.cues for o in observations])
+    ratios = np.array([o.eye_ratio for o in observations])
+    closed = ratios < OPEN_EYE * np.median(ratios, axis=0)  # (F, 2): right eye, left eye
+    for r, region in enumerate(REGIONS):
+        if region.name in ("eyeball_right", "eyeball_left"):
+            cues[closed[:, 0 if region.name == "eyeball_right" else 1], r] = np.nan
+    yaw = np.array([abs(o.yaw_deg) for o in observations])
+    chosen: dict[str, list[int]] = {}
+    report: dict[str, dict[str, Any]] = {}
+    for r, region in enumerate(REGIONS):
+        picks, info = _choose_states(region, cues[:, r], yaw)
+        chosen[region.name] = picks
+        report[region.name] = {**info, "frames": [observations[i].index for i in picks]}
+
+    wanted = sorted({i for picks in chosen.values() for i in picks})
+    images = {}
+    by_index = {observations[i].index: i for i in wanted}
+    for frame in progress(read_frames(video, slice(observations[wanted[0]].index,
+                                                   observations[wanted[-1]].index + 1)),
+                          "layers", None):
+        if frame.index in by_index:
+            images[by_index[frame.index]] = frame.image
+    texels = _RegionTexels(model, camera)
+    regions = []
+    for r, region in enumerate(REGIONS):
+        picks = chosen[region.name]
+        layers = np.stack([texels.layer(region.name, images[i], observations[i]) for i in picks])
+        templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
+        opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
+                        for j in range(len(picks)))
+        placement = texels.placements[region.name]
+        mask = np.rint(255 * ramp_mask(layers.shape[1:3])).astype(np.uint8)
+        regions.append(Region(region.name, placement.uv_rect, placement.template_rect, layers,
+                              mask, templates, opacity))
+    return Enrollment(tuple(regions), report)
+
+
+def _observe(model: PersonModel, camera: Camera, video: Path, frames: slice,
+             progress: Progress) -> list[Observation]:
+    """Run the sender over the frames (module docstring, step 1)."""
+    info = video_info(video)
+    pipeline = SenderPipeline(model, camera, rate_hz=info.rate_hz or 30.0)
+    names = tuple(r.name for r in REGIONS)
+    sampler = AppearanceSampler(model.mesh, pipeline.rig, camera, names)
+    total = None
+    if info.frames:
+        stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
+        total = max(stop - frames.start, 0)
+    out = []
+    for frame in progress(read_frames(video, frames), "appearance", total):
+        sent = pipeline.process(frame.image, frame.time)
+        if sent.rotation is None or sent.points is None:
+            continue
+        gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+        samples = sampler.sample(gray, sent.rotation, sent.translation, sent.residuals)
+        forward = sent.rotation[:, 2]
+        out.append(Observation(
+            index=frame.index, rotation=sent.rotation, translation=sent.translation,
+            residuals=sent.residuals, samples=samples[:, 0].copy(),
+            cues=_cues(samples[:, 0], sent.points, sent.residuals),
+            eye_ratio=eye_aspect_ratio(sent.points),
+            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2])))))
+    return out
+
+
+def _cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """(R,) the cue of every region of ``REGIONS`` on one frame (module docstring), from
+    its (R, 16, 16) centre samples, (68, 2) points and (9, 3) residuals."""
+    ear_right, ear_left = eye_aspect_ratio(points)
+    mouth = float(np.linalg.norm(points[66] - points[62]) / max(
+        float(outer_eye_distance(points)), 1e-6))
+    values = {
+        "forehead": float(residuals[:4, 1].mean()),
+        "brow_furrow": float(residuals[1, 0] - residuals[2, 0]),
+        "eyelid_left": -float(ear_left), "eyelid_right": -float(ear_right),
+        "eyeball_left": _iris_position(samples[_EYEBALL_LEFT]),
+        "eyeball_right": _iris_position(samples[_EYEBALL_RIGHT]),
+        "mouth": mouth,
+    }
+    return np.array([values[r.name] for r in REGIONS])
+
+
+def _iris_position(sample: np.ndarray) -> float:
+    """Where the iris lies across an eyeball sample (16 x 16, columns along model +x),
+    0 .. 1: the centroid of the middle rows' column darkness below their median."""
+    middle = sample[4:12].mean(axis=0)
+    darkness = np.maximum(np.median(middle) - middle, 0.0)
+    if darkness.sum() <= 1e-6:
+        return float("nan")
+    columns = (np.arange(len(middle)) + 0.5) / len(middle)
+    return float((darkness * columns).sum() / darkness.sum())
+
+
+def _family(region: RegionSpec) -> str:
+    return region.name.split("_")[0] if region.name.startswith(("eyelid", "eyeball")) \
+        else region.name
+
+
+def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray
+                   ) -> tuple[list[int], dict[str, Any]]:
+    """The observation index of each state, and the report entry (module docstring, 3)."""
+    family = _family(region)
+    usable = np.isfinite(cue)
+    if not usable.any():
+        usable = np.ones_like(usable)
+        cue = np.zeros_like(cue)
+    rest_pct, extreme_pct = _LEVELS[family]
+    rest, extreme = np.percentile(cue[usable], rest_pct), np.percentile(cue[usable], extreme_pct)
+    span = float(abs(extreme - rest))
+    levels = np.linspace(rest, extreme, region.layers)
+    scale = max(span, 1e-6)
+    taken: list[int] = []
+    for level in levels:
+        cost = np.abs(cue - level) / scale + 0.002 * yaw
+        cost[~usable] = np.inf
+        cost[taken] = np.inf
+        if np.isinf(cost).all():
+            cost = np.abs(np.nan_to_num(cue) - level)
+        taken.append(int(np.argmin(cost)))
+    weak = span < MIN_SPAN[family]
+    return taken, {"cue": [round(float(cue[i]), 4) for i in taken],
+                   "span": round(span, 4), "weak": bool(weak)}
+
+
+class _RegionTexels:
+    """Every region's texels as surface points of the model (module docstring, step 4)."""
+
+    def __init__(self, model: PersonModel, camera: Camera) -> None:
+        self.model = model
+        self.camera = camera
+        shape = model.texture.shape[:2]
+        surface = uv_surface(model.mesh, shape)
+        rig = Rig(model.mesh)
+        self.placements = {r.name: place(r, shape) for r in REGIONS}
+        self.slices, self.points, self.valid, self.normals = {}, {}, {}, {}
+        for r in REGIONS:
+            rows, cols = texel_rect(self.placements[r.name].uv_rect, shape)[1]
+            tri = surface.triangles[rows, cols]
+            valid = tri >= 0
+            tri = np.where(valid, tri, 0)
+            v = 1.0 - (np.arange(rows.start, rows.stop) + 0.5) / shape[0]
+            u = (np.arange(cols.start, cols.stop) + 0.5) / shape[1]
+            uv = np.stack(np.meshgrid(u, v, indexing="xy"), axis=-1)
+            bary = _uv_barycentric(model.mesh, tri, uv)
+            self.slices[r.name] = (rows, cols)
+            self.points[r.name] = SurfacePoints(model.mesh, rig, tri, bary)
+            self.valid[r.name] = valid
+            self.normals[r.name] = surface.normals[rows, cols]
+
+    def layer(self, name: str, image: np.ndarray, seen: Observation) -> np.ndarray:
+        """(h, w, 3) uint8 RGB: the region's texels read from ``image`` (module docstring)."""
+        rows, cols = self.slices[name]
+        base = self.model.texture[rows, cols].astype(np.float32)
+        points = self.points[name]
+        x, y = project(points.positions(seen.residuals), seen.rotation, seen.translation,
+                       self.camera)
+        h, w = base.shape[:2]
+        colour = bilinear(image[..., ::-1].copy(), x.reshape(h, w), y.reshape(h, w))
+        normals = self.normals[name] @ seen.rotation.T.astype(np.float32)  # camera frame
+        facing = normals[..., 2] > 0.05
+        on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
+        ok = self.valid[name] & facing & on_image.reshape(h, w)
+        border = ok & (ramp_mask((h, w)) < 1.0)
+        if border.sum() >= 50:
+            gain = base[border].sum(axis=0) / np.maximum(colour[border].sum(axis=0), 1.0)
+            colour *= np.clip(gain, 0.5, 2.0)
+        out = np.where(ok[..., None], colour, base)
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def _uv_barycentric(mesh: Mesh, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(..., 3) barycentric weights of UV points ``uv`` (..., 2) in triangles ``tri`` (...)."""
+    corners = mesh.uv[mesh.triangles[tri]].astype(np.float64)  # (..., 3, 2)
+    a, b, c = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    v0, v1, v2 = b - a, c - a, uv - a
+    det = v0[..., 0] * v1[..., 1] - v0[..., 1] * v1[..., 0]
+    det = np.where(np.abs(det) > 1e-15, det, 1.0)
+    s = (v2[..., 0] * v1[..., 1] - v2[..., 1] * v1[..., 0]) / det
+    t = (v0[..., 0] * v2[..., 1] - v0[..., 1] * v2[..., 0]) / det
+    bary = np.clip(np.stack([1.0 - s - t, s, t], axis=-1), 0.0, 1.0)
+    return (bary / np.maximum(bary.sum(axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+
