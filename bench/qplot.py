@@ -19,6 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from bench.reference import q_series
+
 FIG_WIDTH_IN = 10.0
 HEADER_IN = 0.8  # title and x axis labels
 STRIP_IN = 1.6
@@ -61,10 +63,7 @@ def plot_q(times: np.ndarray, q: dict[str, np.ndarray], layers: dict[str, int],
     if not q:
         raise ValueError("q: no region to plot")
     curves = {}
-    for name, values in q.items():
-        v = np.asarray(values, np.float64)
-        if v.shape != times.shape:
-            raise ValueError(f"q[{name!r}]: expected shape {times.shape}, got {v.shape}")
+    for name, v in q_series(q, times.shape).items():
         k = layers.get(name)
         if not isinstance(k, int) or k < 2:
             raise ValueError(f"layers[{name!r}]: expected an int >= 2, got {k!r}")

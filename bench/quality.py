@@ -33,11 +33,20 @@ Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldou
 (``face_ssim_mean``, ``face_psnr_mean``, the x264 comparison) need the receiver's renderer;
 they are listed under ``not_measured`` and never estimated.
 
-Appearance classification. ``q_regions`` gives, per region of the model, its layer count
+Appearance classification. ``q_regions`` gives, per region of the model in packet order
+(a list of objects with the region's ``name``), its layer count
 and the mean, standard deviation, minimum and maximum of the decoded Q over the measured
-frames. With ``--reference OPENFACE.csv``, ``q_reference`` is the agreement of the decoded
-Q with OpenFace's action units on the same frames (``bench.reference.q_agreement``:
-eyelids vs AU45, forehead vs AU01 + AU02, mouth vs AU25 + AU26, blink-event F1). The plot
+frames; ``brightness_r``, the correlation of Q with the mean grey level of the face's
+landmark box (lighting should not move Q: near 0 on a clip whose light changes); and
+``cue_r``, the correlation of Q with the landmark or image cue that ordered the region's
+states at enrollment (``sender.enroll.region_cues``: brow raise, brow convergence, minus
+the eye aspect ratio, the iris position across the eyeball sample on open-eyed frames, the
+inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
+frames the model was not built from, ``cue_r`` says how well the appearance alone recovers
+the axis the states were laid along. With ``--reference OPENFACE.csv``, ``q_reference`` is
+the agreement of the decoded Q with OpenFace's action units on the same frames
+(``bench.reference.q_agreement``: eyelids vs AU45, forehead vs AU01 + AU02, mouth vs AU25 +
+AU26, blink-event F1). The plot
 (``--plot P.png``) goes with a second one, ``P-q.png``: every region's Q over time with six
 frames of the eyes evenly spaced through the clip (``bench.qplot``).
 
@@ -63,13 +72,15 @@ from bench.qplot import plot_q
 from bench.reference import q_agreement, read_openface
 from bench.report import report
 from bench.speed import NoFaceError
-from models.landmarks import HELD_OUT, N_LANDMARKS, nme
+from models.landmarks import HELD_OUT, N_LANDMARKS, eye_aspect_ratio, nme
+from models.regions import REGION_NAMES
 from models.modelfile import load_model
 from models.progress import Progress, no_progress
 from models.rig import N_RESIDUALS, Rig
 from models.video import VideoError
 from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
 from sender.capture import open_source
+from sender.enroll import region_cues, without_closed_eyes
 from sender.pipeline import SenderPipeline, sender_camera
 
 
@@ -249,11 +260,26 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     packets: list[bytes] = []
     tracked: list[np.ndarray | None] = []
     eyes: dict[int, np.ndarray] = {}
+    brightness: list[float] = []
+    cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
+    cues: list[np.ndarray] = []
+    ratios: list[np.ndarray] = []
     with src:
         for frame in progress(src, "encoding", src.frames or None):
             out = pipeline.process(frame.image, frame.time)
             if keep_eyes and out.points is not None:
                 eyes[len(indices)] = _eye_crop(frame.image, out.points)
+            brightness.append(np.nan if out.points is None
+                              else _face_brightness(frame.image, out.points))
+            if cued and out.offsets is not None:
+                gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+                samples = pipeline.sampler.sample(gray, out.rotation, out.translation,
+                                                  out.residuals)[:, 0]
+                cues.append(region_cues(samples, out.points, out.residuals))
+                ratios.append(eye_aspect_ratio(out.points))
+            else:
+                cues.append(np.full(len(REGION_NAMES), np.nan))
+                ratios.append(np.full(2, np.nan))
             indices.append(frame.index)
             times.append(frame.time)
             packets.append(out.packet)
@@ -305,7 +331,15 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     layers = {r.name: int(r.layers.shape[0]) for r in model.regions}
     q = {name: np.where(posed, decoded["q"][:, k].astype(np.float64), np.nan)
          for k, name in enumerate(names)}
-    summary["q_regions"] = {name: _q_stats(q[name], layers[name]) for name in names}
+    light = np.array(brightness)
+    ratios_seen = np.array(ratios)
+    open_eyes = np.isfinite(ratios_seen).all(axis=1)
+    cue = np.full((len(packets), len(REGION_NAMES)), np.nan)
+    if open_eyes.any():
+        cue[open_eyes] = without_closed_eyes(np.array(cues)[open_eyes], ratios_seen[open_eyes])
+    summary["q_regions"] = [{"name": name, **_q_stats(q[name], layers[name], light,
+                                                      cue[:, k] if cued else None)}
+                            for k, name in enumerate(names)]
     if openface is not None:
         agreement = q_agreement(q, np.array(indices), layers, openface)
         summary["q_reference"] = agreement
@@ -316,12 +350,34 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     return summary, _Series(np.array(indices), np.array(times), posed, result, q, layers, eyes)
 
 
-def _q_stats(q: np.ndarray, layers: int) -> dict[str, Any]:
+def _q_stats(q: np.ndarray, layers: int, brightness: np.ndarray, cue: np.ndarray | None
+             ) -> dict[str, Any]:
+    """Q's mean, std and range over the measured frames, and its correlation with the face's
+    brightness and with the region's enrollment cue (module docstring)."""
     v = q[np.isfinite(q)]
     if v.size == 0:
-        return {"layers": layers, "mean": None, "std": None, "min": None, "max": None}
+        return {"layers": layers, "mean": None, "std": None, "min": None, "max": None,
+                "brightness_r": None, "cue_r": None}
     return {"layers": layers, "mean": round(float(v.mean()), 4), "std": round(float(v.std()), 4),
-            "min": round(float(v.min()), 4), "max": round(float(v.max()), 4)}
+            "min": round(float(v.min()), 4), "max": round(float(v.max()), 4),
+            "brightness_r": _pearson(q, brightness),
+            "cue_r": None if cue is None else _pearson(q, cue)}
+
+
+def _pearson(x: np.ndarray, y: np.ndarray) -> float | None:
+    """Pearson's r over the frames where both are finite; None under 3 frames or constant."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3 or x[ok].std() == 0 or y[ok].std() == 0:
+        return None
+    return round(float(np.corrcoef(x[ok], y[ok])[0, 1]), 4)
+
+
+def _face_brightness(image: np.ndarray, points: np.ndarray) -> float:
+    """The mean grey level of the landmarks' bounding box."""
+    h, w = image.shape[:2]
+    x0, y0 = np.clip(np.floor(points.min(axis=0)).astype(int), 0, [w - 1, h - 1])
+    x1, y1 = np.clip(np.ceil(points.max(axis=0)).astype(int) + 1, 1, [w, h])
+    return float(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY).mean())
 
 
 def _at_least(entry: Any, target: float) -> bool:
@@ -374,10 +430,14 @@ def format_quality(result: dict[str, Any]) -> str:
             f"{_verdict(r['met']['nme_heldout'])}; below rigid-only: "
             f"{_verdict(r['met']['below_rigid_only'])}",
         ]
-    for name, q in r["q_regions"].items():
+    for q in r["q_regions"]:
+        name = q["name"]
         if q["mean"] is not None:
+            light = "n/a" if q["brightness_r"] is None else f"{q['brightness_r']:+.2f}"
+            cue = "n/a" if q["cue_r"] is None else f"{q['cue_r']:+.2f}"
             lines.append(f"Q {name}: {q['layers']} layers, mean {q['mean']:.2f}, "
-                         f"std {q['std']:.2f}, range {q['min']:.2f} .. {q['max']:.2f}")
+                         f"std {q['std']:.2f}, range {q['min']:.2f} .. {q['max']:.2f}; "
+                         f"r with its cue {cue}, with face brightness {light}")
     if "q_reference" in r:
         a = r["q_reference"]
         for key in ("eyelid_au45", "forehead_au01_au02", "mouth_au25_au26"):

@@ -203,12 +203,7 @@ def q_agreement(q: dict[str, np.ndarray], frames: np.ndarray, layers: dict[str, 
                          f"{frames.dtype}")
     if np.unique(frames).size != frames.size:
         raise ValueError("frames: a video frame index appears twice")
-    series = {}
-    for name, values in q.items():
-        v = np.asarray(values, np.float64)
-        if v.shape != frames.shape:
-            raise ValueError(f"q[{name!r}]: expected shape {frames.shape}, got {v.shape}")
-        series[name] = v
+    series = q_series(q, frames.shape)
     for name in EYELIDS:
         if name in series and not (isinstance(layers.get(name), int) and layers[name] >= 2):
             raise ValueError(f"layers[{name!r}]: expected an int >= 2, got "
@@ -241,6 +236,21 @@ def q_agreement(q: dict[str, np.ndarray], frames: np.ndarray, layers: dict[str, 
     }
     result.update(_blinks(eyelid, au["AU45_c"], at, f"no {missing_eyelids} Q"))
     return result
+
+
+def q_series(q: dict[str, np.ndarray], shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+    """Each region's Q as a float64 array of ``shape``.
+
+    Raises:
+        ValueError: a series has another shape (names the region).
+    """
+    series = {}
+    for name, values in q.items():
+        v = np.asarray(values, np.float64)
+        if v.shape != shape:
+            raise ValueError(f"q[{name!r}]: expected shape {shape}, got {v.shape}")
+        series[name] = v
+    return series
 
 
 def _correlation(x: np.ndarray | None, y: np.ndarray, missing: str) -> dict[str, Any]:

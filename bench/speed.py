@@ -110,8 +110,9 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         A dict: ``frames`` (frames tracked), ``tracked_frames``, ``detect_frames``,
         ``no_face_frames``, ``track_ms`` (None if no frame was tracked after acquisition),
         ``track_detect_ms``, ``pose_ms``, ``lift_ms``, ``heuristics_ms``, ``sample_ms``,
-        ``classify_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``, ``sender_fps``, ``width``, ``height``, ``vertices``, ``morph_ms``,
-        ``morph_ms_default_threads``, ``morph_calls``, ``threads`` (what was pinned),
+        ``classify_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``, ``sender_fps``,
+        ``width``, ``height``, ``vertices``, ``morph_ms``, ``morph_ms_default_threads``,
+        ``morph_calls``, ``threads`` (what was pinned),
         ``targets`` and ``met`` (per target), ``not_measured`` (contract keys not measured
         yet); times in milliseconds.
 

@@ -288,7 +288,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
             TransportError, BuildError, CaptureError, EnrollError, GltfError, ModelFileError,
-            OpenFaceError, RegionError, VideoError, FileNotFoundError, PermissionError, IsADirectoryError)
+            OpenFaceError, RegionError, VideoError, FileNotFoundError, PermissionError,
+            IsADirectoryError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

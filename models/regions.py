@@ -22,11 +22,15 @@ mouth           mouth interior       [-16, 16] x [-72, -59]                   mo
 
 Each area is a box seen from the front (the model's +z) on the generic head, and only the
 region's own surface counts: a ray along -z through (x, y) is cast onto the region's
-triangles and its first hit is the surface point. So the eye regions lie on the eyeball
-seen through the lid opening (a closed lid hides that part of the eyeball in the camera
-image, which is what the eyelid classifier sees), and the mouth region lies on the mouth's
-interior seen between the lips (the teeth and tongue of an open mouth; a closed mouth
-shows its lips there). The eyelid and eyeball regions share the eyeball's texture: the
+triangles that face the front (+z) and its first hit is the surface point. So the eye
+regions lie on the eyeball seen through the lid opening (a closed lid hides that part of
+the eyeball in the camera image, which is what the eyelid classifier sees; the eyelid
+boxes reach a little under the lids, so their top and bottom rows read lid skin on an open
+eye too), and the mouth region lies on the back wall of the mouth's interior, seen between
+the lips (the teeth and tongue of an open mouth; a closed mouth shows its lips there). The
+back wall is some 40 mm behind the lips, so a turned head moves the mouth's samples against
+the lips (about 12 mm at 15 degrees of yaw): the mouth classifier is the most
+pose-dependent one. The eyelid and eyeball regions share the eyeball's texture: the
 eyeball region (gaze) is drawn first, the eyelid region over it, and the eyelid's open
 state is transparent (``opacity`` 0), so the gaze shows through an open lid and a closing
 lid covers it.
@@ -63,9 +67,9 @@ from functools import cache
 import numpy as np
 
 from models.head import generic_head
-from models.mesh import Mesh, Tag
+from models.mesh import Tag
+from models.modelfile import TEMPLATE_SIZE
 
-TEMPLATE_SIZE = 16
 SUPERSAMPLE = 2
 OFFSETS = np.array([(0, 0), (1, 1), (-1, 1), (1, -1), (-1, -1)], np.float64)  # cells (u, v)
 RAMP_TEXELS = 10

@@ -30,6 +30,7 @@ from models.rig import Rig
 from protocol.control import Camera
 
 N_OFFSETS = 5
+_REMAP_COLUMNS = 4096
 
 
 class SurfacePoints:
@@ -45,8 +46,12 @@ class SurfacePoints:
     def __init__(self, mesh: Mesh, rig: Rig, triangles: np.ndarray, bary: np.ndarray) -> None:
         triangles = np.asarray(triangles)
         bary = np.asarray(bary, np.float32)
+        if not np.issubdtype(triangles.dtype, np.integer):
+            raise ValueError(f"triangles: expected integer indices, got {triangles.dtype}")
         if bary.shape != (*triangles.shape, 3):
             raise ValueError(f"bary: expected shape {(*triangles.shape, 3)}, got {bary.shape}")
+        if not np.isfinite(bary).all():
+            raise ValueError("bary: contains NaN or infinity")
         if triangles.size and not (0 <= triangles.min() and triangles.max() < len(mesh.triangles)):
             raise ValueError(f"triangles: indices outside [0, {len(mesh.triangles)})")
         self.shape = triangles.shape
@@ -109,7 +114,7 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Read an image at float pixel positions, bilinearly (borders replicated).
 
     Args:
-        image: (H, W) or (H, W, C) uint8 or float32.
+        image: (H, W) or (H, W, C) uint8 or float32, sides under 32767.
         x, y: (...) float32 pixel coordinates, the same shape; (0, 0) the top-left pixel's
             centre.
 
@@ -117,10 +122,18 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         (...,) or (..., C) float32 values.
     """
     shape = x.shape
-    columns = shape[-1] if x.ndim >= 2 else max(x.size, 1)  # remap wants sides < 32767
-    mx = np.ascontiguousarray(x.reshape(-1, columns), np.float32)
-    my = np.ascontiguousarray(y.reshape(-1, columns), np.float32)
-    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    n = x.size
+    if n == 0:
+        return np.zeros((*shape, *image.shape[2:]), np.float32)
+    columns = min(n, _REMAP_COLUMNS)  # cv2.remap wants both sides of its maps under 32767
+    rows = -(-n // columns)
+    mx = np.zeros(rows * columns, np.float32)
+    my = np.zeros(rows * columns, np.float32)
+    mx[:n] = x.ravel()
+    my[:n] = y.ravel()
+    out = cv2.remap(image, mx.reshape(rows, columns), my.reshape(rows, columns),
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = out.reshape(rows * columns, *image.shape[2:])[:n]
     return out.reshape(*shape, *image.shape[2:]).astype(np.float32, copy=False)
 
 

@@ -141,12 +141,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
                           f"{frames.start}:{frames.stop or ''}; appearance needs at least 2")
-    cues = np.array([o.cues for o in observations])
-    ratios = np.array([o.eye_ratio for o in observations])
-    closed = ratios < OPEN_EYE * np.median(ratios, axis=0)  # (F, 2): right eye, left eye
-    for r, region in enumerate(REGIONS):
-        if region.name in ("eyeball_right", "eyeball_left"):
-            cues[closed[:, 0 if region.name == "eyeball_right" else 1], r] = np.nan
+    cues = without_closed_eyes(np.array([o.cues for o in observations]),
+                               np.array([o.eye_ratio for o in observations]))
     yaw = np.array([abs(o.yaw_deg) for o in observations])
     chosen: dict[str, list[int]] = {}
     report: dict[str, dict[str, Any]] = {}
@@ -200,15 +196,23 @@ def _observe(model: PersonModel, camera: Camera, video: Path, frames: slice,
         out.append(Observation(
             index=frame.index, rotation=sent.rotation, translation=sent.translation,
             residuals=sent.residuals, samples=samples[:, 0].copy(),
-            cues=_cues(samples[:, 0], sent.points, sent.residuals),
+            cues=region_cues(samples[:, 0], sent.points, sent.residuals),
             eye_ratio=eye_aspect_ratio(sent.points),
             yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2])))))
     return out
 
 
-def _cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """(R,) the cue of every region of ``REGIONS`` on one frame (module docstring), from
-    its (R, 16, 16) centre samples, (68, 2) points and (9, 3) residuals."""
+def region_cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """The cue of every region of ``REGIONS`` on one frame (module docstring).
+
+    Args:
+        samples: (R, 16, 16) the regions' centre samples, ``REGIONS`` order.
+        points: (68, 2) the tracked points, px.
+        residuals: (9, 3) the sent residuals, mm.
+
+    Returns:
+        (R,) float64 cues, ``REGIONS`` order (NaN: not defined on this frame).
+    """
     ear_right, ear_left = eye_aspect_ratio(points)
     mouth = float(np.linalg.norm(points[66] - points[62]) / max(
         float(outer_eye_distance(points)), 1e-6))
@@ -221,6 +225,24 @@ def _cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.
         "mouth": mouth,
     }
     return np.array([values[r.name] for r in REGIONS])
+
+
+def without_closed_eyes(cues: np.ndarray, ratios: np.ndarray) -> np.ndarray:
+    """The gaze cues blanked (NaN) on frames where that eye's lid is not open.
+
+    Args:
+        cues: (F, R) ``region_cues`` of F frames.
+        ratios: (F, 2) the frames' eye aspect ratios (right eye, left eye).
+
+    Returns:
+        (F, R) a copy; eyeball cues are NaN where the eye's ratio is under ``OPEN_EYE``
+        times its median over the frames.
+    """
+    cues = cues.copy()
+    closed = ratios < OPEN_EYE * np.median(ratios, axis=0)
+    cues[closed[:, 0], _EYEBALL_RIGHT] = np.nan
+    cues[closed[:, 1], _EYEBALL_LEFT] = np.nan
+    return cues
 
 
 def _iris_position(sample: np.ndarray) -> float:

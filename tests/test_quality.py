@@ -13,7 +13,10 @@ from scipy.spatial.transform import Rotation
 from bench.quality import (NOT_MEASURED, TARGET_NME_HELDOUT, format_quality, geometry_nme,
                            project_landmarks, quality)
 from bench.speed import NoFaceError
+from bench.reference import OpenFaceError
 from models.build import build_model
+from models.regions import REGION_NAMES
+from sender.enroll import enroll_regions
 from models.landmarks import HELD_OUT, outer_eye_distance
 from models.modelfile import ModelFileError
 from models.raster import Camera as ViewCamera
@@ -163,9 +166,10 @@ def test_bad_inputs_are_refused(rig: Rig, synthetic: dict) -> None:
 
 @pytest.fixture(scope="module")
 def lp_d0_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A model of lp_d0 built from its frames 0:40 (about 6 s)."""
+    """A model of lp_d0 built from its frames 0:40 (about 6 s), appearance included."""
     out = tmp_path_factory.mktemp("quality") / "lp_d0.fwm"
-    build_model(shared_data / "video" / "lp_d0.mp4", out, frames=slice(0, 40))
+    build_model(shared_data / "video" / "lp_d0.mp4", out, frames=slice(0, 40),
+                appearance=enroll_regions)
     return out
 
 
@@ -191,9 +195,41 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_pa
     assert set(r["not_measured"]) == set(NOT_MEASURED)
     assert not set(NOT_MEASURED) & set(r)  # never faked
     text = "\n".join(out[:-1])
-    assert text == format_quality(r) + f"\nplot: {plot}"
+    q_plot = tmp_path / "nme-q.png"
+    assert text == format_quality(r) + f"\nplot: {plot}\nplot: {q_plot}"
     assert f"mean {r['nme_heldout_mean']:.2f} %" in text
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert q_plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # appearance: every region's decoded Q within its layers, and the eyes' Q follows the
+    # cues that ordered their states (on frames the model was not built from)
+    regions = {q["name"]: q for q in r["q_regions"]}
+    assert [q["name"] for q in r["q_regions"]] == list(REGION_NAMES)
+    for name, q in regions.items():
+        assert 0 <= q["min"] <= q["mean"] <= q["max"] <= q["layers"] - 1, name
+    assert regions["eyeball_left"]["cue_r"] > 0.5
+    assert "q_reference" not in r  # only with --reference
+
+
+def test_agreement_with_openface(shared_data: Path, tmp_path: Path,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 5's measurement: openface_default, model from its first 6 s, measured on the
+    rest against OpenFace's action units (targets: eyelid r >= 0.6, blink F1 >= 0.7)."""
+    video = shared_data / "video" / "openface_default.wmv"
+    model = tmp_path / "od.fwm"
+    build_model(video, model, frames=slice(0, 90), appearance=enroll_regions)
+    reference = shared_data / "openface" / "openface_default.openface.csv"
+    assert quality(model, video, frames=slice(90, None), as_json=True,
+                   reference=reference) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    r = json.loads(out[-1])
+    a = r["q_reference"]
+    assert a["frames_compared"] >= 190
+    assert a["eyelid_au45"]["r"] >= 0.6
+    assert a["blink_f1"] >= 0.6 and a["blink_events_reference"] == 7
+    assert r["met"]["eyelid_au45"] and r["met"]["blink_f1"] == (a["blink_f1"] >= 0.7)
+    assert any(line.startswith("blinks: F1") for line in out)
+    with pytest.raises(OpenFaceError, match="absent.csv"):
+        quality(model, video, frames=slice(90, 100), reference=tmp_path / "absent.csv")
 
 
 def test_missing_or_corrupt_model(tmp_path: Path) -> None:

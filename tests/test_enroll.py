@@ -1,0 +1,108 @@
+"""Appearance enrollment (sender.enroll): cues, the choice of states, layers and failures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.modelfile import load_model
+from models.regions import REGION_NAMES, ramp_mask, spec
+from sender.enroll import (EnrollError, _choose_states, _iris_position, enroll_regions,
+                           region_cues, without_closed_eyes)
+
+
+def test_states_span_the_cue_at_even_levels() -> None:
+    rng = np.random.default_rng(3)
+    cue = rng.uniform(0.0, 10.0, 400)
+    yaw = np.zeros_like(cue)
+    picks, info = _choose_states(spec("mouth"), cue, yaw)  # levels: 5th to 98th percentile
+    levels = np.linspace(np.percentile(cue, 5), np.percentile(cue, 98), spec("mouth").layers)
+    assert len(set(picks)) == len(picks) == spec("mouth").layers
+    np.testing.assert_allclose(cue[picks], levels, atol=0.1)
+    assert info["span"] == pytest.approx(levels[-1] - levels[0], abs=1e-3)
+    assert not info["weak"] and info["cue"] == [round(float(cue[i]), 4) for i in picks]
+
+
+def test_states_prefer_a_frontal_head_and_skip_undefined_cues() -> None:
+    cue = np.array([0.0, 1.0, 1.0, np.nan, 2.0, 3.0, 3.0])
+    yaw = np.array([0.0, 30.0, 2.0, 0.0, 0.0, 1.0, 40.0])
+    picks, _ = _choose_states(spec("mouth"), cue, yaw)
+    assert 3 not in picks and 1 not in picks and 6 not in picks
+    assert picks == sorted(picks)  # the levels rise with the cue
+
+
+def test_a_cue_the_video_barely_shows_is_weak() -> None:
+    cue = np.full(50, 0.3) + np.linspace(0, 0.01, 50)
+    _, info = _choose_states(spec("eyelid_left"), cue, np.zeros(50))
+    assert info["weak"] and info["span"] < 0.08
+
+
+def test_iris_position_follows_the_dark_columns() -> None:
+    for column in (2, 7, 13):
+        sample = np.full((16, 16), 200.0, np.float32)
+        sample[3:13, column:column + 2] = 40.0
+        assert _iris_position(sample) == pytest.approx((column + 1) / 16, abs=0.03)
+    assert np.isnan(_iris_position(np.full((16, 16), 120.0, np.float32)))
+
+
+def test_cues_of_one_frame() -> None:
+    points = np.zeros((68, 2))
+    points[36], points[45] = (100.0, 100.0), (190.0, 100.0)  # outer eye corners 90 px apart
+    points[62], points[66] = (145.0, 180.0), (145.0, 198.0)  # an 18 px inner-lip gap
+    for eye in (range(36, 42), range(42, 48)):
+        x0 = points[36, 0] if eye.start == 36 else 160.0
+        points[list(eye)] = [(x0, 100), (x0 + 10, 95), (x0 + 20, 95), (x0 + 30, 100),
+                             (x0 + 20, 105), (x0 + 10, 105)]
+    points[45] = (190.0, 100.0)
+    residuals = np.zeros((9, 3), np.float32)
+    residuals[:4, 1] = 2.0  # brows up 2 mm
+    residuals[1, 0], residuals[2, 0] = 1.0, -1.0  # inner brows drawn together
+    samples = np.full((len(REGION_NAMES), 16, 16), 200.0, np.float32)
+    samples[REGION_NAMES.index("eyeball_left"), 3:13, 12:14] = 30.0
+    cue = dict(zip(REGION_NAMES, region_cues(samples, points, residuals)))
+    assert cue["forehead"] == pytest.approx(2.0)
+    assert cue["brow_furrow"] == pytest.approx(2.0)
+    assert cue["mouth"] == pytest.approx(18.0 / 90.0)
+    assert cue["eyelid_left"] == pytest.approx(-10.0 / 30.0)
+    assert cue["eyeball_left"] == pytest.approx(13 / 16, abs=0.03)
+    assert np.isnan(cue["eyeball_right"])  # a flat sample has no iris
+
+
+def test_gaze_cues_are_blanked_on_closed_eyes() -> None:
+    cues = np.ones((4, len(REGION_NAMES)))
+    ratios = np.array([[0.3, 0.3], [0.1, 0.3], [0.3, 0.1], [0.3, 0.3]])
+    out = without_closed_eyes(cues, ratios)
+    left, right = REGION_NAMES.index("eyeball_left"), REGION_NAMES.index("eyeball_right")
+    assert np.isnan(out[1, right]) and not np.isnan(out[1, left])
+    assert np.isnan(out[2, left]) and not np.isnan(out[2, right])
+    assert np.isfinite(np.delete(out, [left, right], axis=1)).all() and np.isfinite(cues).all()
+
+
+def test_layers_match_the_neutral_texture_at_their_border(person_model: Path) -> None:
+    """Exposure matching: each layer meets the neutral texture at its ramp without a step,
+    while its interior carries the state (the closed eyelid differs from the open one)."""
+    model = load_model(person_model)
+    for region in model.regions:
+        h, w = region.mask.shape
+        u0, _, _, v1 = region.uv_rect
+        r0 = round((1 - v1) * model.texture.shape[0])
+        c0 = round(u0 * model.texture.shape[1])
+        base = model.texture[r0:r0 + h, c0:c0 + w].astype(np.float64)
+        border = ramp_mask((h, w)) < 1
+        np.testing.assert_array_equal(region.mask, np.rint(255 * ramp_mask((h, w))))
+        for layer in region.layers:
+            step = np.abs(layer[border].astype(np.float64).mean(axis=0)
+                          - base[border].mean(axis=0))
+            assert step.max() < 6.0, region.name
+    lid = next(r for r in model.regions if r.name == "eyelid_left")
+    inside = ramp_mask(lid.mask.shape) == 1
+    change = np.abs(lid.layers[-1].astype(float) - lid.layers[0].astype(float))[inside].mean()
+    assert change > 8.0
+
+
+def test_a_video_without_a_pose_cannot_enroll(generic_model: Path, grey_video) -> None:
+    video = grey_video("empty_room.mp4", frames=4)
+    with pytest.raises(EnrollError, match="empty_room.mp4: 0 frames with a head pose"):
+        enroll_regions(load_model(generic_model), video)
