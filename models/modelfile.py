@@ -47,20 +47,23 @@ their header before that). Manifest ``model.json``, every key required and no ot
                  or ""},
      "members": {member name: {"dtype": numpy dtype name, "shape": [int, ...]}},
      "regions": [{"name": R, "uv_rect": [u0, v0, u1, v1], "template_rect": [u0, v0, u1, v1],
-                  "layers": k, "opacity": [k numbers in [0, 1]]}, ...]}
+                  "layers": k, "opacity": [k numbers in [0, 1]], "rest": Q}, ...]}
 
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
 empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
 0 <= v0 < v1 <= 1, and ``template_rect`` lies inside ``uv_rect``. ``opacity`` scales the
 mask per layer (a layer's alpha is ``opacity[j] * mask``; the eyelids' open state is
-transparent so the eyeball shows through it). The reader checks each
+transparent so the eyeball shows through it). ``rest`` is the region's Q on the neutral
+face (what a receiver shows when the face is at rest or lost), in [0, k - 1]. The reader
+checks each
 member against a schema table (member-name pattern, kind, dtype, shape with named
 dimensions, size limit) and against its ``members`` entry; the mesh arrays then go through
 ``Mesh``'s own checks (finiteness, index ranges). A later addition (e.g. per-landmark neutral
 data) is a new row of that table and a new manifest key, with ``format_version`` raised: a
 reader accepts only the versions it knows, and keeps reading the older ones. Version 1 had
-no ``opacity`` (read as all ones); nothing ever wrote a version-1 model with regions.
+no ``opacity`` and no ``rest`` (read as all ones and 0); nothing ever wrote a version-1
+model with regions.
 
 The zip itself must be plain: it ends with its end-of-archive record (no comment, nothing
 before or after the archive), members are stored or deflated, never encrypted, and no name
@@ -219,6 +222,7 @@ class Region:
         templates: (k, 16, 16) float32, finite, the classification template of each state.
         opacity: k numbers in [0, 1], each layer's alpha scale (``mask`` times it); all ones
             when not given.
+        rest: the region's Q on the neutral face, in [0, k - 1].
     """
 
     name: str
@@ -228,6 +232,7 @@ class Region:
     mask: np.ndarray
     templates: np.ndarray
     opacity: tuple[float, ...] = ()
+    rest: float = 0.0
 
     def __post_init__(self) -> None:
         _region_name(self.name, "region")
@@ -263,6 +268,10 @@ class Region:
         if not all(0.0 <= a <= 1.0 for a in opacity):
             raise ModelError(f"{field}: opacity: expected numbers in [0, 1], got {opacity}")
         object.__setattr__(self, "opacity", opacity)
+        rest = _number(self.rest, f"{field}: rest")
+        if not 0.0 <= rest <= k - 1:
+            raise ModelError(f"{field}: rest: expected a number in [0, {k - 1}], got {rest}")
+        object.__setattr__(self, "rest", rest)
 
 
 @dataclass(frozen=True, eq=False)
@@ -413,8 +422,8 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
             Region(name, uv_rect, template_rect,
                    np.stack([arrays[f"regions/{name}/layer_{j:02d}.png"] for j in range(k)]),
                    arrays[f"regions/{name}/mask.png"], arrays[f"regions/{name}/templates.npy"],
-                   opacity)
-            for name, uv_rect, template_rect, k, opacity in manifest.regions)
+                   opacity, rest)
+            for name, uv_rect, template_rect, k, opacity, rest in manifest.regions)
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            regions, hashlib.sha256(data).hexdigest(), len(data))
     except ModelError as e:
@@ -477,9 +486,9 @@ def _spec(name: str) -> _Spec | None:
     return next((s for s in _SPECS if s.pattern.fullmatch(name)), None)
 
 
-def _expected_members(regions: list[tuple[str, Any, Any, int, Any]]) -> set[str]:
+def _expected_members(regions: list[tuple[str, Any, Any, int, Any, Any]]) -> set[str]:
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
-    for name, _, _, k, _ in regions:
+    for name, _, _, k, _, _ in regions:
         names |= {f"regions/{name}/layer_{j:02d}.png" for j in range(k)}
         names |= {f"regions/{name}/mask.png", f"regions/{name}/templates.npy"}
     return names
@@ -517,7 +526,7 @@ def _encode(model: PersonModel) -> bytes:
         "members": declared,
         "regions": [{"name": r.name, "uv_rect": list(r.uv_rect),
                      "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0]),
-                     "opacity": list(r.opacity)}
+                     "opacity": list(r.opacity), "rest": r.rest}
                     for r in model.regions],
     }
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
@@ -630,7 +639,7 @@ class _Manifest(NamedTuple):
     camera: Camera
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
-    regions: list[tuple[str, Any, Any, int, tuple[Any, ...]]]  # name, rects, layers, opacity
+    regions: list[tuple[str, Any, Any, int, tuple[Any, ...], Any]]  # name, rects, k, opacity, rest
 
 
 def _parse_manifest(raw: bytes) -> _Manifest:
@@ -689,7 +698,7 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     for i, entry in enumerate(doc["regions"]):
         field = f"regions[{i}]"
         keys = {"name", "uv_rect", "template_rect", "layers"}
-        _keys(entry, field, keys | {"opacity"} if version >= 2 else keys)
+        _keys(entry, field, keys | {"opacity", "rest"} if version >= 2 else keys)
         name = _region_name(entry["name"], f"{field}.name")
         if any(name == r[0] for r in regions):
             raise ModelError(f"{field}.name: {name!r} appears twice")
@@ -697,7 +706,8 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         opacity = entry.get("opacity", [1.0] * k)
         if not isinstance(opacity, list):
             raise ModelError(f"{field}.opacity: expected a list, got {_kind(opacity)}")
-        regions.append((name, entry["uv_rect"], entry["template_rect"], k, tuple(opacity)))
+        regions.append((name, entry["uv_rect"], entry["template_rect"], k, tuple(opacity),
+                        entry.get("rest", 0.0)))
     return _Manifest(camera, info, members, regions)
 
 
@@ -715,7 +725,7 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
             raise ModelFileError(f"{where}: {name}: missing")
         if name not in manifest.members:
             raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
-    for region, _, _, k, _ in manifest.regions:
+    for region, _, _, k, _, _ in manifest.regions:
         size = manifest.members[f"regions/{region}/mask.png"]
         for j in range(k):
             name = f"regions/{region}/layer_{j:02d}.png"

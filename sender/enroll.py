@@ -44,6 +44,8 @@ the sender's pose and lift.
    exposure change between frames leaves no step at the border. The mask is the region's
    ``ramp_mask``; the eyelids' first (open) state has opacity 0.
 5. Templates: each state's frame's centre sample, 16 x 16 raw grey levels.
+6. Rest: each region's Q on the neutral frame (``models.build`` chose it), classified with
+   those templates: what a receiver shows for a face at rest or lost.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ from models.texture import uv_surface
 from models.video import read_frames, video_info
 from protocol.control import Camera
 from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from sender.classify import RegionClassifiers
 from sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
@@ -160,18 +163,30 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         if frame.index in by_index:
             images[by_index[frame.index]] = frame.image
     texels = _RegionTexels(model, camera)
+    templates = [np.stack([observations[i].samples[r] for i in chosen[region.name]])
+                 .astype(np.float32) for r, region in enumerate(REGIONS)]
+    rest = _rest(observations, model.info.neutral_frame, templates)
     regions = []
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
         layers = np.stack([texels.layer(region.name, images[i], observations[i]) for i in picks])
-        templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
+        report[region.name]["rest"] = round(float(rest[r]), 4)
         opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
                         for j in range(len(picks)))
         placement = texels.placements[region.name]
         mask = np.rint(255 * ramp_mask(layers.shape[1:3])).astype(np.uint8)
         regions.append(Region(region.name, placement.uv_rect, placement.template_rect, layers,
-                              mask, templates, opacity))
+                              mask, templates[r], opacity, float(rest[r])))
     return Enrollment(tuple(regions), report)
+
+
+def _rest(observations: list[Observation], neutral_frame: int,
+          templates: list[np.ndarray]) -> np.ndarray:
+    """(R,) each region's Q on the neutral frame (the observation nearest to it in the
+    video), classified like any frame."""
+    nearest = min(observations, key=lambda o: abs(o.index - neutral_frame))
+    classified = RegionClassifiers(templates).classify(nearest.samples[:, None])
+    return classified.q.astype(np.float64)
 
 
 def _observe(model: PersonModel, camera: Camera, video: Path, frames: slice,

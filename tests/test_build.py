@@ -53,6 +53,8 @@ def test_build_info_export(built, capsys):
             samples[r, 0] = template
             assert classifiers.classify(samples).q[r] == j
         assert region.opacity[0] == (0.0 if region.name.startswith("eyelid") else 1.0)
+        assert 0 <= region.rest <= len(region.layers) - 1
+        assert report["rest"] == round(region.rest, 4)
     closed = summary["appearance"]["eyelid_left"]["cue"]
     assert closed[-1] > closed[0] + 0.05  # lp_d0 closes its eyes: the last state is closed
     preview = cv2.imread(str(out.with_name("lp.preview.png")))

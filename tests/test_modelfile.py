@@ -45,7 +45,7 @@ def _model(name: str = "alice", regions: bool = True) -> PersonModel:
         layers=rng.integers(0, 256, (3, 10, 20, 3), dtype=np.uint8),
         mask=rng.integers(0, 256, (10, 20), dtype=np.uint8),
         templates=rng.standard_normal((3, 16, 16)).astype(np.float32),
-        opacity=(0.0, 1.0, 0.5))
+        opacity=(0.0, 1.0, 0.5), rest=1.25)
     return PersonModel(
         mesh=_grid_mesh(),
         texture=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
@@ -508,6 +508,8 @@ def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     (lambda m: m["regions"][0].update(opacity=[0.0, 1.0, 1.5]), "opacity: expected numbers in"),
     (lambda m: m["regions"][0].update(opacity="1"), "regions[0].opacity: expected a list"),
     (lambda m: m["regions"][0].pop("opacity"), "regions[0]: missing key 'opacity'"),
+    (lambda m: m["regions"][0].update(rest=2.5), "rest: expected a number in [0, 2]"),
+    (lambda m: m["regions"][0].update(rest="1"), "rest: expected a number"),
     (lambda m: m["regions"][0].update(uv_rect=[0.5, 0.5, 0.4, 0.9]), "uv_rect"),
     (lambda m: m["regions"][0].update(template_rect=[0.0, 0.0, 1.0, 1.0]),
      "template_rect: not inside uv_rect"),
@@ -526,9 +528,11 @@ def test_version_1_is_read_with_opaque_layers(saved: Path, tmp_path: Path) -> No
     manifest = _manifest(saved)
     manifest["format_version"] = 1
     manifest["regions"][0].pop("opacity")
+    manifest["regions"][0].pop("rest")
     model = load_model(_edit(saved, tmp_path / "v1.fwm", manifest=manifest))
-    assert model.regions[0].opacity == (1.0, 1.0, 1.0)
-    assert load_model(saved).regions[0].opacity == (0.0, 1.0, 0.5)
+    assert model.regions[0].opacity == (1.0, 1.0, 1.0) and model.regions[0].rest == 0.0
+    saved_region = load_model(saved).regions[0]
+    assert saved_region.opacity == (0.0, 1.0, 0.5) and saved_region.rest == 1.25
     manifest["regions"][0]["opacity"] = [1.0, 1.0, 1.0]
     _refused(_edit(saved, tmp_path / "v1b.fwm", manifest=manifest),
              "regions[0]: unknown key 'opacity'")
