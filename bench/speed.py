@@ -1,8 +1,7 @@
 """``facewire bench speed``: per-frame cost of the pipeline's stages, one core where possible.
 
-Stages measured so far (issues 3 to 5); the other keys of the DESIGN.md contract
-(``render_ms``, the receiver totals and latency) belong to stages that have not landed, are
-listed under ``not_measured`` and are never estimated.
+Stages measured so far (issues 3 to 6); the latency keys of the DESIGN.md contract need the
+live link (issue 7), are listed under ``not_measured`` and are never estimated.
 
 The sender stages are timed by running the whole ``sender.pipeline.SenderPipeline`` (the
 model, the intrinsics guess of ``sender.capture.estimate_intrinsics`` for the video's size)
@@ -23,6 +22,14 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
   for the last two); ``pack_ms``: median over all frames.
 - ``sender_ms_median``: median over all frames of the sum of the stages (track, pose,
   lift, heuristics, sample, classify, pack); ``sender_fps`` = 1000 / ``sender_ms_median``.
+- The receiver, on the packets the sender made (``_time_receiver``), BLAS pinned to one
+  thread, after ``RECEIVER_WARMUP`` frames: ``decode_ms`` (``protocol.packet.decode``),
+  ``render_ms`` (``receiver.render.FaceRenderer.render``: the vertex upload, the draw with
+  the base texture and the region volumes, multisample resolve and read back), and
+  ``receiver_ms_median`` (decode, ``Rig.from_tangent`` and ``Rig.morph``, the view camera,
+  render and read back) with ``receiver_fps`` = 1000 / it, at 640 x 480; the same at
+  1280 x 720 as ``receiver_fps_1280x720`` and ``render_ms_1280x720``. The playout buffer
+  and writing a video are not timed (the video writer runs on its own thread).
 - ``morph_ms``: median wall time of one ``Rig.morph`` call (``models/rig.py``: an
   (N, 9) @ (9, 3) float32 product and an add) on the model's mesh, over ``MORPH_CALLS`` calls
   cycling through residuals drawn uniformly from +-``RESIDUAL_MM`` mm, after a warm-up.
@@ -41,7 +48,8 @@ comparison. Where no OpenBLAS can be found (another BLAS, another OS) nothing is
 Targets (printed, informative): morph <= 0.2 ms per 10,000 vertices on one core (the time is
 linear in the vertex count, so a mesh of N vertices is judged by ``morph_ms * 10000 / N``),
 tracking <= 2 ms per acquired frame on 640x480, the sender >= 150 fps on 640x480,
-classification of all regions <= 1 ms per frame. A miss
+classification of all regions <= 1 ms per frame, the receiver >= 60 fps at 640x480 and
+>= 30 fps at 1280x720 (CPU rendering here: Mesa llvmpipe). A miss
 does not fail the command (exit 0): wall times on a shared machine vary by +-20 % from run
 to run, so a hard threshold on them would fail at random; the report states whether each
 target was met in this run.
@@ -65,6 +73,9 @@ from models.progress import Progress, no_progress
 from models.rig import N_RESIDUALS, Rig
 from models.video import VideoError, read_frames, video_info
 from sender.capture import estimate_intrinsics
+from protocol.packet import decode as decode_packet
+from receiver.render import FaceRenderer
+from receiver.views import sender_view
 from sender.pipeline import SenderPipeline
 
 
@@ -75,13 +86,16 @@ TARGET_MORPH_MS_PER_10K = 0.2
 TARGET_TRACK_MS = 2.0
 TARGET_SENDER_FPS = 150.0
 TARGET_CLASSIFY_MS = 1.0
+TARGET_RECEIVER_FPS = 60.0
+TARGET_RECEIVER_FPS_HD = 30.0
+RECEIVER_SIZES = ((640, 480), (1280, 720))
+RECEIVER_WARMUP = 3  # frames rendered before timing (shader compilation, first uploads)
 TARGET_SIZE = (640, 480)
 SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "pack")
 _FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify")
 
 # The speed keys of the DESIGN.md contract that no stage measures yet.
-NOT_MEASURED = ("receiver_ms_median", "receiver_fps", "render_ms",
-                "latency_ms_median", "latency_ms_p95")
+NOT_MEASURED = ("latency_ms_median", "latency_ms_p95")
 
 # get/set symbol pairs of OpenBLAS builds: plain, numpy's (64-bit ints) and scipy's bundles.
 _BLAS_SYMBOLS = (
@@ -125,8 +139,11 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
     model = load_model(model_path)
     source = Path(source)
     info = video_info(source)
-    tracking = _time_sender(model, source, frames, info, progress)
+    tracking, packets, hello_camera = _time_sender(model, source, frames, info, progress)
     rig = Rig(model.mesh)
+    with _one_blas_thread():
+        receiver = _time_receiver(model, rig, packets, hello_camera, RECEIVER_SIZES[0])
+        receiver_hd = _time_receiver(model, rig, packets, hello_camera, RECEIVER_SIZES[1])
     n = len(model.mesh.vertices)
     pinned, threads = _time_morph_pinned(rig)
     default = _time_morph(rig)
@@ -135,6 +152,9 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         "model": str(model_path),
         "source": str(source),
         **tracking,
+        **receiver,
+        "receiver_fps_1280x720": receiver_hd["receiver_fps"],
+        "render_ms_1280x720": receiver_hd["render_ms"],
         "vertices": n,
         "morph_ms": round(pinned, 4),
         "morph_ms_per_10k_vertices": round(morph_per_10k, 4),
@@ -143,13 +163,16 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         "threads": threads,
         "targets": {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K,
                     "track_ms": TARGET_TRACK_MS, "sender_fps": TARGET_SENDER_FPS,
-                    "classify_ms": TARGET_CLASSIFY_MS},
+                    "classify_ms": TARGET_CLASSIFY_MS, "receiver_fps": TARGET_RECEIVER_FPS,
+                    "receiver_fps_1280x720": TARGET_RECEIVER_FPS_HD},
         "met": {"morph": morph_per_10k <= TARGET_MORPH_MS_PER_10K,
                 "track": (tracking["track_ms"] is not None
                           and tracking["track_ms"] <= TARGET_TRACK_MS),
                 "sender": tracking["sender_fps"] >= TARGET_SENDER_FPS,
                 "classify": (tracking["classify_ms"] is not None
-                             and tracking["classify_ms"] <= TARGET_CLASSIFY_MS)},
+                             and tracking["classify_ms"] <= TARGET_CLASSIFY_MS),
+                "receiver": receiver["receiver_fps"] >= TARGET_RECEIVER_FPS,
+                "receiver_1280x720": receiver_hd["receiver_fps"] >= TARGET_RECEIVER_FPS_HD},
         "not_measured": list(NOT_MEASURED),
     }
     return result
@@ -184,6 +207,13 @@ def format_speed(result: dict[str, Any]) -> str:
     else:
         lines.append("classify: not measured (the model has no regions, or no face was seen)")
     lines += [
+        f"receiver: {r['receiver_ms_median']:.3f} ms median per frame = "
+        f"{r['receiver_fps']:.1f} fps at 640x480 (decode {r['decode_ms']:.3f} ms, render and "
+        f"read back {r['render_ms']:.3f} ms); {_verdict(r['met']['receiver'])} >= "
+        f"{TARGET_RECEIVER_FPS:g} fps",
+        f"          {r['receiver_fps_1280x720']:.1f} fps at 1280x720 (render "
+        f"{r['render_ms_1280x720']:.3f} ms); {_verdict(r['met']['receiver_1280x720'])} >= "
+        f"{TARGET_RECEIVER_FPS_HD:g} fps",
         f"morph:  {r['morph_ms']:.4f} ms median per frame, {r['vertices']:,} vertices "
         f"({r['morph_ms_per_10k_vertices']:.4f} ms per 10k); "
         f"{_verdict(r['met']['morph'])} <= {TARGET_MORPH_MS_PER_10K:g} ms per 10k vertices",
@@ -208,8 +238,9 @@ def _verdict(met: bool) -> str:
 
 
 def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: Progress
-                 ) -> dict[str, Any]:
-    """Run the sender pipeline over the range; median stage times (module docstring)."""
+                 ) -> tuple[dict[str, Any], list[bytes], Any]:
+    """Run the sender pipeline over the range: median stage times (module docstring), the
+    packets it made and the Hello's camera."""
     total = None
     if info.frames:
         stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
@@ -222,12 +253,14 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
     totals: list[float] = []
     missing = 0
     n = 0
+    packets: list[bytes] = []
     shape: tuple[int, ...] = ()
     with _one_blas_thread():
         for frame in progress(read_frames(source, frames), "sender", total):
             n += 1
             shape = frame.image.shape
             out = pipeline.process(frame.image, frame.time)
+            packets.append(out.packet)
             ms = {k: v * 1000 for k, v in out.timings.items()}
             totals.append(sum(ms[k] for k in SENDER_STAGES))
             stages["pack"].append(ms["pack"])
@@ -245,7 +278,7 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
         raise NoFaceError(f"{source}: no face found in any of its {n} frames "
                           f"(range {frames.start}:{frames.stop or ''})")
     sender_ms = float(np.median(totals))
-    return {
+    timings = {
         "frames": n,
         "tracked_frames": len(tracked),
         "detect_frames": len(detect),
@@ -259,6 +292,34 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
         "sender_ms_median": round(sender_ms, 4),
         "sender_fps": round(1000.0 / sender_ms, 2),
     }
+    return timings, packets, pipeline.hello().camera
+
+
+def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
+                   size: tuple[int, int]) -> dict[str, Any]:
+    """The receiver's per-frame work on the sender's packets (module docstring): decode,
+    morph, render and read back at ``size``; medians in ms."""
+    width, height = size
+    decode, render, total = [], [], []
+    with FaceRenderer(model, width, height) as renderer:
+        for k, packet in enumerate(packets):
+            t0 = time.perf_counter()
+            frame = decode_packet(packet)
+            t1 = time.perf_counter()
+            vertices = rig.morph(rig.from_tangent(frame.residuals))
+            view = sender_view(camera, frame.rotation, frame.translation, width, height)
+            t2 = time.perf_counter()
+            renderer.render(vertices, frame.q, view)
+            t3 = time.perf_counter()
+            if k >= RECEIVER_WARMUP:
+                decode.append((t1 - t0) * 1000)
+                render.append((t3 - t2) * 1000)
+                total.append((t3 - t0) * 1000)
+    receiver_ms = float(np.median(total)) if total else float("nan")
+    return {"decode_ms": _median(decode), "render_ms": _median(render),
+            "receiver_ms_median": round(receiver_ms, 4),
+            "receiver_fps": round(1000.0 / receiver_ms, 2) if total else 0.0,
+            "receiver_size": f"{width}x{height}"}
 
 
 def _median(values: list[float]) -> float | None:

@@ -29,6 +29,29 @@ def _not_implemented(what: str, issue: int) -> Callable[[argparse.Namespace], in
     return run
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from receiver.replay import replay_log
+
+    size = None
+    if args.size is not None:
+        try:
+            width, height = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise CommandError(f"--size: expected WxH, e.g. 1280x720, got {args.size!r}") \
+                from None
+        size = (width, height)
+    s = replay_log(args.log, args.model, args.out, args.view, size, args.side_by_side,
+                   progress=_progress)
+    report(s, [f"wrote {s['out']}: {s['frames']} frames ({s['width']}x{s['height']}, "
+               f"{s['view']} view)",
+               f"packets: {s['received']} received, {s['concealed']} slots concealed, "
+               f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
+               f"{s['lost_records']} damaged log records",
+               f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
+    return 0
+
+
 def _inspect(args: argparse.Namespace) -> int:
     from bench.inspect import inspect_log
 
@@ -214,11 +237,22 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     e.set_defaults(run=_encode)
 
-    rp = sub.add_parser("replay", help="render a recorded packet log to a video")
+    rp = sub.add_parser("replay", help="render a recorded packet log to a video",
+                        description="Render every frame slot of a packet log (lost packets "
+                        "concealed as a live receiver does) with the person's model.")
     rp.add_argument("log", help="packet log (.fwlog)")
-    rp.add_argument("--model", required=True, help="person model (.fwm)")
-    rp.add_argument("--out", required=True, help="video to write (.mp4)")
-    rp.set_defaults(run=_not_implemented("replay", 6))
+    rp.add_argument("--model", required=True, help="person model (.fwm) the log was made with")
+    rp.add_argument("--out", required=True, help="H.264 video (.mp4), or a folder for PNG "
+                    "frames")
+    rp.add_argument("--view", choices=("camera", "front", "three-quarter"), default="camera",
+                    help="the sender's camera (default), or a virtual front or three-quarter "
+                    "camera")
+    rp.add_argument("--size", help="rendering size WxH (default: the sender camera's, "
+                    "640x480 for virtual views)")
+    rp.add_argument("--side-by-side", metavar="SOURCE", help="the source video, shown left "
+                    "of the rendering (input | reconstruction)")
+    rp.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    rp.set_defaults(run=_replay)
 
     b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality")
     bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
@@ -281,6 +315,9 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from protocol.log import LogError
     from protocol.packet import PacketError
     from protocol.transport import TransportError
+    from receiver.output import OutputError
+    from receiver.replay import ReplayError
+    from models.raster import RenderError
     from bench.reference import OpenFaceError
     from models.regions import RegionError
     from sender.capture import CaptureError
@@ -288,8 +325,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
             TransportError, BuildError, CaptureError, EnrollError, GltfError, ModelFileError,
-            OpenFaceError, RegionError, VideoError, FileNotFoundError, PermissionError,
-            IsADirectoryError)
+            OpenFaceError, OutputError, RegionError, RenderError, ReplayError, VideoError,
+            FileNotFoundError, PermissionError, IsADirectoryError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -32,6 +32,7 @@ frame's vertices into the same vertex buffer, since the morph moves them every f
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -167,7 +168,7 @@ def orbit_pose(yaw_deg: float, pitch_deg: float, distance_mm: float,
     return rotation, -rotation @ centre
 
 
-_VERTEX_TEXTURED = """
+VERTEX_TEXTURED = """
 #version 330
 uniform mat4 mvp;
 in vec3 in_position;
@@ -214,6 +215,41 @@ void main() {
 """
 
 
+class OffscreenTarget:
+    """A ``width`` x ``height`` RGB colour and depth target in a moderngl context, with
+    ``samples``-fold multisampling when the driver offers it (resolved before reading).
+
+    Attributes:
+        samples: the multisample count in use (0: none).
+    """
+
+    def __init__(self, ctx: Any, width: int, height: int, samples: int) -> None:
+        samples = min(samples, ctx.max_samples) if samples > 1 else 0
+        self.samples = samples
+        self._ctx = ctx
+        self._resolved = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height))],
+                                         depth_attachment=None if samples else
+                                         ctx.depth_renderbuffer((width, height)))
+        self._target = self._resolved
+        if samples:
+            self._target = ctx.framebuffer(
+                color_attachments=[ctx.renderbuffer((width, height), samples=samples)],
+                depth_attachment=ctx.depth_renderbuffer((width, height), samples=samples))
+        self._pixels = np.empty((height, width, 3), dtype=np.uint8)
+
+    def begin(self, background: tuple[float, float, float]) -> None:
+        """Draw into the target from now on, cleared to ``background`` (RGB, 0..1)."""
+        self._target.use()
+        self._target.clear(*background, 1.0, depth=1.0)
+
+    def read(self) -> np.ndarray:
+        """(height, width, 3) uint8 RGB of what was drawn, top row first."""
+        if self._target is not self._resolved:
+            self._ctx.copy_framebuffer(self._resolved, self._target)
+        self._resolved.read_into(self._pixels, components=3, alignment=1)
+        return self._pixels[::-1].copy()
+
+
 class MeshRenderer:
     """Renders one mesh offscreen through its own EGL OpenGL context.
 
@@ -246,19 +282,10 @@ class MeshRenderer:
         self._ctx = ctx
         self.width, self.height = width, height
         self.background = tuple(c / 255.0 for c in background)
-        samples = min(samples, ctx.max_samples) if samples > 1 else 0
-        self.samples = samples
-        self._resolved = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height))],
-                                         depth_attachment=None if samples else
-                                         ctx.depth_renderbuffer((width, height)))
-        self._target = self._resolved
-        if samples:
-            self._target = ctx.framebuffer(
-                color_attachments=[ctx.renderbuffer((width, height), samples=samples)],
-                depth_attachment=ctx.depth_renderbuffer((width, height), samples=samples))
-        self._pixels = np.empty((height, width, 3), dtype=np.uint8)
+        self._frame = OffscreenTarget(ctx, width, height, samples)
+        self.samples = self._frame.samples
         ctx.enable(moderngl.DEPTH_TEST)
-        self._textured = ctx.program(vertex_shader=_VERTEX_TEXTURED,
+        self._textured = ctx.program(vertex_shader=VERTEX_TEXTURED,
                                      fragment_shader=_FRAGMENT_TEXTURED)
         self._shaded = ctx.program(vertex_shader=_VERTEX_SHADED,
                                    fragment_shader=_FRAGMENT_SHADED)
@@ -354,13 +381,9 @@ class MeshRenderer:
             self._normals.write(_vertex_normals(vertices, self._triangles))
             program["rotation"].write(camera.rotation.T.astype(np.float32).tobytes())
         program["mvp"].write(mvp.T.tobytes())  # GLSL matrices are column-major
-        self._target.use()
-        self._target.clear(*self.background, 1.0, depth=1.0)
+        self._frame.begin(self.background)
         vao.render()
-        if self._target is not self._resolved:
-            self._ctx.copy_framebuffer(self._resolved, self._target)
-        self._resolved.read_into(self._pixels, components=3, alignment=1)
-        return self._pixels[::-1].copy()
+        return self._frame.read()
 
     def release(self) -> None:
         """Free the OpenGL context and everything in it."""

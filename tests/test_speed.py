@@ -37,7 +37,14 @@ def test_keys_and_values(result: dict) -> None:
     assert set(result["not_measured"]) == set(NOT_MEASURED)
     assert not {"track_ms", "morph_ms"} & set(result["not_measured"])
     assert not set(NOT_MEASURED) & set(result)  # never faked
-    assert set(result["met"]) == {"morph", "track", "sender", "classify"}
+    assert set(result["met"]) == {"morph", "track", "sender", "classify", "receiver",
+                                  "receiver_1280x720"}
+    # the receiver renders the sender's packets for real, at two sizes
+    for key in ("decode_ms", "render_ms", "receiver_ms_median", "render_ms_1280x720"):
+        assert isinstance(result[key], float) and result[key] > 0, key
+    assert result["receiver_ms_median"] > result["render_ms"] > result["decode_ms"]
+    assert result["receiver_fps"] == pytest.approx(1000 / result["receiver_ms_median"], rel=1e-3)
+    assert result["render_ms_1280x720"] > result["render_ms"] * 0.8
     assert result["met"]["morph"] == (result["morph_ms_per_10k_vertices"] <= 0.2)
     assert result["threads"]
     # the generic model has no regions: nothing is sampled or classified, nothing is faked
@@ -60,7 +67,8 @@ def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
 def test_report_lines_and_json(result: dict, generic_model: Path, shared_data: Path,
                                capsys: pytest.CaptureFixture[str]) -> None:
     text = format_speed(result)
-    assert "track:" in text and "morph:" in text and "not measured yet: receiver_ms" in text
+    assert "track:" in text and "morph:" in text and "not measured yet: latency_ms" in text
+    assert "receiver: " in text and "at 1280x720" in text
     assert "classify: not measured (the model has no regions" in text
     assert f"{result['morph_ms']:.4f} ms" in text
     status = speed(generic_model, shared_data / "video" / "lp_d0.mp4", as_json=True,

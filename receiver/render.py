@@ -1,0 +1,391 @@
+"""The receiver's renderer: the morphed mesh with the neutral texture and the 3D-texture regions.
+
+Each frame the receiver has the morphed vertices (N, 3), one value Q per texture region and a
+camera; ``FaceRenderer.render`` draws them offscreen through EGL (moderngl), with the
+conventions of ``models.raster`` (GL camera, projection from pinhole intrinsics with pixel
+centres at integers, multisampled framebuffer resolved and flipped on readback, texture rows
+uploaded bottom first so OpenGL's t is facewire's v). Textured meshes are drawn unlit: the
+texture carries the captured light. The triangles and UVs are uploaded once; a frame writes
+the vertices into the same buffer (one buffer write) and sets a few uniforms.
+
+Regions (the paper's 3D-texture reconstruction). Region r of the model covers ``uv_rect``
+(u0, v0, u1, v1) with k layers L_j (h x w texels, row 0 at v = v1) and alpha
+a_j = opacity[j] * mask / 255 over the texture. Its layers form a volume indexed by Q in
+[0, k - 1] (clamped): the value at (s, t, Q) is the trilinear interpolation of the stack,
+bilinear within layers i = floor(Q) and i + 1 and linear between them with weight Q - i,
+which is what sampling a 3D texture at depth (Q + 0.5) / k with LINEAR filtering gives. With
+local coordinates s = (u - u0) / (u1 - u0), t = (v - v0) / (v1 - v0) in the rectangle, the
+volume is stored premultiplied, relative to the neutral texture B under the region:
+
+    alpha a_j,    colour d_j = a_j (L_j - B)        (float16, per texel),
+
+and a fragment composites the interpolated (a, d) of each region over the colour so far,
+starting from the texture, c = B(uv):
+
+    c <- c (1 - a) + (a B(uv) + d)  =  c + a (B(uv) - c) + d.
+
+a B + d is the premultiplied layer colour a L, so this is the "over" operator with
+premultiplied colour: a transparent state (opacity 0, the eyelids' open state) has a = d = 0,
+and interpolating it with an opaque neighbour never leaks its colour. Storing d relative to B
+(rather than a L) makes a layer equal to the texture under it contribute exactly nothing,
+whatever the filtering: Q = 0 on a model whose first layers are its neutral texture renders
+bit for bit what ``models.raster.MeshRenderer`` draws with the texture alone, and in the
+alpha ramp the separately filtered a L and a cannot disagree with the filtered B.
+
+Minification. The model's texture is typically 3-5 times finer than the face on screen (a
+2048-texel texture, a face of 300 pixels), so it is mipmapped, and the regions must be too,
+or they alias against the smooth skin around them (on a real model at 640 x 480, unfiltered
+layers doubled the error against the layers baked into the texture: p99 8 levels, not 3). A
+3D texture's mipmaps halve its depth too (they would mix appearance states), so each region
+is a 2D array texture of its k layers, mipmapped per layer down to 1/2^``MIP_LEVELS``, and
+the shader interpolates between layers i and i + 1 itself: at full resolution this is
+exactly the 3D texture's trilinear sampling (LINEAR in s and t, clamped to the edge, linear
+in Q). The layers are padded with ``PAD`` = 2^``MIP_LEVELS`` texels of a = d = 0 on every
+side (a few more on the right and at the bottom, to make the sizes multiples of ``PAD``, so
+that every level halves exactly): at every mip level the outermost texels are then exactly
+0, so the rectangle's edge
+shows no seam, and a fragment outside the padded rectangle (clamped to that edge) is left
+exactly as it was; the shader needs no inside-the-rectangle test, and samples in uniform
+control flow, as implicit derivatives for mipmapping require.
+
+Cost on a CPU rasterizer. llvmpipe executes a fragment shader for every pixel of a triangle
+with both sides of every branch, so one shader sampling all regions would make every face
+pixel pay for them (7 regions: 6 times the time of the texture alone). The triangles are
+therefore grouped by the regions their UV bounding box meets (padded rectangles), and each
+group is drawn by its own program that composites only those regions (a dozen groups for
+the 7 regions; most triangles meet none); a triangle's fragments have UVs inside its UV
+bounding box, so the result is the same as compositing every region everywhere. All groups
+share the one vertex buffer and one index buffer (sorted by group, keeping the mesh's order
+within a group).
+
+Draw order. A region whose layers are all opaque (every opacity 1) is composited before the
+regions with a transparent state, each set in the model's (packet) order: the eyeballs'
+gaze goes first and the eyelids over it, so an open lid shows the gaze and a closing lid
+covers it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Self
+
+import cv2
+import numpy as np
+
+from models.egl import create_context, in_context
+from models.modelfile import PersonModel, Region
+from models.raster import VERTEX_TEXTURED, Camera, OffscreenTarget, RenderError
+from protocol.packet import N_REGIONS
+
+DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
+MIP_LEVELS = 4  # mip levels below full resolution: regions stay smooth down to 1/16 scale
+PAD = 1 << MIP_LEVELS  # texels of a = d = 0 around each region's layers (at least)
+
+_FRAGMENT = """
+#version 330
+uniform sampler2D image;
+%(uniforms)s
+in vec2 v_uv;
+out vec4 f_color;
+
+// Composite one region over the colour c (module docstring). rect: (u0, v0) of the padded
+// rectangle and 1 / its size; layer: (i, i + 1 clamped to k - 1, the weight of i + 1).
+vec3 over(vec3 c, vec3 base, sampler2DArray volume, vec4 rect, vec3 layer) {
+    vec2 st = (v_uv - rect.xy) * rect.zw;
+    vec4 s = texture(volume, vec3(st, layer.x));
+    if (layer.z > 0.0) {
+        s = mix(s, texture(volume, vec3(st, layer.y)), layer.z);
+    }
+    return c + s.a * (base - c) + s.rgb;
+}
+
+void main() {
+    vec3 base = texture(image, v_uv).rgb;
+    vec3 c = base;
+%(calls)s
+    f_color = vec4(c, 1.0);
+}
+"""
+
+
+def draw_order(regions: tuple[Region, ...]) -> list[int]:
+    """The order regions are composited in (module docstring): opaque ones first.
+
+    Args:
+        regions: the model's regions, packet order.
+
+    Returns:
+        Indices into ``regions``.
+    """
+    opaque = [i for i, r in enumerate(regions) if min(r.opacity) >= 1.0]
+    return opaque + [i for i in range(len(regions)) if i not in opaque]
+
+
+def region_volume(texture: np.ndarray, region: Region) -> np.ndarray:
+    """A region's layers as stored on the GPU: premultiplied, relative to the texture.
+
+    Args:
+        texture: (H, W, 3) uint8 RGB neutral texture, row 0 at v = 1.
+        region: the region; its layers cover its ``uv_rect``, row 0 at v = v1.
+
+    Returns:
+        (k, H', W', 4) float32 (d_r, d_g, d_b, a), 0..1 scale, row 0 at the top: the layers
+        at rows and columns [PAD, PAD + h) x [PAD, PAD + w), zeros around them, H' and W' the
+        smallest multiples of PAD with at least PAD zeros on every side (module docstring).
+    """
+    k, h, w, _ = region.layers.shape
+    u0, v0, u1, v1 = region.uv_rect
+    big_h, big_w = texture.shape[:2]
+    # The texture under each layer texel's centre (bilinear; exactly the texture's own texels
+    # when the rectangle lies on texel edges with one layer texel per texture texel).
+    u = u0 + (np.arange(w) + 0.5) / w * (u1 - u0)
+    v = v1 - (np.arange(h) + 0.5) / h * (v1 - v0)
+    map_x = np.broadcast_to((u * big_w - 0.5)[None, :], (h, w)).astype(np.float32)
+    map_y = np.broadcast_to(((1.0 - v) * big_h - 0.5)[:, None], (h, w)).astype(np.float32)
+    under = cv2.remap(texture.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+    alpha = (np.asarray(region.opacity, np.float32)[:, None, None]
+             * (region.mask.astype(np.float32) / 255.0)[None])
+    volume = np.zeros((k, _padded(h), _padded(w), 4), np.float32)
+    inner = volume[:, PAD:PAD + h, PAD:PAD + w]
+    inner[..., :3] = alpha[..., None] * (region.layers.astype(np.float32) - under) / 255.0
+    inner[..., 3] = alpha
+    return volume
+
+
+def padded_rect(region: Region) -> tuple[float, float, float, float]:
+    """The UV rectangle (u0, v0, u1, v1) of a region's padded volume (``region_volume``)."""
+    h, w = region.layers.shape[1:3]
+    u0, v0, u1, v1 = region.uv_rect
+    du, dv = (u1 - u0) / w, (v1 - v0) / h
+    return (u0 - PAD * du, v1 - (_padded(h) - PAD) * dv, u0 + (_padded(w) - PAD) * du,
+            v1 + PAD * dv)
+
+
+def _padded(n: int) -> int:
+    """The smallest multiple of PAD that holds n texels and PAD more on either side."""
+    return -(-(n + 2 * PAD) // PAD) * PAD
+
+
+def triangle_groups(uv: np.ndarray, triangles: np.ndarray,
+                    rects: list[tuple[float, float, float, float]]
+                    ) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Triangles grouped by the regions their UV footprint meets (module docstring).
+
+    Args:
+        uv: (N, 2) texture coordinates.
+        triangles: (M, 3) vertex indices.
+        rects: the regions' padded rectangles (u0, v0, u1, v1), at most 62.
+
+    Returns:
+        (M, 3) int32 triangles sorted by group (stable, so each group keeps the mesh's
+        order), and per group (bit mask of its regions, first triangle, triangle count).
+    """
+    corners = uv[triangles]
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    masks = np.zeros(len(triangles), np.int64)
+    for i, (u0, v0, u1, v1) in enumerate(rects):
+        meets = (hi[:, 0] >= u0) & (lo[:, 0] <= u1) & (hi[:, 1] >= v0) & (lo[:, 1] <= v1)
+        masks |= meets.astype(np.int64) << i
+    order = np.argsort(masks, kind="stable")
+    kinds, first, count = np.unique(masks[order], return_index=True, return_counts=True)
+    groups = [(int(m), int(f), int(n)) for m, f, n in zip(kinds, first, count)]
+    return np.ascontiguousarray(triangles[order]), groups
+
+
+@dataclass(frozen=True)
+class _Group:
+    """One draw call: triangles [first, first + count) (in indices) of the sorted index
+    buffer, drawn by the program compositing their regions; its per-frame uniforms."""
+
+    vao: Any
+    first: int
+    count: int
+    mvp: Any
+    layers: list[tuple[Any, int]]
+
+
+class FaceRenderer:
+    """Renders a person model's morphed mesh with its texture regions, offscreen (EGL).
+
+    Usage: ``with FaceRenderer(model, w, h) as r: image = r.render(vertices, q, camera)``.
+
+    Attributes:
+        width, height: output image size in pixels.
+        samples: multisample samples per pixel in use (0: none).
+        n_vertices: N, the vertices every frame passes.
+        layers: the number of layers of each region, packet order.
+        vertex_buffer: the one buffer each frame's vertices are written into.
+    """
+
+    def __init__(self, model: PersonModel, width: int, height: int,
+                 samples: int = DEFAULT_SAMPLES,
+                 background: tuple[int, int, int] = (0, 0, 0)) -> None:
+        """Open the context, upload the mesh, the texture and the region volumes.
+
+        Args:
+            model: the person model (at most 8 regions, the packet's Q slots).
+            width, height: output image size in pixels.
+            samples: multisample anti-aliasing samples per pixel (0 or 1: none); clamped to
+                what the driver offers. Off by default (``DEFAULT_SAMPLES``): on llvmpipe 4
+                samples make a frame 2.5 to 4 times slower; on a GPU they cost little.
+            background: RGB colour, 0..255, of pixels no triangle covers.
+
+        Raises:
+            RenderError: bad arguments (the message names the field).
+            EGLUnavailable: headless OpenGL cannot be used (the message says how to fix it).
+        """
+        if not isinstance(model, PersonModel):
+            raise RenderError(f"model: expected a PersonModel, got {type(model).__name__}")
+        if not (isinstance(width, int) and isinstance(height, int) and width > 0
+                and height > 0):
+            raise RenderError(f"width, height: expected positive ints, got {width!r}, "
+                              f"{height!r}")
+        if len(background) != 3 or not all(0 <= c <= 255 for c in background):
+            raise RenderError(f"background: expected 3 values in 0..255, got {background!r}")
+        if not isinstance(samples, int) or samples < 0:
+            raise RenderError(f"samples: expected an int >= 0, got {samples!r}")
+        if len(model.regions) > N_REGIONS:
+            raise RenderError(f"model.regions: {len(model.regions)} regions, a packet carries "
+                              f"at most {N_REGIONS}")
+        self.width, self.height = width, height
+        self.n_vertices = len(model.mesh.vertices)
+        self.layers = tuple(len(r.layers) for r in model.regions)
+        self.background = tuple(c / 255.0 for c in background)
+        self._ctx = create_context()
+        try:
+            self._setup(model, samples)
+        except BaseException:
+            self.release()
+            raise
+
+    @in_context
+    def _setup(self, model: PersonModel, samples: int) -> None:
+        """Create the framebuffers, buffers, textures and programs (``__init__``)."""
+        import moderngl
+
+        ctx, mesh, width, height = self._ctx, model.mesh, self.width, self.height
+        self._frame = OffscreenTarget(ctx, width, height, samples)
+        self.samples = self._frame.samples
+        ctx.enable(moderngl.DEPTH_TEST)
+
+        texture = model.texture
+        self._texture = ctx.texture((texture.shape[1], texture.shape[0]), 3,
+                                    np.ascontiguousarray(texture[::-1]), alignment=1)
+        self._texture.repeat_x = self._texture.repeat_y = False
+        self._texture.build_mipmaps()
+        self._texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self._volumes = []
+        for region in model.regions:
+            volume = region_volume(texture, region)
+            k, h, w, _ = volume.shape
+            array = ctx.texture_array((w, h, k), 4,
+                                      np.ascontiguousarray(volume[:, ::-1], np.float16),
+                                      dtype="f2")
+            array.repeat_x = array.repeat_y = False
+            array.build_mipmaps(max_level=MIP_LEVELS)
+            array.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+            self._volumes.append(array)
+
+        rects = [padded_rect(r) for r in model.regions]
+        triangles, groups = triangle_groups(mesh.uv, mesh.triangles, rects)
+        self.vertex_buffer = ctx.buffer(reserve=self.n_vertices * 12, dynamic=True)
+        self._uv = ctx.buffer(np.ascontiguousarray(mesh.uv).tobytes())
+        self._indices = ctx.buffer(triangles.tobytes())
+        order = draw_order(model.regions)
+        self._groups = []
+        for mask, first, count in groups:
+            regions = [i for i in order if mask >> i & 1]
+            program = ctx.program(vertex_shader=VERTEX_TEXTURED, fragment_shader=_FRAGMENT % {
+                "uniforms": "\n".join(f"uniform sampler2DArray volume{i};\n"
+                                      f"uniform vec4 rect{i};\nuniform vec3 layer{i};"
+                                      for i in regions),
+                "calls": "\n".join(f"    c = over(c, base, volume{i}, rect{i}, layer{i});"
+                                   for i in regions)})
+            program["image"].value = 0
+            for i in regions:
+                u0, v0, u1, v1 = rects[i]
+                program[f"rect{i}"].value = (u0, v0, 1.0 / (u1 - u0), 1.0 / (v1 - v0))
+                program[f"volume{i}"].value = 1 + i
+            vao = ctx.vertex_array(program, [(self.vertex_buffer, "3f", "in_position"),
+                                             (self._uv, "2f", "in_uv")],
+                                   index_buffer=self._indices, index_element_size=4)
+            self._groups.append(_Group(vao, 3 * first, 3 * count, program["mvp"],
+                                       [(program[f"layer{i}"], i) for i in regions]))
+
+    @in_context
+    def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera) -> np.ndarray:
+        """Draw one frame.
+
+        Args:
+            vertices: (N, 3) float32 morphed model-space positions, mm.
+            q: (R,) or (8,) float32 region values in layers, packet order (R = the model's
+                regions; of 8 values, the first R are used); each is clamped to [0, k - 1].
+            camera: a ``models.raster.Camera`` whose image size is this renderer's.
+
+        Returns:
+            (height, width, 3) uint8 RGB image, top row first.
+
+        Raises:
+            RenderError: wrong shapes or dtypes, non-finite values, a camera of another size,
+                or a released renderer.
+        """
+        if self._ctx is None:
+            raise RenderError("render: the renderer was released")
+        if not isinstance(vertices, np.ndarray) or vertices.dtype != np.float32 \
+                or vertices.shape != (self.n_vertices, 3):
+            raise RenderError(f"vertices: expected a float32 array of shape "
+                              f"({self.n_vertices}, 3), got {_describe(vertices)}")
+        if not np.isfinite(vertices).all():
+            raise RenderError("vertices: contains NaN or infinity")
+        n_regions = len(self.layers)
+        if not isinstance(q, np.ndarray) or q.dtype != np.float32 \
+                or q.shape not in ((n_regions,), (N_REGIONS,)):
+            raise RenderError(f"q: expected a float32 array of shape ({n_regions},) or "
+                              f"({N_REGIONS},), got {_describe(q)}")
+        if not np.isfinite(q[:n_regions]).all():
+            raise RenderError("q: contains NaN or infinity")
+        if not isinstance(camera, Camera):
+            raise RenderError(f"camera: expected a models.raster.Camera, got "
+                              f"{type(camera).__name__}")
+        if (camera.width, camera.height) != (self.width, self.height):
+            raise RenderError(f"camera: image {camera.width} x {camera.height}, renderer "
+                              f"{self.width} x {self.height}")
+
+        self.vertex_buffer.write(np.ascontiguousarray(vertices))
+        mvp = (camera.projection_matrix() @ camera.view_matrix()).astype(np.float32)
+        mvp_bytes = mvp.T.tobytes()  # GLSL matrices are column-major
+        layers = []
+        for k, value in zip(self.layers, q):
+            depth = min(max(float(value), 0.0), k - 1.0)
+            below = float(np.floor(depth))
+            layers.append((below, min(below + 1.0, k - 1.0), depth - below))
+        self._texture.use(0)
+        for i, volume in enumerate(self._volumes):
+            volume.use(1 + i)
+        self._frame.begin(self.background)
+        for group in self._groups:
+            group.mvp.write(mvp_bytes)
+            for uniform, i in group.layers:
+                uniform.value = layers[i]
+            group.vao.render(vertices=group.count, first=group.first)
+        return self._frame.read()
+
+    def release(self) -> None:
+        """Free the OpenGL context and everything in it."""
+        if self._ctx is not None:
+            self._ctx.release()
+            self._ctx = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _describe(a: object) -> str:
+    """'float64 array of shape (3, 2)' or the type's name, for error messages."""
+    if isinstance(a, np.ndarray):
+        return f"a {a.dtype.name} array of shape {a.shape}"
+    return type(a).__name__

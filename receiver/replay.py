@@ -1,0 +1,145 @@
+"""Replay: a recorded packet log rendered to an H.264 video or a PNG sequence.
+
+``facewire replay LOG --model M --out OUT`` is the receiver without the network: the log's
+packets go through the same playout buffer as live ones (``receiver.playout.replay_states``:
+each packet arrives at its recorded time, the render clock ticks at the Hello's rate, a
+missing packet is concealed), and every frame slot from the first sequence number to the
+last becomes one output frame:
+
+    state     = the slot's pose, tangent residuals r and Q (held or eased when concealed)
+    vertices  = rig.morph(rig.from_tangent(r))                 the person's morphed mesh
+    image     = FaceRenderer.render(vertices, Q, view camera)  base texture + region volumes
+
+Views (``VIEWS``): ``camera`` is the sender's camera with the received pose and the Hello's
+intrinsics (the output lines up with the sender's frame; its size is the Hello's unless
+given), ``front`` and ``three-quarter`` are virtual cameras framing the head, which turns by
+the received rotation (640 x 480 unless given). ``side_by_side`` puts the source video's
+frame at the slot's time (the nearest frame, as the log's times come from the source) on
+the left: input | reconstruction, for evaluation videos.
+
+Output: a path ending in ``.mp4`` is an H.264 video (``receiver.output.VideoWriter``, encoded
+on its own thread); any other path is a folder of PNG frames. The model must be the one the
+log was made with (its sha256 is in the log's Hello).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.modelfile import load_model
+from models.progress import Progress, no_progress
+from models.rig import Rig
+from models.video import read_frames
+from protocol.log import read_log
+from protocol.packet import N_REGIONS
+from receiver.output import FrameFolderWriter, VideoWriter, side_by_side
+from receiver.playout import Playout, replay_states
+from receiver.render import FaceRenderer
+from receiver.views import sender_view, virtual_view
+
+VIEWS = ("camera", "front", "three-quarter")
+VIRTUAL_SIZE = (640, 480)
+
+
+class ReplayError(ValueError):
+    """The log and the model do not belong together, or an option is wrong."""
+
+
+def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[str],
+               out: str | os.PathLike[str], view: str = "camera",
+               size: tuple[int, int] | None = None,
+               source: str | os.PathLike[str] | None = None,
+               progress: Progress = no_progress) -> dict[str, Any]:
+    """Render every frame slot of a packet log (module docstring).
+
+    Args:
+        log_path: the ``.fwlog``.
+        model_path: the person model the log was made with.
+        out: ``OUT.mp4`` or a folder for PNG frames.
+        view: one of ``VIEWS``.
+        size: (width, height) of the rendering; default as in the module docstring.
+        source: the video the log was encoded from, for a side-by-side output.
+        progress: wraps an iterable to show progress.
+
+    Returns:
+        A summary: ``frames`` written, the playout's counts (``received``, ``concealed``,
+        ``corrupt`` ...), ``lost_records`` (damaged log records), ``width``, ``height``,
+        ``view``, ``out``, ``seconds``, ``render_fps``.
+
+    Raises:
+        ReplayError: a bad view or size, or the model is not the log's.
+        LogError / ModelFileError / VideoError / OutputError: unreadable inputs or output.
+    """
+    start = time.perf_counter()
+    if view not in VIEWS:
+        raise ReplayError(f"--view: expected one of {', '.join(VIEWS)}, got {view!r}")
+    log = read_log(log_path)
+    model = load_model(model_path)
+    hello = log.hello
+    if hello.model_sha256 != model.sha256:
+        raise ReplayError(f"{model_path}: sha256 {model.sha256[:16]}... is not the model of "
+                          f"{log_path} ({hello.model_sha256[:16]}...)")
+    if size is None:
+        size = (hello.camera.width, hello.camera.height) if view == "camera" else VIRTUAL_SIZE
+    width, height = size
+    if not (0 < width <= 4096 and 0 < height <= 4096):
+        raise ReplayError(f"--size: expected a width and height in [1, 4096], got {size}")
+    rig = Rig(model.mesh)
+    rest = np.zeros(N_REGIONS, np.float32)
+    rest[:len(model.regions)] = [r.rest for r in model.regions]
+    playout = Playout(hello.rate_hz, rest_q=rest)
+    states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
+    frames = _SourceFrames(source) if source is not None else None
+    out = Path(out)
+    out_width = width + (0 if frames is None else frames.width(height))
+    writer = VideoWriter(out, out_width, height, hello.rate_hz) if out.suffix == ".mp4" \
+        else FrameFolderWriter(out)
+    t0 = float(np.min(log.times)) if len(log.times) else 0.0
+    written = 0
+    render_seconds = 0.0
+    with FaceRenderer(model, width, height) as renderer, writer:
+        for k, state in enumerate(progress(states, "rendering", None)):
+            vertices = rig.morph(rig.from_tangent(state.residuals))
+            if view == "camera":
+                camera = sender_view(hello.camera, state.rotation, state.translation,
+                                     width, height)
+            else:
+                camera = virtual_view(view, model.mesh, state.rotation, width, height)
+            tick = time.perf_counter()
+            image = renderer.render(vertices, state.q, camera)
+            render_seconds += time.perf_counter() - tick
+            if frames is not None:
+                image = side_by_side(frames.at(t0 + k / hello.rate_hz), image, height)
+            writer.write(image)
+            written += 1
+    elapsed = time.perf_counter() - start
+    return {"out": str(out), "view": view, "width": width, "height": height,
+            "frames": written, **playout.stats, "lost_records": log.lost,
+            "seconds": round(elapsed, 2),
+            "render_fps": round(written / render_seconds, 1) if render_seconds else None}
+
+
+class _SourceFrames:
+    """The source video's frames, read forward, the nearest to a time (RGB)."""
+
+    def __init__(self, source: str | os.PathLike[str]) -> None:
+        self._frames = read_frames(source)
+        self._current = next(self._frames, None)
+        self._next = next(self._frames, None)
+        if self._current is None:
+            raise ReplayError(f"{source}: no frames to put beside the rendering")
+
+    def width(self, height: int) -> int:
+        h, w = self._current.image.shape[:2]
+        return int(round(w * height / h))
+
+    def at(self, t: float) -> np.ndarray:
+        while self._next is not None and abs(self._next.time - t) <= abs(
+                self._current.time - t):
+            self._current, self._next = self._next, next(self._frames, None)
+        return np.ascontiguousarray(self._current.image[..., ::-1])

@@ -1,0 +1,148 @@
+"""The receiver's two kinds of view: the sender's camera, and a free virtual camera.
+
+Poses follow DESIGN.md's GL camera (X_cam = R X + t; x right, y up, the camera looking along
+-z) and the packet's pose: ``rotation`` is a (3,) rotation vector (axis times angle, radians,
+as ``protocol.packet.Frame`` carries it) or a (3, 3) rotation matrix, model to camera.
+
+Sender view (``sender_view``): the sender's intrinsics from the Hello, scaled to the output,
+with the received pose, so that the render lines up with the sender's frame resized to the
+output. Pixel centres sit at integers and an image of W pixels spans [-1/2, W - 1/2], so a
+scale s = W' / W maps u to s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2, and the
+same in y with H' / H (an output of another aspect ratio stretches like a resized frame).
+
+Virtual view (``virtual_view``): a square-pixel camera framing the head as
+``models.build.render_preview`` does: its field of view ``FOV_DEG`` holds ``FIELD_EYE_DISTANCES``
+outer-eye distances (36 to 45) across the image height, aimed at the head centre c (the
+landmarks' mean, raised by a tenth of the field), from the front (yaw 0) or from a
+three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The
+head turns by the received rotation about c and stays there (the translation is not
+followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with (R_v, t_v) the orbit
+pose of ``models.raster.orbit_pose`` around c, so c is always at the image centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.landmarks import N_LANDMARKS, outer_eye_distance
+from models.mesh import Mesh
+from models.raster import Camera, RenderError, orbit_pose
+from protocol import control
+from receiver.playout import rotation_matrix as rodrigues
+
+FOV_DEG = 25.0  # as models.build.PREVIEW_FOV_DEG
+FIELD_EYE_DISTANCES = 3.6  # as models.build.CROP_EYE_DISTANCES
+THREE_QUARTER_YAW_DEG = 35.0  # as models.build.PREVIEW_YAWS
+VIEW_KINDS = ("front", "three-quarter")
+
+
+def rotation_matrix(rotation: np.ndarray) -> np.ndarray:
+    """A rotation as a matrix.
+
+    Args:
+        rotation: (3,) rotation vector, radians (Rodrigues), or a (3, 3) rotation matrix.
+
+    Returns:
+        (3, 3) float64 rotation matrix.
+
+    Raises:
+        RenderError: another shape or non-finite values (a matrix is checked by ``Camera``).
+    """
+    r = np.asarray(rotation, np.float64)
+    if r.shape not in ((3,), (3, 3)) or not np.isfinite(r).all():
+        raise RenderError(f"rotation: expected a finite (3,) rotation vector or (3, 3) "
+                          f"matrix, got shape {r.shape}")
+    if r.shape == (3, 3):
+        return r
+    return rodrigues(r)
+
+
+def sender_view(hello_camera: control.Camera, rotation: np.ndarray, translation: np.ndarray,
+                width: int, height: int) -> Camera:
+    """The sender's camera with the received pose, for a ``width`` x ``height`` output.
+
+    Args:
+        hello_camera: the sender's intrinsics from the Hello.
+        rotation: (3,) rotation vector (radians) or (3, 3) matrix, model to camera.
+        translation: (3,) mm, the model origin in the camera frame (z < 0 in front).
+        width, height: output size in pixels.
+
+    Returns:
+        The camera (module docstring).
+
+    Raises:
+        RenderError: bad arguments (the message names the field).
+    """
+    if not isinstance(hello_camera, control.Camera):
+        raise RenderError(f"hello_camera: expected a protocol.control.Camera, got "
+                          f"{type(hello_camera).__name__}")
+    _check_size(width, height)
+    sx, sy = width / hello_camera.width, height / hello_camera.height
+    return Camera(sx * hello_camera.fx, sy * hello_camera.fy,
+                  sx * (hello_camera.cx + 0.5) - 0.5, sy * (hello_camera.cy + 0.5) - 0.5,
+                  width, height, rotation_matrix(rotation), _translation(translation))
+
+
+def head_centre(head: Mesh | np.ndarray) -> tuple[np.ndarray, float]:
+    """The point a virtual view aims at, and the field it frames.
+
+    Args:
+        head: the model's neutral mesh, or its (68, 3) landmark positions, mm.
+
+    Returns:
+        (3,) float64 centre c (module docstring) and the field's height, mm.
+
+    Raises:
+        RenderError: not a Mesh or a finite (68, 3) array.
+    """
+    if isinstance(head, Mesh):
+        landmarks = head.vertices[head.landmarks].astype(np.float64)
+    else:
+        landmarks = np.asarray(head, np.float64)
+        if landmarks.shape != (N_LANDMARKS, 3) or not np.isfinite(landmarks).all():
+            raise RenderError(f"head: expected a Mesh or finite ({N_LANDMARKS}, 3) landmarks, "
+                              f"got shape {landmarks.shape}")
+    field = FIELD_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
+    if not field > 0:
+        raise RenderError("head: the outer eye corners (36, 45) coincide")
+    return landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0], field
+
+
+def virtual_view(kind: str, head: Mesh | np.ndarray, rotation: np.ndarray, width: int,
+                 height: int) -> Camera:
+    """A virtual camera framing the head, which turns by ``rotation`` about its centre.
+
+    Args:
+        kind: "front" or "three-quarter".
+        head: the model's neutral mesh, or its (68, 3) landmark positions, mm.
+        rotation: (3,) rotation vector (radians) or (3, 3) matrix: the received head rotation.
+        width, height: output size in pixels.
+
+    Returns:
+        The camera (module docstring); the head centre projects to the image centre.
+
+    Raises:
+        RenderError: bad arguments (the message names the field).
+    """
+    if kind not in VIEW_KINDS:
+        raise RenderError(f"kind: expected one of {', '.join(VIEW_KINDS)}, got {kind!r}")
+    _check_size(width, height)
+    turn = rotation_matrix(rotation)
+    centre, field = head_centre(head)
+    distance = field / (2 * np.tan(np.radians(FOV_DEG) / 2))
+    yaw = 0.0 if kind == "front" else THREE_QUARTER_YAW_DEG
+    view_r, view_t = orbit_pose(yaw, 0.0, distance, centre)
+    return Camera.virtual(width, height, view_r @ turn, view_r @ (centre - turn @ centre)
+                          + view_t, fov_y_deg=FOV_DEG)
+
+
+def _translation(translation: np.ndarray) -> np.ndarray:
+    t = np.asarray(translation, np.float64)
+    if t.shape != (3,) or not np.isfinite(t).all():
+        raise RenderError(f"translation: expected a finite (3,) array, got shape {t.shape}")
+    return t
+
+
+def _check_size(width: int, height: int) -> None:
+    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+        raise RenderError(f"width, height: expected positive ints, got {width!r}, {height!r}")
