@@ -60,8 +60,9 @@ the axis the states were laid along. With ``--reference OPENFACE.csv``, ``q_refe
 the agreement of the decoded Q with OpenFace's action units on the same frames
 (``bench.reference.q_agreement``: eyelids vs AU45, forehead vs AU01 + AU02, mouth vs AU25 +
 AU26, blink-event F1). The plot
-(``--plot P.png``) goes with a second one, ``P-q.png``: every region's Q over time with six
-frames of the eyes evenly spaced through the clip (``bench.qplot``).
+(``--plot P.png``) goes with ``P-q.png``: every region's Q over time with six frames of the
+eyes evenly spaced through the clip (``bench.qplot``), and ``P-face.png``: the face SSIM
+over time, ours and x264's, above three example faces (real, facewire, x264).
 
 Targets (printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
 ``nme_rigid_only_mean`` (issue 4); with a reference, eyelid-vs-AU45 r >= 0.6, blink F1 >=
@@ -104,6 +105,7 @@ from sender.pipeline import SenderPipeline, sender_camera
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
 THUMBNAILS = 6
+EXAMPLES = 3  # example frames in the fidelity plot
 # The quality keys of the DESIGN.md contract that belong to later issues.
 
 
@@ -227,6 +229,7 @@ class _Series(NamedTuple):
     q: dict[str, np.ndarray]  # region -> (F,) decoded Q, NaN where not measured
     layers: dict[str, int]
     eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
+    appearance: _Appearance
 
 
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
@@ -363,27 +366,31 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
     appearance = _appearance(model, camera, decoded, tracked, posed, source, frames,
-                             summary["payload_kbps"], progress)
+                             summary["payload_kbps"], progress, keep_examples=keep_eyes)
     summary.update(appearance.summary)
     summary["met"]["face_ssim_above_h264"] = (
         appearance.summary["face_ssim_mean"] is not None
         and appearance.summary["h264_face_ssim_mean"] is not None
         and appearance.summary["face_ssim_mean"] > appearance.summary["h264_face_ssim_mean"])
-    return summary, _Series(np.array(indices), np.array(times), posed, result, q, layers, eyes)
+    return summary, _Series(np.array(indices), np.array(times), posed, result, q, layers, eyes,
+                            appearance)
 
 
 class _Appearance(NamedTuple):
     summary: dict[str, Any]
     ssim: np.ndarray  # (F,) ours, NaN where not measured
     h264_ssim: np.ndarray  # (F,)
+    examples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # k -> real, ours, x264
 
 
 def _appearance(model: Any, camera: Any, decoded: np.ndarray,
                 tracked: list[np.ndarray | None], posed: np.ndarray,
                 source: str | os.PathLike[str], frames: slice, payload_kbps: float,
-                progress: Progress) -> _Appearance:
+                progress: Progress, keep_examples: bool = False) -> _Appearance:
     """Render every measured frame from the sender's camera and compare its face box with
-    the real frame; the same for x264 at our payload rate (module docstring)."""
+    the real frame; the same for x264 at our payload rate (module docstring). With
+    ``keep_examples``, the face crops of ``EXAMPLES`` frames evenly spread over the measured
+    ones (real, ours, x264) come back for the plot."""
     rig = Rig(model.mesh)
     src = open_source(str(source), pace=False, frames=frames)
     originals: list[np.ndarray] = []
@@ -391,6 +398,7 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     peak = np.full(len(decoded), np.nan)
     boxes: dict[int, tuple[int, int, int, int]] = {}
     masks: dict[int, np.ndarray] = {}
+    rendered_faces: dict[int, np.ndarray] = {}
     with FaceRenderer(model, camera.width, camera.height) as renderer, src:
         for k, frame in enumerate(progress(src, "rendering", src.frames or None)):
             if k >= len(decoded):
@@ -408,6 +416,8 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             real, ours = frame.image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
             ssim[k] = gray_ssim(real, ours, mask)
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
+            if keep_examples:
+                rendered_faces[k] = ours.copy()
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_kbps = None
@@ -422,10 +432,16 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
                 continue
             h264_ssim[k] = gray_ssim(real, coded, masks[k])
             h264_peak[k] = psnr(_grey(real)[masks[k]], _grey(coded)[masks[k]])
+            if k in rendered_faces:
+                rendered_faces[k] = (real, rendered_faces[k], coded.copy())
+    measured = sorted(k for k, v in rendered_faces.items() if isinstance(v, tuple))
+    picks = {measured[int(i)] for i in np.linspace(0, len(measured) - 1, EXAMPLES)} \
+        if len(measured) >= EXAMPLES else set(measured)
+    examples = {k: rendered_faces[k] for k in sorted(picks)}
     summary = {"face_ssim_mean": _mean(ssim), "face_psnr_mean": _mean(peak),
                "h264_kbps": h264_kbps, "h264_face_ssim_mean": _mean(h264_ssim),
                "h264_face_psnr_mean": _mean(h264_peak)}
-    return _Appearance(summary, ssim, h264_ssim)
+    return _Appearance(summary, ssim, h264_ssim, examples)
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -573,8 +589,50 @@ def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                    [(float(series.times[i]), series.eyes[i]) for i in picks], q_path,
                    title=f"facewire appearance classification: {Path(source).name}")
             lines.append(f"plot: {q_path}")
+        face_path = Path(plot).with_name(Path(plot).stem + "-face.png")
+        _plot_face(series, result, face_path)
+        lines.append(f"plot: {face_path}")
     report(result, lines, as_json)
     return 0
+
+
+def _plot_face(series: _Series, result: dict[str, Any], path: Path) -> None:
+    """Face SSIM over time, ours and x264's, above example faces: real, facewire, x264."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    app = series.appearance
+    examples = app.examples
+    fig = plt.figure(figsize=(9, 3 + 2.2 * 3))
+    grid = fig.add_gridspec(4, max(len(examples), 1), height_ratios=[1.3, 1, 1, 1])
+    ax = fig.add_subplot(grid[0, :])
+    ax.plot(series.times, app.ssim, lw=1, color="tab:blue",
+            label=f"facewire, {result['payload_kbps']:.1f} kbit/s "
+                  f"(mean {result['face_ssim_mean'] or float('nan'):.3f})")
+    ax.plot(series.times, app.h264_ssim, lw=1, color="tab:orange",
+            label=f"x264, {result['h264_kbps'] or float('nan'):.1f} kbit/s "
+                  f"(mean {result['h264_face_ssim_mean'] or float('nan'):.3f})")
+    for k in examples:
+        ax.axvline(series.times[k], color="grey", ls="--", lw=0.8)
+    ax.set_xlabel("time, s")
+    ax.set_ylabel("face SSIM (grey)")
+    ax.legend(loc="lower right", fontsize="small")
+    ax.set_title(f"appearance fidelity: {Path(result['source']).name}")
+    for column, (k, crops) in enumerate(examples.items()):
+        for row, (crop, label) in enumerate(zip(crops, ("real", "facewire", "x264"))):
+            cell = fig.add_subplot(grid[1 + row, column])
+            cell.imshow(crop[..., ::-1])
+            cell.set_xticks([])
+            cell.set_yticks([])
+            if column == 0:
+                cell.set_ylabel(label)
+            if row == 0:
+                cell.set_title(f"{series.times[k]:.2f} s", fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def _verdict(met: bool) -> str:

@@ -199,8 +199,9 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_pa
     assert 0.2 < r["face_ssim_mean"] < 1 and 0.2 < r["h264_face_ssim_mean"] < 1
     assert r["met"]["face_ssim_above_h264"] == (r["face_ssim_mean"] > r["h264_face_ssim_mean"])
     text = "\n".join(out[:-1])
-    q_plot = tmp_path / "nme-q.png"
-    assert text == format_quality(r) + f"\nplot: {plot}\nplot: {q_plot}"
+    q_plot, face_plot = tmp_path / "nme-q.png", tmp_path / "nme-face.png"
+    assert text == format_quality(r) + f"\nplot: {plot}\nplot: {q_plot}\nplot: {face_plot}"
+    assert face_plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert f"mean {r['nme_heldout_mean']:.2f} %" in text
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert q_plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
