@@ -38,6 +38,7 @@ import numpy as np
 from models.fit import Fit, FitError, fit_person, intrinsics_guess
 from models.head import generic_head
 from models.landmarks import outer_eye_distance
+from models.mesh import Mesh
 from models.modelfile import Camera, ModelInfo, PersonModel, Region, model_summary, save_model
 from models.progress import Progress, no_progress
 from models.raster import Camera as ViewCamera
@@ -50,6 +51,8 @@ TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480
 PREVIEW_YAWS = (0.0, 35.0)  # degrees: front and three-quarter
 PREVIEW_FOV_DEG = 25.0
+PREVIEW_BACKGROUND = (40, 40, 40)
+PREVIEW_SAMPLES = 4  # multisampling of the preview's renders
 CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye distances
 CREATOR = "facewire 0.1.0"
 REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
@@ -198,26 +201,35 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
     """
     mesh = model.mesh
     size = PREVIEW_HEIGHT
-    # Frame the renders like the crop of the neutral frame (``_face_crop``): a field of
-    # CROP_EYE_DISTANCES outer-eye distances, centred a tenth of it above the landmarks' mean.
-    landmarks = mesh.vertices[mesh.landmarks].astype(np.float64)
-    field = CROP_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
-    centre = landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0]
-    distance = field / (2 * np.tan(np.radians(PREVIEW_FOV_DEG) / 2))
     panels = []
     if neutral_image is not None:
         panels.append(_face_crop(neutral_image, neutral_points, size))
-    with MeshRenderer(size, size, background=(40, 40, 40)) as renderer:
+    with MeshRenderer(size, size, samples=PREVIEW_SAMPLES,
+                      background=PREVIEW_BACKGROUND) as renderer:
         renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
         renderer.set_texture(model.texture)
-        for yaw in PREVIEW_YAWS:
-            rotation, translation = orbit_pose(yaw, 0.0, distance, centre)
-            camera = ViewCamera.virtual(size, size, rotation, translation,
-                                        fov_y_deg=PREVIEW_FOV_DEG)
+        for camera in preview_cameras(mesh):
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
     top = np.hstack(panels)
     rows = [_region_row(model.texture, r, top.shape[1]) for r in model.regions]
     return np.vstack([top, *rows])
+
+
+def preview_cameras(mesh: Mesh) -> list[ViewCamera]:
+    """The preview's cameras (``PREVIEW_YAWS``), ``PREVIEW_HEIGHT`` px square: they frame the
+    model like the crop of the neutral frame (``_face_crop``), a field of
+    ``CROP_EYE_DISTANCES`` outer-eye distances centred a tenth of it above the landmarks'
+    mean."""
+    landmarks = mesh.vertices[mesh.landmarks].astype(np.float64)
+    field = CROP_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
+    centre = landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0]
+    distance = field / (2 * np.tan(np.radians(PREVIEW_FOV_DEG) / 2))
+    cameras = []
+    for yaw in PREVIEW_YAWS:
+        rotation, translation = orbit_pose(yaw, 0.0, distance, centre)
+        cameras.append(ViewCamera.virtual(PREVIEW_HEIGHT, PREVIEW_HEIGHT, rotation, translation,
+                                          fov_y_deg=PREVIEW_FOV_DEG))
+    return cameras
 
 
 def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:

@@ -28,13 +28,17 @@ the sender's pose and lift.
    k evenly spaced cue levels: eyelids from the 10th percentile (wide open: a typical open
    eye then lies a little way into the range, and a wide-open one is no stranger to the
    templates than a half-closed one) to the 99th (closed: blinks are brief, so the extreme
-   is rare); forehead and brow furrow from
-   the median to the 98th percentile; mouth from the 5th to the 98th percentile; gaze from
-   the 5th to the 95th percentile. Each level takes the frame whose cue is nearest to it
-   (ties broken toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each
-   frame at most once per region. A region whose span is below ``MIN_SPAN`` (the video
+   is rare); forehead and brow furrow from the median to the 98th percentile; mouth from
+   the 5th to the 98th percentile; gaze from the 5th to the 95th percentile. The level
+   nearest to the neutral frame's own cue is the region's *rest* state and takes the
+   neutral frame itself (``models.build`` chose it; its texture is the model's base
+   texture). Every other level takes the frame whose cue is nearest to it (ties broken
+   toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
+   once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
-4. Layers. Each state's frame is projected onto the region's UV rectangle: every texel's
+4. Layers. The rest state's layer is the base texture under the region, so that a face
+   at rest renders exactly as the model's neutral texture (``Region.rest``). Every other
+   state's frame is projected onto the region's UV rectangle: every texel's
    surface point (its triangle and barycentric weights, from ``models.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
@@ -44,8 +48,9 @@ the sender's pose and lift.
    exposure change between frames leaves no step at the border. The mask is the region's
    ``ramp_mask``; the eyelids' first (open) state has opacity 0.
 5. Templates: each state's frame's centre sample, 16 x 16 raw grey levels.
-6. Rest: each region's Q on the neutral frame (``models.build`` chose it), classified with
-   those templates: what a receiver shows for a face at rest or lost.
+6. Rest: the rest state's index, ``Region.rest``: what a receiver shows for a face at
+   rest or lost. The neutral frame's sample is that state's template, so the classifier
+   gives exactly this Q on it.
 """
 
 from __future__ import annotations
@@ -68,7 +73,6 @@ from models.texture import uv_surface
 from models.video import read_frames, video_info
 from protocol.control import Camera
 from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
-from sender.classify import RegionClassifiers
 from sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
@@ -147,10 +151,12 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     cues = without_closed_eyes(np.array([o.cues for o in observations]),
                                np.array([o.eye_ratio for o in observations]))
     yaw = np.array([abs(o.yaw_deg) for o in observations])
+    neutral = min(range(len(observations)),
+                  key=lambda i: abs(observations[i].index - model.info.neutral_frame))
     chosen: dict[str, list[int]] = {}
     report: dict[str, dict[str, Any]] = {}
     for r, region in enumerate(REGIONS):
-        picks, info = _choose_states(region, cues[:, r], yaw)
+        picks, info = _choose_states(region, cues[:, r], yaw, neutral)
         chosen[region.name] = picks
         report[region.name] = {**info, "frames": [observations[i].index for i in picks]}
 
@@ -163,30 +169,21 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         if frame.index in by_index:
             images[by_index[frame.index]] = frame.image
     texels = _RegionTexels(model, camera)
-    templates = [np.stack([observations[i].samples[r] for i in chosen[region.name]])
-                 .astype(np.float32) for r, region in enumerate(REGIONS)]
-    rest = _rest(observations, model.info.neutral_frame, templates)
     regions = []
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
-        layers = np.stack([texels.layer(region.name, images[i], observations[i]) for i in picks])
-        report[region.name]["rest"] = round(float(rest[r]), 4)
+        rest = report[region.name]["rest"]
+        layers = np.stack([texels.base(region.name) if j == rest else
+                           texels.layer(region.name, images[i], observations[i])
+                           for j, i in enumerate(picks)])
+        templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
         opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
                         for j in range(len(picks)))
         placement = texels.placements[region.name]
         mask = np.rint(255 * ramp_mask(layers.shape[1:3])).astype(np.uint8)
         regions.append(Region(region.name, placement.uv_rect, placement.template_rect, layers,
-                              mask, templates[r], opacity, float(rest[r])))
+                              mask, templates, opacity, float(rest)))
     return Enrollment(tuple(regions), report)
-
-
-def _rest(observations: list[Observation], neutral_frame: int,
-          templates: list[np.ndarray]) -> np.ndarray:
-    """(R,) each region's Q on the neutral frame (the observation nearest to it in the
-    video), classified like any frame."""
-    nearest = min(observations, key=lambda o: abs(o.index - neutral_frame))
-    classified = RegionClassifiers(templates).classify(nearest.samples[:, None])
-    return classified.q.astype(np.float64)
 
 
 def _observe(model: PersonModel, camera: Camera, video: Path, frames: slice,
@@ -276,9 +273,10 @@ def _family(region: RegionSpec) -> str:
         else region.name
 
 
-def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray
+def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray, neutral: int
                    ) -> tuple[list[int], dict[str, Any]]:
-    """The observation index of each state, and the report entry (module docstring, 3)."""
+    """The observation index of each state, and the report entry with the rest state
+    (module docstring, 3); ``neutral`` is the neutral frame's observation."""
     family = _family(region)
     usable = np.isfinite(cue)
     if not usable.any():
@@ -289,17 +287,23 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray
     span = float(abs(extreme - rest))
     levels = np.linspace(rest, extreme, region.layers)
     scale = max(span, 1e-6)
-    taken: list[int] = []
-    for level in levels:
+    at_rest = cue[neutral] if np.isfinite(cue[neutral]) else np.median(cue[usable])
+    rest_state = int(np.argmin(np.abs(levels - at_rest)))
+    taken: list[int] = [neutral]
+    for j, level in enumerate(levels):
+        if j == rest_state:
+            continue
         cost = np.abs(cue - level) / scale + 0.002 * yaw
         cost[~usable] = np.inf
         cost[taken] = np.inf
         if np.isinf(cost).all():
             cost = np.abs(np.nan_to_num(cue) - level)
+            cost[taken] = np.inf
         taken.append(int(np.argmin(cost)))
+    picks = taken[1:rest_state + 1] + [neutral] + taken[rest_state + 1:]
     weak = span < MIN_SPAN[family]
-    return taken, {"cue": [round(float(cue[i]), 4) for i in taken],
-                   "span": round(span, 4), "weak": bool(weak)}
+    return picks, {"cue": [round(float(cue[i]), 4) for i in picks],
+                   "span": round(span, 4), "weak": bool(weak), "rest": rest_state}
 
 
 class _RegionTexels:
@@ -326,6 +330,11 @@ class _RegionTexels:
             self.points[r.name] = SurfacePoints(model.mesh, rig, tri, bary)
             self.valid[r.name] = valid
             self.normals[r.name] = surface.normals[rows, cols]
+
+    def base(self, name: str) -> np.ndarray:
+        """(h, w, 3) uint8 RGB: the neutral texture under the region."""
+        rows, cols = self.slices[name]
+        return self.model.texture[rows, cols].copy()
 
     def layer(self, name: str, image: np.ndarray, seen: Observation) -> np.ndarray:
         """(h, w, 3) uint8 RGB: the region's texels read from ``image`` (module docstring)."""

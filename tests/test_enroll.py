@@ -17,10 +17,12 @@ def test_states_span_the_cue_at_even_levels() -> None:
     rng = np.random.default_rng(3)
     cue = rng.uniform(0.0, 10.0, 400)
     yaw = np.zeros_like(cue)
-    picks, info = _choose_states(spec("mouth"), cue, yaw)  # levels: 5th to 98th percentile
+    neutral = int(np.argmin(np.abs(cue - 0.4)))  # a neutral frame near the closed end
+    picks, info = _choose_states(spec("mouth"), cue, yaw, neutral)  # 5th to 98th percentile
     levels = np.linspace(np.percentile(cue, 5), np.percentile(cue, 98), spec("mouth").layers)
     assert len(set(picks)) == len(picks) == spec("mouth").layers
-    np.testing.assert_allclose(cue[picks], levels, atol=0.1)
+    assert info["rest"] == 0 and picks[0] == neutral  # the neutral frame is the rest state
+    np.testing.assert_allclose(cue[picks[1:]], levels[1:], atol=0.1)
     assert info["span"] == pytest.approx(levels[-1] - levels[0], abs=1e-3)
     assert not info["weak"] and info["cue"] == [round(float(cue[i]), 4) for i in picks]
 
@@ -28,14 +30,15 @@ def test_states_span_the_cue_at_even_levels() -> None:
 def test_states_prefer_a_frontal_head_and_skip_undefined_cues() -> None:
     cue = np.array([0.0, 1.0, 1.0, np.nan, 2.0, 3.0, 3.0])
     yaw = np.array([0.0, 30.0, 2.0, 0.0, 0.0, 1.0, 40.0])
-    picks, _ = _choose_states(spec("mouth"), cue, yaw)
+    picks, info = _choose_states(spec("mouth"), cue, yaw, neutral=4)
+    assert picks[info["rest"]] == 4
     assert 3 not in picks and 1 not in picks and 6 not in picks
     assert picks == sorted(picks)  # the levels rise with the cue
 
 
 def test_a_cue_the_video_barely_shows_is_weak() -> None:
     cue = np.full(50, 0.3) + np.linspace(0, 0.01, 50)
-    _, info = _choose_states(spec("eyelid_left"), cue, np.zeros(50))
+    _, info = _choose_states(spec("eyelid_left"), cue, np.zeros(50), neutral=0)
     assert info["weak"] and info["span"] < 0.08
 
 

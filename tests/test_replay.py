@@ -101,3 +101,46 @@ def test_a_model_that_is_not_the_logs_is_refused(log: Path, generic_model: Path,
                  str(tmp_path / "x.mp4"), "--size", "big"]) == 2
     assert not (tmp_path / "x.mp4").exists()
     assert load_model(generic_model).sha256 != read_log(log).hello.model_sha256
+
+
+def test_inspect_names_the_q_columns_by_region(log: Path, person_model: Path,
+                                               tmp_path: Path) -> None:
+    import csv
+
+    out = tmp_path / "log.csv"
+    assert main(["inspect", str(log), "--csv", str(out)]) == 0
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    regions = load_model(person_model).regions
+    assert len(rows) == 78
+    for region in regions:
+        values = np.array([float(row[f"q_{region.name}"]) for row in rows])
+        assert values.min() >= 0 and values.max() <= len(region.layers) - 1
+        assert np.ptp(values) > 0  # the packets carry the classified Q, not a constant
+
+
+def test_a_neutral_packet_renders_the_models_own_preview(person_model: Path) -> None:
+    """Neutral geometry and every region at its rest state (what the playout gives for a
+    face at rest or lost) render pixel-identical to the preview's model panels."""
+    from models.build import (PREVIEW_BACKGROUND, PREVIEW_HEIGHT, PREVIEW_SAMPLES,
+                              preview_cameras, render_preview)
+    from protocol.packet import N_REGIONS
+    from receiver.playout import Playout
+    from receiver.render import FaceRenderer
+
+    model = load_model(person_model)
+    rest = np.zeros(N_REGIONS, np.float32)
+    rest[:len(model.regions)] = [r.rest for r in model.regions]
+    state = Playout(30.0, rest_q=rest).pop()  # before any packet: the face at rest
+    assert not state.residuals.any() and np.array_equal(state.q, rest)
+    preview = render_preview(model)
+    with FaceRenderer(model, PREVIEW_HEIGHT, PREVIEW_HEIGHT, samples=PREVIEW_SAMPLES,
+                      background=PREVIEW_BACKGROUND) as renderer:
+        for k, camera in enumerate(preview_cameras(model.mesh)):
+            image = renderer.render(model.mesh.vertices, state.q, camera)[..., ::-1]
+            panel = preview[:PREVIEW_HEIGHT, k * PREVIEW_HEIGHT:(k + 1) * PREVIEW_HEIGHT]
+            assert np.array_equal(image, panel), f"panel {k}"
+            # and any other state of the regions shows: the layers are really drawn
+            other = renderer.render(model.mesh.vertices, np.where(rest > 0, 0.0, 1.0)
+                                    .astype(np.float32), camera)[..., ::-1]
+            assert (np.abs(other.astype(int) - panel).max(axis=2) > 8).sum() > 100
