@@ -32,7 +32,7 @@ frame's vertices into the same vertex buffer, since the morph moves them every f
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -250,7 +250,35 @@ class OffscreenTarget:
         return self._pixels[::-1].copy()
 
 
-class MeshRenderer:
+def check_output(width: int, height: int, background: tuple[int, int, int]) -> None:
+    """Refuse an output size that is not two positive ints or a background that is not an
+    RGB triple in 0..255 (``RenderError`` naming the field)."""
+    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+        raise RenderError(f"width, height: expected positive ints, got {width!r}, {height!r}")
+    if len(background) != 3 or not all(0 <= c <= 255 for c in background):
+        raise RenderError(f"background: expected 3 values in 0..255, got {background!r}")
+
+
+class ContextOwner:
+    """An object that owns a moderngl context (``self._ctx``): ``release`` frees it and
+    everything in it; usable as a context manager."""
+
+    _ctx: Any = None
+
+    def release(self) -> None:
+        """Free the OpenGL context and everything in it."""
+        if self._ctx is not None:
+            self._ctx.release()
+            self._ctx = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+class MeshRenderer(ContextOwner):
     """Renders one mesh offscreen through its own EGL OpenGL context.
 
     Usage: ``set_mesh`` once, ``set_texture`` (or not, for grey shading), then ``render``
@@ -272,12 +300,7 @@ class MeshRenderer:
         """
         import moderngl
 
-        if not (isinstance(width, int) and isinstance(height, int) and width > 0
-                and height > 0):
-            raise RenderError(f"width, height: expected positive ints, got {width!r}, "
-                              f"{height!r}")
-        if len(background) != 3 or not all(0 <= c <= 255 for c in background):
-            raise RenderError(f"background: expected 3 values in 0..255, got {background!r}")
+        check_output(width, height, background)
         ctx = create_context()
         self._ctx = ctx
         self.width, self.height = width, height
@@ -384,18 +407,6 @@ class MeshRenderer:
         self._frame.begin(self.background)
         vao.render()
         return self._frame.read()
-
-    def release(self) -> None:
-        """Free the OpenGL context and everything in it."""
-        if self._ctx is not None:
-            self._ctx.release()
-            self._ctx = None
-
-    def __enter__(self) -> MeshRenderer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
 
     def _release_mesh(self) -> None:
         for obj in (self._vao_textured, self._vao_shaded, self._positions, self._normals,

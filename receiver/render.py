@@ -67,14 +67,15 @@ covers it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Self
+from typing import Any
 
 import cv2
 import numpy as np
 
 from models.egl import create_context, in_context
 from models.modelfile import PersonModel, Region
-from models.raster import VERTEX_TEXTURED, Camera, OffscreenTarget, RenderError
+from models.raster import (VERTEX_TEXTURED, Camera, ContextOwner, OffscreenTarget, RenderError,
+                           check_output)
 from protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
@@ -205,7 +206,7 @@ class _Group:
     layers: list[tuple[Any, int]]
 
 
-class FaceRenderer:
+class FaceRenderer(ContextOwner):
     """Renders a person model's morphed mesh with its texture regions, offscreen (EGL).
 
     Usage: ``with FaceRenderer(model, w, h) as r: image = r.render(vertices, q, camera)``.
@@ -237,12 +238,7 @@ class FaceRenderer:
         """
         if not isinstance(model, PersonModel):
             raise RenderError(f"model: expected a PersonModel, got {type(model).__name__}")
-        if not (isinstance(width, int) and isinstance(height, int) and width > 0
-                and height > 0):
-            raise RenderError(f"width, height: expected positive ints, got {width!r}, "
-                              f"{height!r}")
-        if len(background) != 3 or not all(0 <= c <= 255 for c in background):
-            raise RenderError(f"background: expected 3 values in 0..255, got {background!r}")
+        check_output(width, height, background)
         if not isinstance(samples, int) or samples < 0:
             raise RenderError(f"samples: expected an int >= 0, got {samples!r}")
         if len(model.regions) > N_REGIONS:
@@ -371,17 +367,6 @@ class FaceRenderer:
             group.vao.render(vertices=group.count, first=group.first)
         return self._frame.read()
 
-    def release(self) -> None:
-        """Free the OpenGL context and everything in it."""
-        if self._ctx is not None:
-            self._ctx.release()
-            self._ctx = None
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
 
 
 def _describe(a: object) -> str:
