@@ -175,7 +175,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     report: dict[str, Any] = {}
     if appearance is not None:
         regions, report = appearance(model, video, frames, progress)
-        model = replace(model, regions=regions)
+        model = at_rest(replace(model, regions=regions))
     out = Path(out)
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
     preview = preview_path(out)
@@ -183,6 +183,47 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
                        time.perf_counter() - start, report)
+
+
+def at_rest(model: PersonModel) -> PersonModel:
+    """The model with each region's rest layer painted into the base texture.
+
+    First, in region order, the texels under each region become ``B (1 - a) + L a`` with L
+    its layer at its (integer) rest state and ``a = opacity * mask / 255``. Then each
+    region's rest layer becomes the finished texture under it (regions may overlap: the
+    eyelids and eyeballs share the eyeball's texels). A receiver blends a region over the
+    base as ``B + a (L_Q - B)``, so at rest it draws the base texture itself: a face at rest
+    renders exactly as the model's preview, and the base texture carries the person's eyes
+    and mouth as the enrollment camera saw them at rest (the neutral view alone sees the
+    eyeball and the mouth's interior badly, through the lids and lips, with the occlusion
+    test of ``models.texture``).
+
+    Args:
+        model: a model whose regions' ``rest`` are layer indices.
+
+    Returns:
+        A new model (texture and regions replaced).
+    """
+    texture = model.texture.astype(np.float32)
+    areas = []
+    for region in model.regions:
+        h, w = region.mask.shape
+        u0, _, _, v1 = region.uv_rect
+        r0 = int(round((1.0 - v1) * texture.shape[0]))
+        c0 = int(round(u0 * texture.shape[1]))
+        areas.append((slice(r0, r0 + h), slice(c0, c0 + w)))
+        j = int(round(region.rest))
+        alpha = region.opacity[j] * region.mask[..., None].astype(np.float32) / 255.0
+        under = texture[areas[-1]]
+        under[:] = np.clip(np.rint(under * (1.0 - alpha) + region.layers[j] * alpha), 0, 255)
+    texture = texture.astype(np.uint8)
+    regions = []
+    for region, area in zip(model.regions, areas):
+        j = int(round(region.rest))
+        layers = region.layers.copy()
+        layers[j] = texture[area]
+        regions.append(replace(region, layers=layers, rest=float(j)))
+    return replace(model, texture=texture, regions=tuple(regions))
 
 
 def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,

@@ -37,8 +37,10 @@ lid covers it.
 
 UV rectangles. The UVs of the hits on a 33 x 33 grid over a box give its UV rectangle
 (their bounding box). ``template_rect`` is that of the template area; ``uv_rect``, the
-area the layer images cover, is the template area grown by ``LAYER_MARGIN_MM`` on every
-side, plus ``RAMP_TEXELS`` + 2 texels, snapped outward to texel edges of the model's
+area the layer images cover, is the template area grown by the region's ``layer_margin``
+(``LAYER_MARGIN_MM``; ``EYE_LAYER_MARGIN_MM`` for the eye regions, so that their layers
+cover all of the eyeball the lid opening can show, not only the template area: a closed
+lid's layer must hide the whole opening) on every side, plus ``RAMP_TEXELS`` + 2 texels, snapped outward to texel edges of the model's
 texture (``texel_rect``), so that a layer's pixels are the texture's own texels. The UV
 layout is the generic head's for every model (fitting moves vertices, never UVs), so the
 rectangles are computed once, on the generic head.
@@ -74,6 +76,7 @@ SUPERSAMPLE = 2
 OFFSETS = np.array([(0, 0), (1, 1), (-1, 1), (1, -1), (-1, -1)], np.float64)  # cells (u, v)
 RAMP_TEXELS = 10
 LAYER_MARGIN_MM = 3.0
+EYE_LAYER_MARGIN_MM = 10.0
 _GRID = 33  # hits per side of a box when measuring its UV rectangle
 
 
@@ -92,6 +95,7 @@ class RegionSpec:
         layers: how many appearance states enrollment gives it.
         axis: what grows with Q, for people.
         transparent_first: its first state is transparent (the eyelids' open state).
+        layer_margin: how far, mm, the layer area reaches beyond the template area.
     """
 
     name: str
@@ -100,19 +104,20 @@ class RegionSpec:
     layers: int
     axis: str
     transparent_first: bool = False
+    layer_margin: float = LAYER_MARGIN_MM
 
 
 REGIONS = (
     RegionSpec("forehead", Tag.SKIN, (-30.0, 30.0, 30.0, 55.0), 4, "brows raised"),
     RegionSpec("brow_furrow", Tag.SKIN, (-13.0, 13.0, 4.0, 28.0), 3, "brows drawn together"),
     RegionSpec("eyelid_left", Tag.LEFT_EYEBALL, (24.0, 39.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True),
+               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("eyelid_right", Tag.RIGHT_EYEBALL, (-39.0, -24.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True),
+               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("eyeball_left", Tag.LEFT_EYEBALL, (23.0, 40.0, -3.0, 4.0), 5,
-               "gaze toward the person's left (image right)"),
+               "gaze toward the person's left (image right)", layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("eyeball_right", Tag.RIGHT_EYEBALL, (-40.0, -23.0, -3.0, 4.0), 5,
-               "gaze toward the person's left (image right)"),
+               "gaze toward the person's left (image right)", layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("mouth", Tag.MOUTH_INTERIOR, (-16.0, 16.0, -72.0, -59.0), 4, "mouth open"),
 )
 REGION_NAMES = tuple(r.name for r in REGIONS)
@@ -156,7 +161,7 @@ def place(region: RegionSpec, texture_shape: tuple[int, int]) -> Placement:
     h, w = texture_shape
     x0, x1, y0, y1 = region.box
     template = _box_uv_rect(region.tag, region.box)
-    m = LAYER_MARGIN_MM
+    m = region.layer_margin
     outer = _box_uv_rect(region.tag, (x0 - m, x1 + m, y0 - m, y1 + m))
     pad_u, pad_v = (RAMP_TEXELS + 2) / w, (RAMP_TEXELS + 2) / h
     grown = (min(outer[0], template[0]) - pad_u, min(outer[1], template[1]) - pad_v,

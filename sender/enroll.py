@@ -31,14 +31,12 @@ the sender's pose and lift.
    is rare); forehead and brow furrow from the median to the 98th percentile; mouth from
    the 5th to the 98th percentile; gaze from the 5th to the 95th percentile. The level
    nearest to the neutral frame's own cue is the region's *rest* state and takes the
-   neutral frame itself (``models.build`` chose it; its texture is the model's base
-   texture). Every other level takes the frame whose cue is nearest to it (ties broken
+   neutral frame itself (``models.build`` chose it, and paints the rest layers into the
+   base texture). Every other level takes the frame whose cue is nearest to it (ties broken
    toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
    once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
-4. Layers. The rest state's layer is the base texture under the region, so that a face
-   at rest renders exactly as the model's neutral texture (``Region.rest``). Every other
-   state's frame is projected onto the region's UV rectangle: every texel's
+4. Layers. Each state's frame is projected onto the region's UV rectangle: every texel's
    surface point (its triangle and barycentric weights, from ``models.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
@@ -173,9 +171,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
         rest = report[region.name]["rest"]
-        layers = np.stack([texels.base(region.name) if j == rest else
-                           texels.layer(region.name, images[i], observations[i])
-                           for j, i in enumerate(picks)])
+        layers = np.stack([texels.layer(region.name, images[i], observations[i])
+                           for i in picks])
         templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
         opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
                         for j in range(len(picks)))
@@ -330,11 +327,6 @@ class _RegionTexels:
             self.points[r.name] = SurfacePoints(model.mesh, rig, tri, bary)
             self.valid[r.name] = valid
             self.normals[r.name] = surface.normals[rows, cols]
-
-    def base(self, name: str) -> np.ndarray:
-        """(h, w, 3) uint8 RGB: the neutral texture under the region."""
-        rows, cols = self.slices[name]
-        return self.model.texture[rows, cols].copy()
 
     def layer(self, name: str, image: np.ndarray, seen: Observation) -> np.ndarray:
         """(h, w, 3) uint8 RGB: the region's texels read from ``image`` (module docstring)."""
