@@ -92,7 +92,6 @@ class Observation:
 
     Attributes:
         index: the video frame index.
-        image_size: (width, height) px.
         rotation: (3, 3) the sent pose's rotation; translation: (3,) mm.
         residuals: (9, 3) float32 the sent residuals, model space, mm.
         samples: (R, 16, 16) float32 each region's centre sample (``REGIONS`` order).
@@ -133,7 +132,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
 
     Returns:
         The regions in ``REGIONS`` order, and a report per region: the chosen frames, their
-        cue values, the span and whether it is weak.
+        cue values, the span, whether it is weak, and the rest state (the neutral frame's).
 
     Raises:
         EnrollError: fewer than 2 frames with a pose.
