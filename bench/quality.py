@@ -280,6 +280,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     tracked: list[np.ndarray | None] = []
     eyes: dict[int, np.ndarray] = {}
     brightness: list[float] = []
+    images: list[np.ndarray] = []  # the frames, for the rendering and x264 comparisons
     cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
     cues: list[np.ndarray] = []
     ratios: list[np.ndarray] = []
@@ -290,17 +291,15 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                 eyes[len(indices)] = _eye_crop(frame.image, out.points)
             brightness.append(np.nan if out.points is None
                               else _face_brightness(frame.image, out.points))
-            if cued and out.offsets is not None:
-                gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
-                samples = pipeline.sampler.sample(gray, out.rotation, out.translation,
-                                                  out.residuals)[:, 0]
-                cues.append(region_cues(samples, out.points, out.residuals))
+            if cued and out.samples is not None:
+                cues.append(region_cues(out.samples[:, 0], out.points, out.residuals))
                 ratios.append(eye_aspect_ratio(out.points))
             else:
                 cues.append(np.full(len(REGION_NAMES), np.nan))
                 ratios.append(np.full(2, np.nan))
             indices.append(frame.index)
             times.append(frame.time)
+            images.append(frame.image)
             packets.append(out.packet)
             tracked.append(out.points)
     span = f"range {frames.start}:{'' if frames.stop is None else frames.stop}"
@@ -365,8 +364,9 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["targets"].update(TARGET_Q)
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
-    appearance = _appearance(model, camera, decoded, tracked, posed, source, frames,
-                             summary["payload_kbps"], progress, keep_examples=keep_eyes)
+    appearance = _appearance(model, camera, decoded, tracked, posed, images,
+                             src.rate_hz or NOMINAL_HZ, summary["payload_kbps"], progress,
+                             keep_examples=keep_eyes)
     summary.update(appearance.summary)
     summary["met"]["face_ssim_above_h264"] = (
         appearance.summary["face_ssim_mean"] is not None
@@ -385,25 +385,20 @@ class _Appearance(NamedTuple):
 
 def _appearance(model: Any, camera: Any, decoded: np.ndarray,
                 tracked: list[np.ndarray | None], posed: np.ndarray,
-                source: str | os.PathLike[str], frames: slice, payload_kbps: float,
+                images: list[np.ndarray], rate_hz: float, payload_kbps: float,
                 progress: Progress, keep_examples: bool = False) -> _Appearance:
     """Render every measured frame from the sender's camera and compare its face box with
     the real frame; the same for x264 at our payload rate (module docstring). With
     ``keep_examples``, the face crops of ``EXAMPLES`` frames evenly spread over the measured
     ones (real, ours, x264) come back for the plot."""
     rig = Rig(model.mesh)
-    src = open_source(str(source), pace=False, frames=frames)
-    originals: list[np.ndarray] = []
     ssim = np.full(len(decoded), np.nan)
     peak = np.full(len(decoded), np.nan)
     boxes: dict[int, tuple[int, int, int, int]] = {}
     masks: dict[int, np.ndarray] = {}
     rendered_faces: dict[int, np.ndarray] = {}
-    with FaceRenderer(model, camera.width, camera.height) as renderer, src:
-        for k, frame in enumerate(progress(src, "rendering", src.frames or None)):
-            if k >= len(decoded):
-                break
-            originals.append(frame.image)
+    with FaceRenderer(model, camera.width, camera.height) as renderer:
+        for k, image in enumerate(progress(images, "rendering", len(images))):
             if not posed[k] or tracked[k] is None:
                 continue
             record = decoded[k]
@@ -413,7 +408,7 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             rendered = renderer.render(vertices, record["q"], view)[..., ::-1]
             boxes[k] = x0, y0, x1, y1 = face_box(tracked[k], camera.width, camera.height)
             masks[k] = mask = face_mask(tracked[k], boxes[k])
-            real, ours = frame.image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
+            real, ours = image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
             ssim[k] = gray_ssim(real, ours, mask)
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
             if keep_examples:
@@ -421,13 +416,13 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_kbps = None
-    even = [f[:f.shape[0] // 2 * 2, :f.shape[1] // 2 * 2] for f in originals]
+    even = [f[:f.shape[0] // 2 * 2, :f.shape[1] // 2 * 2] for f in images]
     if boxes:
         with tempfile.TemporaryDirectory() as work:
-            x264 = x264_reference(even, src.rate_hz or NOMINAL_HZ, payload_kbps, work)
+            x264 = x264_reference(even, rate_hz, payload_kbps, work)
         h264_kbps = round(x264.kbps, 3)
         for k, (x0, y0, x1, y1) in boxes.items():
-            real, coded = originals[k][y0:y1, x0:x1], x264.frames[k][y0:y1, x0:x1]
+            real, coded = images[k][y0:y1, x0:x1], x264.frames[k][y0:y1, x0:x1]
             if coded.shape != real.shape:  # the box reaches the row or column x264 dropped
                 continue
             h264_ssim[k] = gray_ssim(real, coded, masks[k])

@@ -43,6 +43,7 @@ from models.modelfile import Camera, ModelInfo, PersonModel, Region, model_summa
 from models.progress import Progress, no_progress
 from models.raster import Camera as ViewCamera
 from models.raster import MeshRenderer, orbit_pose
+from models.regions import texel_rect
 from models.texture import fill_holes, project_views, uv_surface
 from models.tracker import LandmarkTracker
 from models.video import read_frames, video_info
@@ -207,11 +208,7 @@ def at_rest(model: PersonModel) -> PersonModel:
     texture = model.texture.astype(np.float32)
     areas = []
     for region in model.regions:
-        h, w = region.mask.shape
-        u0, _, _, v1 = region.uv_rect
-        r0 = int(round((1.0 - v1) * texture.shape[0]))
-        c0 = int(round(u0 * texture.shape[1]))
-        areas.append((slice(r0, r0 + h), slice(c0, c0 + w)))
+        areas.append(texel_rect(region.uv_rect, texture.shape[:2])[1])
         j = int(round(region.rest))
         alpha = region.opacity[j] * region.mask[..., None].astype(np.float32) / 255.0
         under = texture[areas[-1]]
@@ -277,9 +274,7 @@ def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
     """(REGION_ROW_HEIGHT, width, 3) BGR: the region's name, then its layers in order, each
     drawn over the neutral texture as the receiver blends it."""
     h, w = region.mask.shape
-    u0, _, _, v1 = region.uv_rect
-    r0, c0 = int(round((1.0 - v1) * texture.shape[0])), int(round(u0 * texture.shape[1]))
-    base = texture[r0:r0 + h, c0:c0 + w].astype(np.float32)
+    base = texture[texel_rect(region.uv_rect, texture.shape[:2])[1]].astype(np.float32)
     row = np.full((REGION_ROW_HEIGHT, width, 3), 24, np.uint8)
     cv2.putText(row, region.name, (6, REGION_ROW_HEIGHT // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX,
                 0.5, (230, 230, 230), 1, cv2.LINE_AA)

@@ -2,7 +2,8 @@
 
 Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings``, s):
 
-1. ``track``: ``models.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
+1. ``track``: the frame converted to grey once (the sampler reads the same grey frame),
+   ``models.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
@@ -85,6 +86,8 @@ class SenderOutput:
         q: (R,) float32 pre-quantisation Q of the model's R regions (packet order).
         offsets: (R,) int64 the winning sample offset of each region (``models.regions``
             ``OFFSETS``), or None when this frame was not classified.
+        samples: (R, 5, 16, 16) float32 the regions' samples that were classified, or None
+            with ``offsets``.
         timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
             ``classify``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
@@ -100,6 +103,7 @@ class SenderOutput:
     residuals: np.ndarray
     q: np.ndarray
     offsets: np.ndarray | None = None
+    samples: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     detected: bool = False
     clamped: int = 0
@@ -180,7 +184,8 @@ class SenderPipeline:
         self._time = float(time_s)
         clock = time.perf_counter
         t0 = clock()
-        tracked = self.tracker.track(image)
+        gray = _gray(image)
+        tracked = self.tracker.track(gray)
         points = tracked.points
         t1 = clock()
         pose = None
@@ -208,12 +213,11 @@ class SenderPipeline:
         residuals = self.rig.from_tangent(self.rig.to_tangent(out.residuals))
         flags = out.flags | (Flag.FACE_PRESENT if points is not None else Flag(0))
         t4 = clock()
-        offsets = None
+        offsets = samples = None
         t5 = t4
         if pose is not None:
             self._sent = pose
             if self.classifiers is not None:
-                gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
                 samples = self.sampler.sample(gray, pose.rotation, pose.translation,
                                               residuals)
                 t5 = clock()
@@ -231,12 +235,20 @@ class SenderPipeline:
                 N_LANDMARKS, 2),
             rotation=None if pose is None else pose.rotation.copy(),
             translation=None if pose is None else pose.translation.copy(),
-            residuals=residuals, q=self._q.copy(), offsets=offsets,
+            residuals=residuals, q=self._q.copy(), offsets=offsets, samples=samples,
             timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
                      "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
                      "pack": t7 - t6},
             detected=bool(tracked.detected), clamped=packed.clamped,
             grazing=0 if lifted is None else int(lifted.grazing.sum()))
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    """A BGR uint8 frame in grey; anything else is left to the tracker to accept or refuse."""
+    if isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 3 \
+            and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image
 
 
 def sender_camera(width: int, height: int, focal: float | None = None,
