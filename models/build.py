@@ -35,11 +35,12 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
+from models.draworder import region_areas, triangle_groups
 from models.fit import Fit, FitError, fit_person, intrinsics_guess
 from models.head import generic_head
 from models.landmarks import outer_eye_distance
 from models.mesh import Mesh
-from models.modelfile import Camera, ModelInfo, PersonModel, Region, model_summary, save_model
+from models.modelfile import Area, Camera, ModelInfo, PersonModel, Region, model_summary, save_model
 from models.progress import Progress, no_progress
 from models.raster import Camera as ViewCamera
 from models.raster import MeshRenderer, orbit_pose
@@ -206,20 +207,25 @@ def at_rest(model: PersonModel) -> PersonModel:
         A new model (texture and regions replaced).
     """
     texture = model.texture.astype(np.float32)
-    areas = []
     for region in model.regions:
-        areas.append(texel_rect(region.uv_rect, texture.shape[:2])[1])
         j = int(round(region.rest))
-        alpha = region.opacity[j] * region.mask[..., None].astype(np.float32) / 255.0
-        under = texture[areas[-1]]
-        under[:] = np.clip(np.rint(under * (1.0 - alpha) + region.layers[j] * alpha), 0, 255)
+        for part in region.parts():
+            alpha = region.opacity[j] * part.mask[..., None].astype(np.float32) / 255.0
+            under = texture[texel_rect(part.uv_rect, texture.shape[:2])[1]]
+            under[:] = np.clip(np.rint(under * (1.0 - alpha) + part.layers[j] * alpha), 0, 255)
     texture = texture.astype(np.uint8)
+
+    def resting(part: Area, j: int) -> np.ndarray:
+        layers = part.layers.copy()
+        layers[j] = texture[texel_rect(part.uv_rect, texture.shape[:2])[1]]
+        return layers
+
     regions = []
-    for region, area in zip(model.regions, areas):
+    for region in model.regions:
         j = int(round(region.rest))
-        layers = region.layers.copy()
-        layers[j] = texture[area]
-        regions.append(replace(region, layers=layers, rest=float(j)))
+        areas = tuple(replace(a, layers=resting(a, j)) for a in region.areas)
+        regions.append(replace(region, layers=resting(region.parts()[0], j), rest=float(j),
+                               areas=areas))
     return replace(model, texture=texture, regions=tuple(regions))
 
 
@@ -244,7 +250,8 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
         panels.append(_face_crop(neutral_image, neutral_points, size))
     with MeshRenderer(size, size, samples=PREVIEW_SAMPLES,
                       background=PREVIEW_BACKGROUND) as renderer:
-        renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
+        triangles = triangle_groups(mesh.uv, mesh.triangles, region_areas(model.regions))[0]
+        renderer.set_mesh(len(mesh.vertices), triangles, mesh.uv)
         renderer.set_texture(model.texture)
         for camera in preview_cameras(mesh):
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
@@ -272,9 +279,11 @@ def preview_cameras(mesh: Mesh) -> list[ViewCamera]:
 
 def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
     """(REGION_ROW_HEIGHT, width, 3) BGR: the region's name, then its layers in order, each
-    drawn over the neutral texture as the receiver blends it."""
-    h, w = region.mask.shape
-    base = texture[texel_rect(region.uv_rect, texture.shape[:2])[1]].astype(np.float32)
+    drawn over the neutral texture as the receiver blends it (its areas side by side)."""
+    drawn = [_drawn_layers(texture, part, region.opacity) for part in region.parts()]
+    height = max(d.shape[1] for d in drawn)
+    layers = np.concatenate([_to_height(d, height) for d in drawn], axis=2)
+    h, w = layers.shape[1:3]
     row = np.full((REGION_ROW_HEIGHT, width, 3), 24, np.uint8)
     cv2.putText(row, region.name, (6, REGION_ROW_HEIGHT // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX,
                 0.5, (230, 230, 230), 1, cv2.LINE_AA)
@@ -283,15 +292,28 @@ def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
     scale = min((REGION_ROW_HEIGHT - 4) / h, room / (k * w))
     size = (max(1, int(w * scale)), max(1, int(h * scale)))
     x = REGION_LABEL_WIDTH
-    for layer, opacity in zip(region.layers, region.opacity):
-        alpha = opacity * region.mask[..., None].astype(np.float32) / 255.0
-        drawn = base * (1.0 - alpha) + layer.astype(np.float32) * alpha
-        tile = cv2.resize(np.clip(drawn, 0, 255).astype(np.uint8)[..., ::-1], size,
-                          interpolation=cv2.INTER_AREA)
+    for layer in layers:
+        tile = cv2.resize(layer[..., ::-1], size, interpolation=cv2.INTER_AREA)
         y = (REGION_ROW_HEIGHT - size[1]) // 2
         row[y:y + size[1], x:x + size[0]] = tile
         x += size[0] + 4
     return row
+
+
+def _drawn_layers(texture: np.ndarray, part: Area, opacity: tuple[float, ...]) -> np.ndarray:
+    """(k, h, w, 3) uint8 RGB: an area's layers over the texture under it, as blended."""
+    base = texture[texel_rect(part.uv_rect, texture.shape[:2])[1]].astype(np.float32)
+    alpha = np.asarray(opacity, np.float32)[:, None, None, None] \
+        * part.mask[None, ..., None].astype(np.float32) / 255.0
+    drawn = base[None] * (1.0 - alpha) + part.layers.astype(np.float32) * alpha
+    return np.clip(np.rint(drawn), 0, 255).astype(np.uint8)
+
+
+def _to_height(images: np.ndarray, height: int) -> np.ndarray:
+    """(k, h, w, 3) images resized to (k, height, w * height / h, 3)."""
+    width = max(1, round(images.shape[2] * height / images.shape[1]))
+    return np.stack([cv2.resize(i, (width, height), interpolation=cv2.INTER_AREA)
+                     for i in images])
 
 
 def _face_crop(image: np.ndarray, points: np.ndarray | None, size: int) -> np.ndarray:

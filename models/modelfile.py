@@ -32,13 +32,16 @@ member                          dtype, shape     content
                                                  neutral texture (255 = layer, 0 = neutral)
 ``regions/R/templates.npy``     float32 (k, 16,  region R's classification template of each
                                 16)              state, in layer order
+``regions/R/area_N/layer_JJ.png`` uint8 (h, w,   region R's state JJ over its further area N
+                                3)               (1 .. A), covering ``areas[N - 1]``
+``regions/R/area_N/mask.png``   uint8 (h, w)     the alpha of further area N's layers
 ==============================  ===============  ==============================================
 
 N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy format 1.0 or
 2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
 their header before that). Manifest ``model.json``, every key required and no others::
 
-    {"format": "facewire-model", "format_version": 2,
+    {"format": "facewire-model", "format_version": 3,
      "camera":  {"fx", "fy": focal lengths, px, > 0; "cx", "cy": principal point, px
                  (image origin top-left); "width", "height": image size, px},
      "info":    {"name": person, "source_video": enrollment video's name ("" if none),
@@ -47,7 +50,8 @@ their header before that). Manifest ``model.json``, every key required and no ot
                  or ""},
      "members": {member name: {"dtype": numpy dtype name, "shape": [int, ...]}},
      "regions": [{"name": R, "uv_rect": [u0, v0, u1, v1], "template_rect": [u0, v0, u1, v1],
-                  "layers": k, "opacity": [k numbers in [0, 1]], "rest": Q}, ...]}
+                  "layers": k, "opacity": [k numbers in [0, 1]], "rest": Q,
+                  "areas": [[u0, v0, u1, v1], ...]}, ...]}
 
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
@@ -55,7 +59,9 @@ empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <
 0 <= v0 < v1 <= 1, and ``template_rect`` lies inside ``uv_rect``. ``opacity`` scales the
 mask per layer (a layer's alpha is ``opacity[j] * mask``; the eyelids' open state is
 transparent so the eyeball shows through it). ``rest`` is the region's Q on the neutral
-face (what a receiver shows when the face is at rest or lost), in [0, k - 1]. The reader
+face (what a receiver shows when the face is at rest or lost), in [0, k - 1]. ``areas`` are
+the region's further layer areas (at most ``MAX_AREAS``; the eyelids' lid skin): each has k
+layers and a mask of its own size, blended with the region's opacities and Q. The reader
 checks each
 member against a schema table (member-name pattern, kind, dtype, shape with named
 dimensions, size limit) and against its ``members`` entry; the mesh arrays then go through
@@ -63,7 +69,7 @@ dimensions, size limit) and against its ``members`` entry; the mesh arrays then 
 data) is a new row of that table and a new manifest key, with ``format_version`` raised: a
 reader accepts only the versions it knows, and keeps reading the older ones. Version 1 had
 no ``opacity`` and no ``rest`` (read as all ones and 0); nothing ever wrote a version-1
-model with regions.
+model with regions. Version 2 had no ``areas`` (read as none).
 
 The zip itself must be plain: it ends with its end-of-archive record (no comment, nothing
 before or after the archive), members are stored or deflated, never encrypted, and no name
@@ -104,8 +110,8 @@ import numpy as np
 from models.mesh import Mesh, MeshError
 
 FORMAT = "facewire-model"
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
 MAX_FILE_BYTES = 256 * 1024**2
 MAX_TOTAL_BYTES = 256 * 1024**2
 MAX_MEMBER_BYTES = 64 * 1024**2
@@ -116,6 +122,7 @@ RATIO_FLOOR = 1024**2
 MAX_IMAGE_SIDE = 4096
 MAX_LAYERS = 64
 MAX_REGIONS = 32
+MAX_AREAS = 4
 TEMPLATE_SIZE = 16
 
 MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
@@ -208,6 +215,35 @@ class ModelInfo:
 
 
 @dataclass(frozen=True, eq=False)
+class Area:
+    """A texture area covered by a region's layers: its main one, or a further one.
+
+    Attributes:
+        uv_rect: (u0, v0, u1, v1), the texture area the layer images cover, UV, v up.
+        layers: (k, h, w, 3) uint8 RGB, one image per state, row 0 at v = v1.
+        mask: (h, w) uint8, the layers' alpha over the neutral texture (255 = layer).
+    """
+
+    uv_rect: tuple[float, float, float, float]
+    layers: np.ndarray
+    mask: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "uv_rect", _rect(self.uv_rect, "uv_rect"))
+        _array(self.layers, "layers", np.uint8, 4)
+        k, h, w, c = self.layers.shape
+        if not 1 <= k <= MAX_LAYERS:
+            raise ModelError(f"layers: {k} layers, expected 1 to {MAX_LAYERS}")
+        if c != 3 or not (1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE):
+            raise ModelError(f"layers: expected shape (k, h, w, 3) with h, w in "
+                             f"[1, {MAX_IMAGE_SIDE}], got {self.layers.shape}")
+        _array(self.mask, "mask", np.uint8, 2)
+        if self.mask.shape != (h, w):
+            raise ModelError(f"mask: expected shape {(h, w)} like the layers, "
+                             f"got {self.mask.shape}")
+
+
+@dataclass(frozen=True, eq=False)
 class Region:
     """A texture region's stored appearance data (the appearance work computes it).
 
@@ -223,6 +259,7 @@ class Region:
         opacity: k numbers in [0, 1], each layer's alpha scale (``mask`` times it); all ones
             when not given.
         rest: the region's Q on the neutral face, in [0, k - 1].
+        areas: further areas its layers cover (at most ``MAX_AREAS``), each with k layers.
     """
 
     name: str
@@ -233,28 +270,31 @@ class Region:
     templates: np.ndarray
     opacity: tuple[float, ...] = ()
     rest: float = 0.0
+    areas: tuple[Area, ...] = ()
 
     def __post_init__(self) -> None:
         _region_name(self.name, "region")
         field = f"region {self.name!r}"
-        outer = _rect(self.uv_rect, f"{field}: uv_rect")
+        try:
+            main = Area(self.uv_rect, self.layers, self.mask)
+        except ModelError as e:
+            raise ModelError(f"{field}: {e}") from e
         inner = _rect(self.template_rect, f"{field}: template_rect")
+        outer = main.uv_rect
         if not (outer[0] <= inner[0] and outer[1] <= inner[1]
                 and inner[2] <= outer[2] and inner[3] <= outer[3]):
             raise ModelError(f"{field}: template_rect: not inside uv_rect")
         object.__setattr__(self, "uv_rect", outer)
         object.__setattr__(self, "template_rect", inner)
-        _array(self.layers, f"{field}: layers", np.uint8, 4)
-        k, h, w, c = self.layers.shape
-        if not 1 <= k <= MAX_LAYERS:
-            raise ModelError(f"{field}: layers: {k} layers, expected 1 to {MAX_LAYERS}")
-        if c != 3 or not (1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE):
-            raise ModelError(f"{field}: layers: expected shape (k, h, w, 3) with h, w in "
-                             f"[1, {MAX_IMAGE_SIDE}], got {self.layers.shape}")
-        _array(self.mask, f"{field}: mask", np.uint8, 2)
-        if self.mask.shape != (h, w):
-            raise ModelError(f"{field}: mask: expected shape {(h, w)} like the layers, "
-                             f"got {self.mask.shape}")
+        k = self.layers.shape[0]
+        if not isinstance(self.areas, (tuple, list)) or len(self.areas) > MAX_AREAS \
+                or not all(isinstance(a, Area) for a in self.areas):
+            raise ModelError(f"{field}: areas: expected at most {MAX_AREAS} Area values")
+        for n, area in enumerate(self.areas, 1):
+            if area.layers.shape[0] != k:
+                raise ModelError(f"{field}: area {n}: {area.layers.shape[0]} layers, the "
+                                 f"region has {k}")
+        object.__setattr__(self, "areas", tuple(self.areas))
         _array(self.templates, f"{field}: templates", np.float32, 3)
         if self.templates.shape != (k, TEMPLATE_SIZE, TEMPLATE_SIZE):
             raise ModelError(f"{field}: templates: expected shape "
@@ -272,6 +312,10 @@ class Region:
         if not 0.0 <= rest <= k - 1:
             raise ModelError(f"{field}: rest: expected a number in [0, {k - 1}], got {rest}")
         object.__setattr__(self, "rest", rest)
+
+    def parts(self) -> tuple[Area, ...]:
+        """Every area the region's layers cover: its main area, then the further ones."""
+        return (Area(self.uv_rect, self.layers, self.mask), *self.areas)
 
 
 @dataclass(frozen=True, eq=False)
@@ -417,13 +461,22 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
         mesh = Mesh(**{f: arrays[f"arrays/{f}.npy"] for f in MESH_FIELDS})
     except MeshError as e:
         raise ModelFileError(f"{where}: mesh: {e}") from e
+    def layers(folder: str, k: int) -> np.ndarray:
+        return np.stack([arrays[f"{folder}/layer_{j:02d}.png"] for j in range(k)])
+
     try:
-        regions = tuple(
-            Region(name, uv_rect, template_rect,
-                   np.stack([arrays[f"regions/{name}/layer_{j:02d}.png"] for j in range(k)]),
-                   arrays[f"regions/{name}/mask.png"], arrays[f"regions/{name}/templates.npy"],
-                   opacity, rest)
-            for name, uv_rect, template_rect, k, opacity, rest in manifest.regions)
+        regions = []
+        for r in manifest.regions:
+            main, *further = _area_folders(r)
+            areas = []
+            for n, (rect, folder) in enumerate(zip(r.areas, further), 1):
+                try:
+                    areas.append(Area(rect, layers(folder, r.layers), arrays[f"{folder}/mask.png"]))
+                except ModelError as e:
+                    raise ModelError(f"region {r.name!r}: area {n}: {e}") from e
+            regions.append(Region(r.name, r.uv_rect, r.template_rect, layers(main, r.layers),
+                                  arrays[f"{main}/mask.png"], arrays[f"{main}/templates.npy"],
+                                  r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            regions, hashlib.sha256(data).hexdigest(), len(data))
     except ModelError as e:
@@ -473,10 +526,10 @@ _SPECS = (
     _Spec(re.compile(r"arrays/landmarks\.npy"), "npy", "int32", (68,), MAX_SMALL_BYTES),
     _Spec(re.compile(r"arrays/phantoms\.npy"), "npy", "int32", (13,), MAX_SMALL_BYTES),
     _Spec(re.compile(r"textures/neutral\.png"), "png", "uint8", ("H", "W", 3), MAX_MEMBER_BYTES),
-    _Spec(re.compile(rf"regions/{_R}/layer_[0-9]{{2}}\.png", re.ASCII), "png", "uint8",
-          ("h", "w", 3), MAX_MEMBER_BYTES),
-    _Spec(re.compile(rf"regions/{_R}/mask\.png", re.ASCII), "png", "uint8", ("h", "w"),
-          MAX_MEMBER_BYTES),
+    _Spec(re.compile(rf"regions/{_R}/(area_[1-9]/)?layer_[0-9]{{2}}\.png", re.ASCII), "png",
+          "uint8", ("h", "w", 3), MAX_MEMBER_BYTES),
+    _Spec(re.compile(rf"regions/{_R}/(area_[1-9]/)?mask\.png", re.ASCII), "png", "uint8",
+          ("h", "w"), MAX_MEMBER_BYTES),
     _Spec(re.compile(rf"regions/{_R}/templates\.npy", re.ASCII), "npy", "float32",
           ("k", TEMPLATE_SIZE, TEMPLATE_SIZE), MAX_SMALL_BYTES),
 )
@@ -486,12 +539,20 @@ def _spec(name: str) -> _Spec | None:
     return next((s for s in _SPECS if s.pattern.fullmatch(name)), None)
 
 
-def _expected_members(regions: list[tuple[str, Any, Any, int, Any, Any]]) -> set[str]:
+def _expected_members(regions: list[_RegionEntry]) -> set[str]:
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
-    for name, _, _, k, _, _ in regions:
-        names |= {f"regions/{name}/layer_{j:02d}.png" for j in range(k)}
-        names |= {f"regions/{name}/mask.png", f"regions/{name}/templates.npy"}
+    for r in regions:
+        for folder in _area_folders(r):
+            names |= {f"{folder}/layer_{j:02d}.png" for j in range(r.layers)}
+            names.add(f"{folder}/mask.png")
+        names.add(f"regions/{r.name}/templates.npy")
     return names
+
+
+def _area_folders(region: _RegionEntry) -> list[str]:
+    """The member folders of a region's areas: its main one, then area_1 .. area_A."""
+    return [f"regions/{region.name}"] + [f"regions/{region.name}/area_{n}"
+                                         for n in range(1, len(region.areas) + 1)]
 
 
 # ---- writing -----------------------------------------------------------------------------
@@ -510,9 +571,11 @@ def _encode(model: PersonModel) -> bytes:
         put(f"arrays/{f}.npy", array, _npy_bytes(array))
     put(TEXTURE_MEMBER, model.texture, _png_bytes(model.texture))
     for r in model.regions:
-        for j, layer in enumerate(r.layers):
-            put(f"regions/{r.name}/layer_{j:02d}.png", layer, _png_bytes(layer))
-        put(f"regions/{r.name}/mask.png", r.mask, _png_bytes(r.mask))
+        for n, area in enumerate(r.parts()):
+            folder = f"regions/{r.name}" + (f"/area_{n}" if n else "")
+            for j, layer in enumerate(area.layers):
+                put(f"{folder}/layer_{j:02d}.png", layer, _png_bytes(layer))
+            put(f"{folder}/mask.png", area.mask, _png_bytes(area.mask))
         put(f"regions/{r.name}/templates.npy", r.templates, _npy_bytes(r.templates))
     c, i = model.camera, model.info
     manifest = {
@@ -526,7 +589,8 @@ def _encode(model: PersonModel) -> bytes:
         "members": declared,
         "regions": [{"name": r.name, "uv_rect": list(r.uv_rect),
                      "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0]),
-                     "opacity": list(r.opacity), "rest": r.rest}
+                     "opacity": list(r.opacity), "rest": r.rest,
+                     "areas": [list(a.uv_rect) for a in r.areas]}
                     for r in model.regions],
     }
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
@@ -635,11 +699,23 @@ def _read_member(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, where: str) -
     return bytes(out)
 
 
+class _RegionEntry(NamedTuple):
+    """One ``regions`` entry of the manifest, its values not yet checked by ``Region``."""
+
+    name: str
+    uv_rect: Any
+    template_rect: Any
+    layers: int
+    opacity: tuple[Any, ...]
+    rest: Any
+    areas: list[Any]
+
+
 class _Manifest(NamedTuple):
     camera: Camera
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
-    regions: list[tuple[str, Any, Any, int, tuple[Any, ...], Any]]  # name, rects, k, opacity, rest
+    regions: list[_RegionEntry]
 
 
 def _parse_manifest(raw: bytes) -> _Manifest:
@@ -698,7 +774,8 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     for i, entry in enumerate(doc["regions"]):
         field = f"regions[{i}]"
         keys = {"name", "uv_rect", "template_rect", "layers"}
-        _keys(entry, field, keys | {"opacity", "rest"} if version >= 2 else keys)
+        keys |= {"opacity", "rest"} if version >= 2 else set()
+        _keys(entry, field, keys | {"areas"} if version >= 3 else keys)
         name = _region_name(entry["name"], f"{field}.name")
         if any(name == r[0] for r in regions):
             raise ModelError(f"{field}.name: {name!r} appears twice")
@@ -706,8 +783,12 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         opacity = entry.get("opacity", [1.0] * k)
         if not isinstance(opacity, list):
             raise ModelError(f"{field}.opacity: expected a list, got {_kind(opacity)}")
-        regions.append((name, entry["uv_rect"], entry["template_rect"], k, tuple(opacity),
-                        entry.get("rest", 0.0)))
+        areas = entry.get("areas", [])
+        if not isinstance(areas, list) or len(areas) > MAX_AREAS:
+            raise ModelError(f"{field}.areas: expected a list of at most {MAX_AREAS} "
+                             f"rectangles, got {_kind(areas)}")
+        regions.append(_RegionEntry(name, entry["uv_rect"], entry["template_rect"], k,
+                                    tuple(opacity), entry.get("rest", 0.0), areas))
     return _Manifest(camera, info, members, regions)
 
 
@@ -725,13 +806,14 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
             raise ModelFileError(f"{where}: {name}: missing")
         if name not in manifest.members:
             raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
-    for region, _, _, k, _, _ in manifest.regions:
-        size = manifest.members[f"regions/{region}/mask.png"]
-        for j in range(k):
-            name = f"regions/{region}/layer_{j:02d}.png"
-            if manifest.members[name][:2] != size:
-                raise ModelFileError(f"{where}: {name}: shape {manifest.members[name]} does not "
-                                     f"match the region's mask {size}")
+    for region in manifest.regions:
+        for folder in _area_folders(region):
+            size = manifest.members[f"{folder}/mask.png"]
+            for j in range(region.layers):
+                name = f"{folder}/layer_{j:02d}.png"
+                if manifest.members[name][:2] != size:
+                    raise ModelFileError(f"{where}: {name}: shape {manifest.members[name]} does "
+                                         f"not match its mask {size}")
     return expected
 
 

@@ -14,7 +14,9 @@ region          surface              template area, generic head, mm (x, y)   ax
 forehead        skin                 [-30, 30] x [30, 55]                     brows raised
 brow_furrow     skin                 [-13, 13] x [4, 28]                      brows drawn
 eyelid_left     left eyeball         [24, 39] x [-5, 7]                       eye closed
+                (+ skin: the lids)   ([15, 48] x [-8, 12])
 eyelid_right    right eyeball        [-39, -24] x [-5, 7]                     eye closed
+                (+ skin: the lids)   ([-48, -15] x [-8, 12])
 eyeball_left    left eyeball         [23, 40] x [-3, 4]                       gaze to +x
 eyeball_right   right eyeball        [-40, -23] x [-3, 4]                     gaze to +x
 mouth           mouth interior       [-16, 16] x [-72, -59]                   mouth open
@@ -35,15 +37,25 @@ eyeball region (gaze) is drawn first, the eyelid region over it, and the eyelid'
 state is transparent (``opacity`` 0), so the gaze shows through an open lid and a closing
 lid covers it.
 
+Further areas. A region's states may cover more of the face than its own surface: the
+eyelids' states also cover the skin of both lids around the opening (``areas``; the boxes in
+brackets above). A closing eye changes the lid skin as much as what the opening shows (the
+lash lines meet, the crease flattens), and the mesh's lids do not move (the packet drives
+no lid point), so without the skin area a closed eye kept the open eye's lash lines around
+a closed-lid patch: a dark ring. A further area has the region's layers, opacities and Q; it
+is found like the layer area (a front box, grown by ``LAYER_MARGIN_MM``, its UV rectangle)
+and never classified.
+
 UV rectangles. The UVs of the hits on a 33 x 33 grid over a box give its UV rectangle
 (their bounding box). ``template_rect`` is that of the template area; ``uv_rect``, the
 area the layer images cover, is the template area grown by the region's ``layer_margin``
 (``LAYER_MARGIN_MM``; ``EYE_LAYER_MARGIN_MM`` for the eye regions, so that their layers
 cover all of the eyeball the lid opening can show, not only the template area: a closed
-lid's layer must hide the whole opening) on every side, plus ``RAMP_TEXELS`` + 2 texels, snapped outward to texel edges of the model's
-texture (``texel_rect``), so that a layer's pixels are the texture's own texels. The UV
-layout is the generic head's for every model (fitting moves vertices, never UVs), so the
-rectangles are computed once, on the generic head.
+lid's layer must hide the whole opening) on every side, plus ``RAMP_TEXELS`` + 2 texels,
+snapped outward to texel edges of the model's texture (``texel_rect``), so that a layer's
+pixels are the texture's own texels. The UV layout is the generic head's for every model
+(fitting moves vertices, never UVs), so the rectangles are computed once, on the generic
+head.
 
 The alpha ramp (``ramp_mask``): a layer's alpha over the neutral texture is 1 inside and
 falls linearly to 0 over the ``RAMP_TEXELS`` = 10 texels next to the rectangle's border:
@@ -96,6 +108,7 @@ class RegionSpec:
         axis: what grows with Q, for people.
         transparent_first: its first state is transparent (the eyelids' open state).
         layer_margin: how far, mm, the layer area reaches beyond the template area.
+        areas: further layer areas, (surface, front box) each (module docstring).
     """
 
     name: str
@@ -105,15 +118,18 @@ class RegionSpec:
     axis: str
     transparent_first: bool = False
     layer_margin: float = LAYER_MARGIN_MM
+    areas: tuple[tuple[Tag, tuple[float, float, float, float]], ...] = ()
 
 
+LEFT_LIDS = (Tag.SKIN, (15.0, 48.0, -8.0, 12.0))
+RIGHT_LIDS = (Tag.SKIN, (-48.0, -15.0, -8.0, 12.0))
 REGIONS = (
     RegionSpec("forehead", Tag.SKIN, (-30.0, 30.0, 30.0, 55.0), 4, "brows raised"),
     RegionSpec("brow_furrow", Tag.SKIN, (-13.0, 13.0, 4.0, 28.0), 3, "brows drawn together"),
     RegionSpec("eyelid_left", Tag.LEFT_EYEBALL, (24.0, 39.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM),
+               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(LEFT_LIDS,)),
     RegionSpec("eyelid_right", Tag.RIGHT_EYEBALL, (-39.0, -24.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM),
+               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(RIGHT_LIDS,)),
     RegionSpec("eyeball_left", Tag.LEFT_EYEBALL, (23.0, 40.0, -3.0, 4.0), 5,
                "gaze toward the person's left (image right)", layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("eyeball_right", Tag.RIGHT_EYEBALL, (-40.0, -23.0, -3.0, 4.0), 5,
@@ -142,10 +158,12 @@ class Placement:
     Attributes:
         template_rect: (u0, v0, u1, v1) the template area, UV, v up.
         uv_rect: (u0, v0, u1, v1) the layer area, snapped to texel edges of the texture.
+        areas: the further areas' rectangles, snapped like ``uv_rect``.
     """
 
     template_rect: tuple[float, float, float, float]
     uv_rect: tuple[float, float, float, float]
+    areas: tuple[tuple[float, float, float, float], ...] = ()
 
 
 def place(region: RegionSpec, texture_shape: tuple[int, int]) -> Placement:
@@ -156,17 +174,30 @@ def place(region: RegionSpec, texture_shape: tuple[int, int]) -> Placement:
         texture_shape: (H, W) of the model's texture, texels.
 
     Returns:
-        Its template and layer rectangles.
+        Its template, layer and further areas' rectangles.
     """
-    h, w = texture_shape
-    x0, x1, y0, y1 = region.box
     template = _box_uv_rect(region.tag, region.box)
-    m = region.layer_margin
-    outer = _box_uv_rect(region.tag, (x0 - m, x1 + m, y0 - m, y1 + m))
+    areas = tuple(_layer_rect(tag, box, LAYER_MARGIN_MM, texture_shape)
+                  for tag, box in region.areas)
+    return Placement(template, _layer_rect(region.tag, region.box, region.layer_margin,
+                                           texture_shape, template), areas)
+
+
+def _layer_rect(tag: Tag, box: tuple[float, float, float, float], margin: float,
+                texture_shape: tuple[int, int],
+                inside: tuple[float, float, float, float] | None = None
+                ) -> tuple[float, float, float, float]:
+    """The UV rectangle of a front box grown by ``margin`` mm (and holding ``inside``), plus
+    the ramp and 2 texels, snapped outward to texels (module docstring)."""
+    h, w = texture_shape
+    x0, x1, y0, y1 = box
+    outer = _box_uv_rect(tag, (x0 - margin, x1 + margin, y0 - margin, y1 + margin))
+    if inside is not None:
+        outer = (min(outer[0], inside[0]), min(outer[1], inside[1]),
+                 max(outer[2], inside[2]), max(outer[3], inside[3]))
     pad_u, pad_v = (RAMP_TEXELS + 2) / w, (RAMP_TEXELS + 2) / h
-    grown = (min(outer[0], template[0]) - pad_u, min(outer[1], template[1]) - pad_v,
-             max(outer[2], template[2]) + pad_u, max(outer[3], template[3]) + pad_v)
-    return Placement(template, texel_rect(grown, texture_shape)[0])
+    grown = (outer[0] - pad_u, outer[1] - pad_v, outer[2] + pad_u, outer[3] + pad_v)
+    return texel_rect(grown, texture_shape)[0]
 
 
 def texel_rect(rect: tuple[float, float, float, float], texture_shape: tuple[int, int]

@@ -10,10 +10,13 @@ the vertices into the same buffer (one buffer write) and sets a few uniforms.
 
 Regions (the paper's 3D-texture reconstruction). Region r of the model covers ``uv_rect``
 (u0, v0, u1, v1) with k layers L_j (h x w texels, row 0 at v = v1) and alpha
-a_j = opacity[j] * mask / 255 over the texture. Its layers form a volume indexed by Q in
-[0, k - 1] (clamped): the value at (s, t, Q) is the trilinear interpolation of the stack,
-bilinear within layers i = floor(Q) and i + 1 and linear between them with weight Q - i,
-which is what sampling a 3D texture at depth (Q + 0.5) / k with LINEAR filtering gives. With
+a_j = opacity[j] * mask / 255 over the texture; each of its further areas (``Region.areas``,
+the eyelids' lid skin) is drawn the same way with its own rectangle, layers and mask and the
+region's opacities and Q, so below "region" means one area of one region. Its layers form a
+volume indexed by Q in [0, k - 1] (clamped): the value at (s, t, Q) is the trilinear
+interpolation of the stack, bilinear within layers i = floor(Q) and i + 1 and linear
+between them with weight Q - i, which is what sampling a 3D texture at depth (Q + 0.5) / k
+with LINEAR filtering gives. With
 local coordinates s = (u - u0) / (u1 - u0), t = (v - v0) / (v1 - v0) in the rectangle, the
 volume is stored premultiplied, relative to the neutral texture B under the region:
 
@@ -55,8 +58,8 @@ therefore grouped by the regions their UV bounding box meets (padded rectangles)
 group is drawn by its own program that composites only those regions (a dozen groups for
 the 7 regions; most triangles meet none); a triangle's fragments have UVs inside its UV
 bounding box, so the result is the same as compositing every region everywhere. All groups
-share the one vertex buffer and one index buffer (sorted by group, keeping the mesh's order
-within a group).
+share the one vertex buffer and one index buffer (``models.draworder``: sorted by group,
+keeping the mesh's order within a group; the model's preview draws in the same order).
 
 Draw order. A region whose layers are all opaque (every opacity 1) is composited before the
 regions with a transparent state, each set in the model's (packet) order: the eyeballs'
@@ -72,15 +75,20 @@ from typing import Any
 import cv2
 import numpy as np
 
+from models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
 from models.egl import create_context, in_context
-from models.modelfile import PersonModel, Region
-from models.raster import (VERTEX_TEXTURED, Camera, ContextOwner, OffscreenTarget, RenderError,
-                           check_output)
+from models.modelfile import Area, PersonModel
+from models.raster import (
+    VERTEX_TEXTURED,
+    Camera,
+    ContextOwner,
+    OffscreenTarget,
+    RenderError,
+    check_output,
+)
 from protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
-MIP_LEVELS = 4  # mip levels below full resolution: regions stay smooth down to 1/16 scale
-PAD = 1 << MIP_LEVELS  # texels of a = d = 0 around each region's layers (at least)
 
 _FRAGMENT = """
 #version 330
@@ -109,33 +117,23 @@ void main() {
 """
 
 
-def draw_order(regions: tuple[Region, ...]) -> list[int]:
-    """The order regions are composited in (module docstring): opaque ones first.
-
-    Args:
-        regions: the model's regions, packet order.
-
-    Returns:
-        Indices into ``regions``.
-    """
-    opaque = [i for i, r in enumerate(regions) if min(r.opacity) >= 1.0]
-    return opaque + [i for i in range(len(regions)) if i not in opaque]
-
-
-def region_volume(texture: np.ndarray, region: Region) -> np.ndarray:
-    """A region's layers as stored on the GPU: premultiplied, relative to the texture.
+def area_volume(texture: np.ndarray, area: Area, opacity: tuple[float, ...]) -> np.ndarray:
+    """An area's layers as stored on the GPU: premultiplied, relative to the texture, padded
+    (``models.draworder``).
 
     Args:
         texture: (H, W, 3) uint8 RGB neutral texture, row 0 at v = 1.
-        region: the region; its layers cover its ``uv_rect``, row 0 at v = v1.
+        area: one of a region's ``parts()``; its k layers cover its ``uv_rect``, row 0 at
+            v = v1.
+        opacity: the region's k layer opacities.
 
     Returns:
         (k, H', W', 4) float32 (d_r, d_g, d_b, a), 0..1 scale, row 0 at the top: the layers
         at rows and columns [PAD, PAD + h) x [PAD, PAD + w), zeros around them, H' and W' the
         smallest multiples of PAD with at least PAD zeros on every side (module docstring).
     """
-    k, h, w, _ = region.layers.shape
-    u0, v0, u1, v1 = region.uv_rect
+    k, h, w, _ = area.layers.shape
+    u0, v0, u1, v1 = area.uv_rect
     big_h, big_w = texture.shape[:2]
     # The texture under each layer texel's centre (bilinear; exactly the texture's own texels
     # when the rectangle lies on texel edges with one layer texel per texture texel).
@@ -145,59 +143,20 @@ def region_volume(texture: np.ndarray, region: Region) -> np.ndarray:
     map_y = np.broadcast_to(((1.0 - v) * big_h - 0.5)[:, None], (h, w)).astype(np.float32)
     under = cv2.remap(texture.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE)
-    alpha = (np.asarray(region.opacity, np.float32)[:, None, None]
-             * (region.mask.astype(np.float32) / 255.0)[None])
-    volume = np.zeros((k, _padded(h), _padded(w), 4), np.float32)
+    alpha = (np.asarray(opacity, np.float32)[:, None, None]
+             * (area.mask.astype(np.float32) / 255.0)[None])
+    volume = np.zeros((k, padded(h), padded(w), 4), np.float32)
     inner = volume[:, PAD:PAD + h, PAD:PAD + w]
-    inner[..., :3] = alpha[..., None] * (region.layers.astype(np.float32) - under) / 255.0
+    inner[..., :3] = alpha[..., None] * (area.layers.astype(np.float32) - under) / 255.0
     inner[..., 3] = alpha
     return volume
-
-
-def padded_rect(region: Region) -> tuple[float, float, float, float]:
-    """The UV rectangle (u0, v0, u1, v1) of a region's padded volume (``region_volume``)."""
-    h, w = region.layers.shape[1:3]
-    u0, v0, u1, v1 = region.uv_rect
-    du, dv = (u1 - u0) / w, (v1 - v0) / h
-    return (u0 - PAD * du, v1 - (_padded(h) - PAD) * dv, u0 + (_padded(w) - PAD) * du,
-            v1 + PAD * dv)
-
-
-def _padded(n: int) -> int:
-    """The smallest multiple of PAD that holds n texels and PAD more on either side."""
-    return -(-(n + 2 * PAD) // PAD) * PAD
-
-
-def triangle_groups(uv: np.ndarray, triangles: np.ndarray,
-                    rects: list[tuple[float, float, float, float]]
-                    ) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
-    """Triangles grouped by the regions their UV footprint meets (module docstring).
-
-    Args:
-        uv: (N, 2) texture coordinates.
-        triangles: (M, 3) vertex indices.
-        rects: the regions' padded rectangles (u0, v0, u1, v1), at most 62.
-
-    Returns:
-        (M, 3) int32 triangles sorted by group (stable, so each group keeps the mesh's
-        order), and per group (bit mask of its regions, first triangle, triangle count).
-    """
-    corners = uv[triangles]
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
-    masks = np.zeros(len(triangles), np.int64)
-    for i, (u0, v0, u1, v1) in enumerate(rects):
-        meets = (hi[:, 0] >= u0) & (lo[:, 0] <= u1) & (hi[:, 1] >= v0) & (lo[:, 1] <= v1)
-        masks |= meets.astype(np.int64) << i
-    order = np.argsort(masks, kind="stable")
-    kinds, first, count = np.unique(masks[order], return_index=True, return_counts=True)
-    groups = [(int(m), int(f), int(n)) for m, f, n in zip(kinds, first, count)]
-    return np.ascontiguousarray(triangles[order]), groups
 
 
 @dataclass(frozen=True)
 class _Group:
     """One draw call: triangles [first, first + count) (in indices) of the sorted index
-    buffer, drawn by the program compositing their regions; its per-frame uniforms."""
+    buffer, drawn by the program compositing their areas; its per-frame uniforms (each
+    area's layer uniform, with the index of the region whose Q sets it)."""
 
     vao: Any
     first: int
@@ -271,9 +230,10 @@ class FaceRenderer(ContextOwner):
         self._texture.repeat_x = self._texture.repeat_y = False
         self._texture.build_mipmaps()
         self._texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        areas = region_areas(model.regions)  # area a is texture unit 1 + a
         self._volumes = []
-        for region in model.regions:
-            volume = region_volume(texture, region)
+        for i, part in areas:
+            volume = area_volume(texture, part, model.regions[i].opacity)
             k, h, w, _ = volume.shape
             array = ctx.texture_array((w, h, k), 4,
                                       np.ascontiguousarray(volume[:, ::-1], np.float16),
@@ -283,31 +243,29 @@ class FaceRenderer(ContextOwner):
             array.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
             self._volumes.append(array)
 
-        rects = [padded_rect(r) for r in model.regions]
-        triangles, groups = triangle_groups(mesh.uv, mesh.triangles, rects)
+        triangles, groups, rects = triangle_groups(mesh.uv, mesh.triangles, areas)
         self.vertex_buffer = ctx.buffer(reserve=self.n_vertices * 12, dynamic=True)
         self._uv = ctx.buffer(np.ascontiguousarray(mesh.uv).tobytes())
         self._indices = ctx.buffer(triangles.tobytes())
-        order = draw_order(model.regions)
         self._groups = []
         for mask, first, count in groups:
-            regions = [i for i in order if mask >> i & 1]
+            met = [a for a in range(len(areas)) if mask >> a & 1]
             program = ctx.program(vertex_shader=VERTEX_TEXTURED, fragment_shader=_FRAGMENT % {
-                "uniforms": "\n".join(f"uniform sampler2DArray volume{i};\n"
-                                      f"uniform vec4 rect{i};\nuniform vec3 layer{i};"
-                                      for i in regions),
-                "calls": "\n".join(f"    c = over(c, base, volume{i}, rect{i}, layer{i});"
-                                   for i in regions)})
+                "uniforms": "\n".join(f"uniform sampler2DArray volume{a};\n"
+                                      f"uniform vec4 rect{a};\nuniform vec3 layer{a};"
+                                      for a in met),
+                "calls": "\n".join(f"    c = over(c, base, volume{a}, rect{a}, layer{a});"
+                                   for a in met)})
             program["image"].value = 0
-            for i in regions:
-                u0, v0, u1, v1 = rects[i]
-                program[f"rect{i}"].value = (u0, v0, 1.0 / (u1 - u0), 1.0 / (v1 - v0))
-                program[f"volume{i}"].value = 1 + i
+            for a in met:
+                u0, v0, u1, v1 = rects[a]
+                program[f"rect{a}"].value = (u0, v0, 1.0 / (u1 - u0), 1.0 / (v1 - v0))
+                program[f"volume{a}"].value = 1 + a
             vao = ctx.vertex_array(program, [(self.vertex_buffer, "3f", "in_position"),
                                              (self._uv, "2f", "in_uv")],
                                    index_buffer=self._indices, index_element_size=4)
             self._groups.append(_Group(vao, 3 * first, 3 * count, program["mvp"],
-                                       [(program[f"layer{i}"], i) for i in regions]))
+                                       [(program[f"layer{a}"], areas[a][0]) for a in met]))
 
     @in_context
     def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera) -> np.ndarray:

@@ -36,14 +36,18 @@ the sender's pose and lift.
    toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
    once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
-4. Layers. Each state's frame is projected onto the region's UV rectangle: every texel's
+4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
+   of its further areas, the eyelids' lid skin, the same way): every texel's
    surface point (its triangle and barycentric weights, from ``models.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there). Texels off the image or
    facing away keep the neutral texture. Each layer is then scaled per colour channel by
-   g = sum(base) / sum(layer) over the region's border ramp (clipped to [0.5, 2]), so an
-   exposure change between frames leaves no step at the border. The mask is the region's
+   g = sum(base) / sum(layer) over the border ramp (clipped to [0.5, 2]), so an exposure
+   change between frames leaves no step at the border. The ramp is that of the region's last
+   area: its only one, or for an eyelid the lid skin, the same skin in every state (the
+   eyeball's border under an open lid is eyeball, and matching a closed lid to it darkened
+   the closed states). The mask is the region's
    ``ramp_mask``; the eyelids' first (open) state has opacity 0.
 5. Templates: each state's frame's centre sample, 16 x 16 raw grey levels.
 6. Rest: the rest state's index, ``Region.rest``: what a receiver shows for a face at
@@ -63,11 +67,11 @@ import numpy as np
 
 from models.landmarks import eye_aspect_ratio, outer_eye_distance
 from models.mesh import Mesh
-from models.modelfile import PersonModel, Region
+from models.modelfile import Area, PersonModel, Region
 from models.progress import Progress, no_progress
 from models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
 from models.rig import Rig
-from models.texture import uv_surface
+from models.texture import UVSurface, uv_surface
 from models.video import read_frames, video_info
 from protocol.control import Camera
 from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
@@ -170,15 +174,16 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
         rest = report[region.name]["rest"]
-        layers = np.stack([texels.layer(region.name, images[i], observations[i])
-                           for i in picks])
+        parts = [np.stack(stack) for stack in zip(*(
+            texels.layers(region.name, images[i], observations[i]) for i in picks))]
+        masks = [np.rint(255 * ramp_mask(p.shape[1:3])).astype(np.uint8) for p in parts]
         templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
         opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
                         for j in range(len(picks)))
         placement = texels.placements[region.name]
-        mask = np.rint(255 * ramp_mask(layers.shape[1:3])).astype(np.uint8)
-        regions.append(Region(region.name, placement.uv_rect, placement.template_rect, layers,
-                              mask, templates, opacity, float(rest)))
+        areas = tuple(Area(*area) for area in zip(placement.areas, parts[1:], masks[1:]))
+        regions.append(Region(region.name, placement.uv_rect, placement.template_rect, parts[0],
+                              masks[0], templates, opacity, float(rest), areas))
     return Enrollment(tuple(regions), report)
 
 
@@ -312,40 +317,54 @@ class _RegionTexels:
         surface = uv_surface(model.mesh, shape)
         rig = Rig(model.mesh)
         self.placements = {r.name: place(r, shape) for r in REGIONS}
-        self.slices, self.points, self.valid, self.normals = {}, {}, {}, {}
+        self.areas: dict[str, list[_AreaTexels]] = {}
         for r in REGIONS:
-            rows, cols = texel_rect(self.placements[r.name].uv_rect, shape)[1]
-            tri = surface.triangles[rows, cols]
-            valid = tri >= 0
-            tri = np.where(valid, tri, 0)
-            v = 1.0 - (np.arange(rows.start, rows.stop) + 0.5) / shape[0]
-            u = (np.arange(cols.start, cols.stop) + 0.5) / shape[1]
-            uv = np.stack(np.meshgrid(u, v, indexing="xy"), axis=-1)
-            bary = _uv_barycentric(model.mesh, tri, uv)
-            self.slices[r.name] = (rows, cols)
-            self.points[r.name] = SurfacePoints(model.mesh, rig, tri, bary)
-            self.valid[r.name] = valid
-            self.normals[r.name] = surface.normals[rows, cols]
+            placement = self.placements[r.name]
+            self.areas[r.name] = [_AreaTexels(model.mesh, rig, surface, rect, shape)
+                                  for rect in (placement.uv_rect, *placement.areas)]
 
-    def layer(self, name: str, image: np.ndarray, seen: Observation) -> np.ndarray:
-        """(h, w, 3) uint8 RGB: the region's texels read from ``image`` (module docstring)."""
-        rows, cols = self.slices[name]
-        base = self.model.texture[rows, cols].astype(np.float32)
-        points = self.points[name]
-        x, y = project(points.positions(seen.residuals), seen.rotation, seen.translation,
-                       self.camera)
-        h, w = base.shape[:2]
+    def layers(self, name: str, image: np.ndarray, seen: Observation) -> list[np.ndarray]:
+        """(h, w, 3) uint8 RGB per area of the region: its texels read from ``image``, with
+        the exposure gain of its last area (module docstring, step 4)."""
+        reads = [area.read(self.camera, image, seen) for area in self.areas[name]]
+        base = [self.model.texture[area.slices].astype(np.float32) for area in self.areas[name]]
+        colour, ok = reads[-1]
+        border = ok & (ramp_mask(ok.shape) < 1.0)
+        gain = np.ones(3, np.float32)
+        if border.sum() >= 50:
+            gain = base[-1][border].sum(axis=0) / np.maximum(colour[border].sum(axis=0), 1.0)
+        return [np.clip(np.rint(np.where(ok[..., None], colour * np.clip(gain, 0.5, 2.0), b)),
+                        0, 255).astype(np.uint8) for (colour, ok), b in zip(reads, base)]
+
+
+class _AreaTexels:
+    """One area's texels as surface points (module docstring, step 4)."""
+
+    def __init__(self, mesh: Mesh, rig: Rig, surface: UVSurface,
+                 rect: tuple[float, float, float, float], shape: tuple[int, int]) -> None:
+        rows, cols = texel_rect(rect, shape)[1]
+        tri = surface.triangles[rows, cols]
+        self.valid = tri >= 0
+        tri = np.where(self.valid, tri, 0)
+        v = 1.0 - (np.arange(rows.start, rows.stop) + 0.5) / shape[0]
+        u = (np.arange(cols.start, cols.stop) + 0.5) / shape[1]
+        uv = np.stack(np.meshgrid(u, v, indexing="xy"), axis=-1)
+        self.slices = (rows, cols)
+        self.points = SurfacePoints(mesh, rig, tri, _uv_barycentric(mesh, tri, uv))
+        self.normals = surface.normals[rows, cols]
+
+    def read(self, camera: Camera, image: np.ndarray, seen: Observation
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """The area's texels read from ``image``: (h, w, 3) float32 RGB, and (h, w) bool,
+        where they are seen (on the image, facing the camera)."""
+        h, w = self.valid.shape
+        x, y = project(self.points.positions(seen.residuals), seen.rotation, seen.translation,
+                       camera)
         colour = bilinear(image[..., ::-1].copy(), x.reshape(h, w), y.reshape(h, w))
-        normals = self.normals[name] @ seen.rotation.T.astype(np.float32)  # camera frame
+        normals = self.normals @ seen.rotation.T.astype(np.float32)  # camera frame
         facing = normals[..., 2] > 0.05
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
-        ok = self.valid[name] & facing & on_image.reshape(h, w)
-        border = ok & (ramp_mask((h, w)) < 1.0)
-        if border.sum() >= 50:
-            gain = base[border].sum(axis=0) / np.maximum(colour[border].sum(axis=0), 1.0)
-            colour *= np.clip(gain, 0.5, 2.0)
-        out = np.where(ok[..., None], colour, base)
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        return colour, self.valid & facing & on_image.reshape(h, w)
 
 
 def _uv_barycentric(mesh: Mesh, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:

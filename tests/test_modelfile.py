@@ -15,7 +15,7 @@ import pytest
 
 from models import modelfile
 from models.mesh import Mesh
-from models.modelfile import (Camera, ModelError, ModelFileError, ModelInfo, PersonModel, Region,
+from models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel, Region,
                               load_model, load_model_bytes, model_sha256, model_summary,
                               save_model)
 
@@ -45,7 +45,9 @@ def _model(name: str = "alice", regions: bool = True) -> PersonModel:
         layers=rng.integers(0, 256, (3, 10, 20, 3), dtype=np.uint8),
         mask=rng.integers(0, 256, (10, 20), dtype=np.uint8),
         templates=rng.standard_normal((3, 16, 16)).astype(np.float32),
-        opacity=(0.0, 1.0, 0.5), rest=1.25)
+        opacity=(0.0, 1.0, 0.5), rest=1.25,
+        areas=(Area((0.05, 0.1, 0.15, 0.3), rng.integers(0, 256, (3, 12, 6, 3), dtype=np.uint8),
+                    rng.integers(0, 256, (12, 6), dtype=np.uint8)),))
     return PersonModel(
         mesh=_grid_mesh(),
         texture=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
@@ -99,6 +101,11 @@ def _edit(path: Path, out: Path, replace: dict[str, bytes | None] | None = None,
     return _write_zip(out, members)
 
 
+def _no_areas(path: Path) -> dict[str, None]:
+    """``_edit`` replacements that remove the further areas' members."""
+    return {name: None for name in _members(path) if "/area_" in name}
+
+
 def _manifest(path: Path) -> dict:
     return json.loads(_members(path)["model.json"])
 
@@ -146,6 +153,11 @@ def test_round_trip_keeps_everything(saved: Path) -> None:
                                                           want.template_rect)
     for field in ("layers", "mask", "templates"):
         np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    (got_area,), (want_area,) = got.areas, want.areas
+    assert got_area.uv_rect == want_area.uv_rect
+    np.testing.assert_array_equal(got_area.layers, want_area.layers)
+    np.testing.assert_array_equal(got_area.mask, want_area.mask)
+    assert [p.uv_rect for p in got.parts()] == [want.uv_rect, want_area.uv_rect]
     data = saved.read_bytes()
     assert loaded.sha256 == model_sha256(saved) == hashlib.sha256(data).hexdigest()
     assert loaded.file_bytes == len(data)
@@ -416,7 +428,7 @@ def test_region_layers_of_different_sizes_are_refused(saved: Path, tmp_path: Pat
     manifest = _manifest(saved)
     manifest["regions"][0]["layers"] = 2
     _refused(_edit(saved, tmp_path / "b.fwm", manifest=manifest),
-             "regions/forehead/layer_02.png: not a member of this model")
+             "regions/forehead/area_1/layer_02.png: not a member of this model")
 
 
 def test_member_not_listed_in_the_manifest_is_refused(saved: Path, tmp_path: Path) -> None:
@@ -482,9 +494,9 @@ def test_index_outside_the_mesh_is_refused(saved: Path, tmp_path: Path) -> None:
 
 def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
-    manifest["format_version"] = 3
+    manifest["format_version"] = 4
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest),
-             "model.json: format_version: unsupported version 3")
+             "model.json: format_version: unsupported version 4")
     manifest["format_version"] = "1"
     _refused(_edit(saved, tmp_path / "b.fwm", manifest=manifest),
              "model.json: format_version: expected an integer")
@@ -511,6 +523,12 @@ def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     (lambda m: m["regions"][0].update(rest=2.5), "rest: expected a number in [0, 2]"),
     (lambda m: m["regions"][0].update(rest="1"), "rest: expected a number"),
     (lambda m: m["regions"][0].update(uv_rect=[0.5, 0.5, 0.4, 0.9]), "uv_rect"),
+    (lambda m: m["regions"][0].update(areas={}), "regions[0].areas: expected a list"),
+    (lambda m: m["regions"][0].update(areas=[[0, 0, 1, 1]] * 5), "at most 4 rectangles"),
+    (lambda m: m["regions"][0].update(areas=[[0.3, 0.1, 0.2, 0.3]]),
+     "region 'forehead': area 1: uv_rect"),
+    (lambda m: m["regions"][0].update(areas=[]), "regions/forehead/area_1/layer_00.png: not a "
+                                                 "member of this model"),
     (lambda m: m["regions"][0].update(template_rect=[0.0, 0.0, 1.0, 1.0]),
      "template_rect: not inside uv_rect"),
     (lambda m: m["members"]["textures/neutral.png"].update(shape=[5000, 5000, 3]),
@@ -524,17 +542,33 @@ def test_manifest_schema_is_enforced(saved: Path, tmp_path: Path, edit, fragment
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest), fragment)
 
 
+def test_version_2_is_read_without_further_areas(saved: Path, tmp_path: Path) -> None:
+    manifest = _manifest(saved)
+    manifest["format_version"] = 2
+    manifest["regions"][0].pop("areas")
+    for name in [n for n in manifest["members"] if "/area_" in n]:
+        manifest["members"].pop(name)
+    path = _edit(saved, tmp_path / "v2.fwm", _no_areas(saved), manifest)
+    assert load_model(path).regions[0].areas == ()
+    manifest["regions"][0]["areas"] = []
+    _refused(_edit(saved, tmp_path / "v2b.fwm", _no_areas(saved), manifest),
+             "regions[0]: unknown key 'areas'")
+
+
 def test_version_1_is_read_with_opaque_layers(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
     manifest["format_version"] = 1
     manifest["regions"][0].pop("opacity")
     manifest["regions"][0].pop("rest")
-    model = load_model(_edit(saved, tmp_path / "v1.fwm", manifest=manifest))
+    manifest["regions"][0].pop("areas")
+    for name in [n for n in manifest["members"] if "/area_" in n]:
+        manifest["members"].pop(name)
+    model = load_model(_edit(saved, tmp_path / "v1.fwm", _no_areas(saved), manifest))
     assert model.regions[0].opacity == (1.0, 1.0, 1.0) and model.regions[0].rest == 0.0
     saved_region = load_model(saved).regions[0]
     assert saved_region.opacity == (0.0, 1.0, 0.5) and saved_region.rest == 1.25
     manifest["regions"][0]["opacity"] = [1.0, 1.0, 1.0]
-    _refused(_edit(saved, tmp_path / "v1b.fwm", manifest=manifest),
+    _refused(_edit(saved, tmp_path / "v1b.fwm", _no_areas(saved), manifest),
              "regions[0]: unknown key 'opacity'")
 
 
@@ -567,6 +601,10 @@ def test_invalid_models_cannot_be_built() -> None:
     with pytest.raises(ModelError, match="mask: expected shape"):
         Region("eye", region.uv_rect, region.template_rect, region.layers,
                np.zeros((3, 3), np.uint8), region.templates)
+    with pytest.raises(ModelError, match="area 1: 2 layers, the region has 3"):
+        Region("eye", region.uv_rect, region.template_rect, region.layers, region.mask,
+               region.templates, areas=(Area((0.1, 0.1, 0.2, 0.2), region.layers[:2],
+                                             region.mask),))
     with pytest.raises(ModelError, match="templates: expected shape"):
         Region("eye", region.uv_rect, region.template_rect, region.layers, region.mask,
                region.templates[:2])

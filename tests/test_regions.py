@@ -191,6 +191,25 @@ def test_regions_lie_on_their_own_surfaces_in_uv() -> None:
     assert max(r[2] for r in skin) < min(r[0] for r in others)
 
 
+def test_eyelids_also_cover_the_lid_skin_around_their_eye() -> None:
+    """The eyelid's further area holds the UVs of its eye's lid landmarks (on the skin map,
+    clear of the brows), and not those of the other eye."""
+    mesh = generic_head()
+    lids = {"left": [42, 43, 44, 45, 46, 47], "right": [36, 37, 38, 39, 40, 41]}
+    for side in ("left", "right"):
+        region = next(r for r in REGIONS if r.name == f"eyelid_{side}")
+        (area,) = place(region, MODEL_TEXTURE).areas
+        assert [tag for tag, _ in region.areas] == [Tag.SKIN] and area[2] <= SKIN_U_MAX
+        for name, indices in lids.items():
+            uv = mesh.uv[mesh.landmarks[indices]]
+            inside = ((uv[:, 0] > area[0]) & (uv[:, 0] < area[2]) & (uv[:, 1] > area[1])
+                      & (uv[:, 1] < area[3]))
+            assert inside.all() if name == side else not inside.any(), (side, name)
+        brows = mesh.uv[mesh.landmarks[23:26] if side == "left" else mesh.landmarks[18:21]]
+        assert (brows[:, 1] > area[3]).all()
+    assert all(not place(r, MODEL_TEXTURE).areas for r in REGIONS if "eyelid" not in r.name)
+
+
 # ---------------------------------------------------------------------------------------
 # template_samples
 

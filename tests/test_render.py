@@ -7,18 +7,21 @@ pixels: 6.25 pixels per texel) where the ramp and the blending are read off dire
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 
+from models.draworder import draw_order
 from models.head import generic_head
 from models.mesh import Mesh
+from models.modelfile import Area, ModelInfo, PersonModel, Region
 from models.modelfile import Camera as ModelCamera
-from models.modelfile import ModelInfo, PersonModel, Region
 from models.raster import Camera, MeshRenderer, RenderError, orbit_pose
 from models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
 from protocol.control import Camera as HelloCamera
-from receiver.render import FaceRenderer, draw_order
+from receiver.render import FaceRenderer
 from receiver.views import head_centre, sender_view, virtual_view
 
 MODEL_CAMERA = ModelCamera(640.0, 640.0, 319.5, 239.5, 640, 480)
@@ -270,6 +273,39 @@ def test_eyeball_is_drawn_under_the_eyelid() -> None:
         assert centre([0.0, 1.0]).tolist() == [20, 20, 20]  # open lid: the gaze shows
         assert centre([1.0, 1.0]).tolist() == [200, 150, 120]  # closed lid covers it
         assert np.abs(centre([0.5, 0.0]).astype(float) - [225, 200, 185]).max() <= 1
+
+
+def test_a_closed_eyelid_covers_the_lid_skin_too(textured: np.ndarray) -> None:
+    """The eyelid's further area (its lid skin) follows the eyelid's Q: open (transparent)
+    it leaves the texture, closed it draws its own layer over the lids."""
+    spec = next(r for r in REGIONS if r.name == "eyelid_left")
+    placement = place(spec, HEAD_TEXTURE)
+    rows, cols = texel_rect(placement.uv_rect, HEAD_TEXTURE)[1]
+    skin_rows, skin_cols = texel_rect(placement.areas[0], HEAD_TEXTURE)[1]
+    closed = (180, 120, 90)
+
+    def layers(h: int, w: int) -> np.ndarray:
+        return np.array([(0, 0, 0), closed], np.uint8)[:, None, None] \
+            * np.ones((1, h, w, 1), np.uint8)
+
+    skin = layers(skin_rows.stop - skin_rows.start, skin_cols.stop - skin_cols.start)
+    region = replace(
+        _region("eyelid_left", HEAD_TEXTURE, placement.uv_rect,
+                layers(rows.stop - rows.start, cols.stop - cols.start), (0.0, 1.0)),
+        areas=(Area(placement.areas[0], skin, np.round(ramp_mask(skin.shape[1:3]) * 255)
+                    .astype(np.uint8)),))
+    model = _head_model([region], textured)
+    mesh = model.mesh
+    camera = virtual_view("front", mesh, np.zeros(3), 480, 480)
+    upper_lid = mesh.vertices[mesh.landmarks[[43, 44]]]
+    # just above the upper lid margin, on the skin (the lid opening is below it)
+    x, y = camera.project(upper_lid + [0.0, 1.5, 1.0]).round().astype(int).T
+    with FaceRenderer(model, 480, 480) as renderer:
+        opened = renderer.render(mesh.vertices, np.zeros(1, np.float32), camera)
+        shut = renderer.render(mesh.vertices, np.ones(1, np.float32), camera)
+    assert np.array_equal(opened, _preview(model, mesh.vertices, camera, 0, (0, 0, 0)))
+    assert (np.abs(shut[y, x].astype(int) - closed) <= 1).all()
+    assert (np.abs(opened[y, x].astype(int) - closed) > 10).any(axis=1).all()
 
 
 def test_bad_inputs_raise_value_errors() -> None:
