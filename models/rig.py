@@ -54,6 +54,24 @@ jaw_right/left and 0.85 under the chin; the direction is the chin's own (the pac
 the chin's frontal-plane move only). With it the rig's contour follows by 0.34-0.74 at points
 3-6 and 10-13 on hdtf_katiehill (tracker 0.37-0.84; before, 0.04-0.44).
 
+Lips apart
+----------
+The mouth is a slit: its upper and lower lips touch at rest, and opening the mouth moves
+them apart. A smooth field fitted to the lip middles 51 and 57 (and the chin) cannot tear
+there: an inner-lip vertex lies between 51 and 57, a few mm from each, so it takes a blend
+of both moves and the two inner lips move nearly together (on lp_d18, a yawn of 40 mm
+between 51 and 57 parted the rendered lips by a few mm, and the mouth's interior never
+showed). So the kernel, and only the kernel, measures distances in a space where the lips
+lie ``MOUTH_GAP`` mm apart (``lips_apart``): every point below the slit (the mean height of
+the upper and lower inner-lip landmarks 60-67 at its x, interpolated; outside their range
+the end values), less than ``MOUTH_DEPTH`` behind the mouth corners and between them, moves
+down by the gap, which grows from 0 at the corners (48, 54, which belong to both lips) to
+its full size ``CORNER_RAMP`` mm inside them (smoothstep). The upper lip is then far from the
+lower lip's centre and the lower lip far from the upper's, and each lip follows its own
+centre. The chin, the jaw below the mouth and the mouth's interior below the slit move down
+together in that space, so their distances to each other, and the jaw's to the chin, stay
+what they are. The fitted displacements are added to the real vertices as before.
+
 Per-frame math
 --------------
 ``VolumeMorph`` (``models/morph.py``) gives the (N, M) matrix ``W`` of cardinal weights:
@@ -130,6 +148,9 @@ WELD_MM = 1e-4  # vertices closer than this are copies of one vertex (UV seams)
 MANDIBLE_PHANTOMS = ("jaw_angle_right", "jaw_angle_left", "jaw_right", "jaw_left", "under_chin")
 HINGE_PHANTOMS = ("cheekbone_right", "cheekbone_left")  # the jaw's hinge axis runs through these
 CHIN = 8
+MOUTH_GAP = 40.0  # mm the lips are set apart in the kernel space (docstring, "Lips apart")
+CORNER_RAMP = 10.0  # mm in from the mouth corners over which the gap grows to MOUTH_GAP
+MOUTH_DEPTH = 60.0  # mm behind the mouth corners the kernel space still sets lips apart
 
 # Columns of the non-rigid feature points among the centres: FEATURES lists RIGID first.
 _NONRIGID_COLUMNS = np.arange(len(RIGID), len(FEATURES))
@@ -149,7 +170,8 @@ class Rig:
         anchors: (K,) int64 anchor vertex indices, K <= ``ANCHORS``.
         centres: (M,) int64 vertex indices of all centres: ``mesh.landmarks[FEATURES]``, then
             ``mesh.phantoms``, then ``anchors`` (M = 31 + K).
-        field: the ``VolumeMorph`` of the centres, evaluated at every vertex.
+        field: the ``VolumeMorph`` of the centres, evaluated at every vertex, both in the
+            kernel space (``lips_apart``).
         weights: (N, 9) float32, read-only: ``morph(r) == mesh.vertices + weights @ r``.
         eyeball_vertices: (E,) int64, the vertices of both eyeballs, which never move.
         tangents: (9, 2, 3) float32, read-only: per non-rigid point (``NONRIGID`` order) the
@@ -170,7 +192,8 @@ class Rig:
         self.anchors = _frozen(anchor_vertices(mesh))
         self.centres = _frozen(np.concatenate([face, self.anchors]))
         vertices = mesh.vertices
-        self.field = VolumeMorph(vertices[self.centres], vertices, kernel=kernel, lam=lam)
+        apart = lips_apart(mesh, vertices)
+        self.field = VolumeMorph(apart[self.centres], apart, kernel=kernel, lam=lam)
         self.follow = _frozen(mandible_follow(mesh))
         phantom_columns = len(FEATURES) + np.arange(len(mesh.phantoms))
         weights = self.field.weights[:, _NONRIGID_COLUMNS].copy()
@@ -253,6 +276,30 @@ class Rig:
         """
         d = _check_array("d", d, (N_RESIDUALS, 3))
         return np.einsum("kj,kcj->kc", d, self.tangents).astype(np.float32, copy=False)
+
+
+def lips_apart(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """The points in the morph's kernel space, where the lips lie ``MOUTH_GAP`` mm apart.
+
+    Args:
+        mesh: the neutral mesh (its inner-lip landmarks 60-67 and mouth corners 48, 54).
+        points: (P, 3) model-space points, mm.
+
+    Returns:
+        (P, 3) float64: the points below the mouth's slit (module docstring, "Lips apart")
+        moved down by the gap at their x, the others unchanged.
+    """
+    lm = mesh.vertices[mesh.landmarks].astype(np.float64)
+    upper, lower = lm[[60, 61, 62, 63, 64]], lm[[60, 67, 66, 65, 64]]
+    order = np.argsort(upper[:, 0])
+    slit = np.interp(points[:, 0], upper[order, 0], 0.5 * (upper[order, 1] + lower[order, 1]))
+    centre, half = 0.5 * (lm[48, 0] + lm[54, 0]), 0.5 * abs(lm[54, 0] - lm[48, 0])
+    inside = np.clip((half - np.abs(points[:, 0] - centre)) / CORNER_RAMP, 0.0, 1.0)
+    gap = MOUTH_GAP * inside * inside * (3.0 - 2.0 * inside)  # smoothstep to the corners
+    front = points[:, 2] > min(lm[48, 2], lm[54, 2]) - MOUTH_DEPTH
+    out = points.astype(np.float64, copy=True)
+    out[:, 1] -= np.where((points[:, 1] < slit) & front, gap, 0.0)
+    return out
 
 
 def tangent_frames(mesh: Mesh) -> np.ndarray:
