@@ -52,6 +52,62 @@ def _replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _send(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from sender.sender import send, unencrypted_warning
+
+    warning = unencrypted_warning(args.bind, args.curve_dir)
+    if warning is not None:
+        print(f"facewire send: {warning}", file=sys.stderr)
+    print(f"facewire send: publishing on {args.bind} (control on the next port); Ctrl-C "
+          f"stops", file=sys.stderr)
+    with _StatusLine(lambda t: f"{t['seconds']:7.1f} s  {t['fps']:5.1f} fps  "
+                               f"{t['payload_kbps']:5.2f} kbit/s  face "
+                               f"{'yes' if t['face'] else 'no '}  receivers {t['receivers']}"
+                     ) as line:
+        s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
+                 status=line)
+    report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
+               f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
+               f"kbit/s payload, at most {s['receivers_max']} receivers",
+               f"model {s['model_sha256'][:16]}... ({s['model_bytes']} bytes, "
+               f"{s['model_chunks']} chunks); stopped: {s['stopped']}"
+               + (f"; log: {s['log']}" if s["log"] else "")], args.json)
+    return 0
+
+
+def _relay(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from protocol.relay import relay
+
+    print(f"facewire relay: {args.inp} -> {args.out} (control on the next ports); Ctrl-C "
+          f"stops", file=sys.stderr)
+    s = relay(args.inp, args.out, curve_in=args.curve_in, curve_out=args.curve_out)
+    report(s, [f"relayed {s['packets']} packets and {s['reply_bytes']} bytes of control "
+               f"replies in {s['seconds']} s; stopped: {s['stopped']}"], args.json)
+    return 0
+
+
+class _StatusLine:
+    """A live status: one line of stderr rewritten in place by each call."""
+
+    def __init__(self, render: Callable[[dict], str]) -> None:
+        self.render = render
+        self.width = 0
+
+    def __call__(self, status: dict) -> None:
+        text = self.render(status)
+        print("\r" + text.ljust(self.width), end="", file=sys.stderr, flush=True)
+        self.width = len(text)
+
+    def __enter__(self) -> _StatusLine:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self.width:
+            print(file=sys.stderr)
+
+
 def _inspect(args: argparse.Namespace) -> int:
     from bench.inspect import inspect_log
 
@@ -124,7 +180,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
          "texture": list(model.texture.shape[:2]), "creator": model.info.creator}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
-    report(s, [f"model:    {args.model}", f"person:   {s['name']} (from {s['source_video'] or '-'}, "
+    report(s, [f"model:    {args.model}",
+               f"person:   {s['name']} (from {s['source_video'] or '-'}, "
                f"neutral frame {s['neutral_frame']})",
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
@@ -213,8 +270,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ address to publish on")
     s.add_argument("--record", help="also write the packets to this log (.fwlog)")
     s.add_argument("--rate", type=float, default=30.0, help="target frame rate in Hz")
-    s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate')")
-    s.set_defaults(run=_not_implemented("send", 7))
+    s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
+                   "encrypt, and admit only the receivers in DIR/authorized")
+    s.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    s.set_defaults(run=_send)
 
     r = sub.add_parser("receive", help="receive packets and render the face (render host)")
     r.add_argument("--connect", required=True, help="sender address, e.g. tcp://HOST:5555")
@@ -285,7 +344,10 @@ def build_parser() -> argparse.ArgumentParser:
     x = sub.add_parser("relay", help="fan packets from senders out to receivers (ZeroMQ proxy)")
     x.add_argument("--in", dest="inp", required=True, help="address senders publish to")
     x.add_argument("--out", required=True, help="address receivers connect to")
-    x.set_defaults(run=_not_implemented("relay", 7))
+    x.add_argument("--curve-in", help="client key folder for the link to the sender")
+    x.add_argument("--curve-out", help="server key folder for the receivers' side")
+    x.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    x.set_defaults(run=_relay)
 
     d = sub.add_parser("demo", help="the embedded default: build, perform, send, receive, render")
     d.add_argument("--source", help="a real video to use instead of the embedded portrait")

@@ -5,7 +5,9 @@ and leave. Packets go out on the PUB socket; a receiver's SUB socket keeps at mo
 ``PACKET_HWM`` unread packets (about 3 s at 30 Hz) and the PUB side drops rather than
 blocks when a slow receiver's queue is full: for live video a stale frame is worth nothing.
 Control requests (the Hello, model chunks) go to the sender's ROUTER socket, one reply per
-request.
+request; a request may come through relays (``protocol.relay``), each adding one routing
+identity to its envelope, and the reply goes back the same way. ``PeerCounter`` counts the
+peers connected to a bound socket (the sender's receiver count).
 
 The control endpoint is the packet endpoint's port plus one (``control_endpoint``), so one
 address names a sender.
@@ -13,7 +15,9 @@ address names a sender.
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
 folder, and a client with an unknown key, or one that expects another server key, never
-completes the handshake and so receives nothing.
+completes the handshake and so receives nothing. Each bound CURVE socket starts its own
+authenticator and libzmq allows one per context, so two CURVE servers in one process (the
+sender's packet and control sockets) need a ``zmq.Context`` each.
 
 Bytes on the wire per packet (ZMTP 3): a 2-byte frame header; under CURVE each message is a
 MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags byte), so
@@ -27,12 +31,14 @@ import time
 
 import zmq
 import zmq.auth.thread
+import zmq.utils.monitor
 
 from protocol.control import Message, decode_message, encode_message
 from protocol.keys import CurveClient, CurveServer
 
 PACKET_HWM = 100
 CONTROL_HWM = 1000
+MAX_HOPS = 8
 WIRE_OVERHEAD = {"plain": 2, "curve": 35}
 _ENDPOINT = re.compile(r"tcp://(?P<host>[^:]+|\[[^\]]+\]):(?P<port>\d+)")
 
@@ -142,20 +148,69 @@ class ControlServer(_Socket):
         super().__init__(zmq.ROUTER, context, CONTROL_HWM)
         self.endpoint = self._serve(endpoint, curve)
 
-    def recv(self, timeout_ms: int) -> tuple[bytes, bytes] | None:
-        """(peer identity, raw request), or None on timeout. Malformed framing is dropped."""
+    def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
+        """(peer envelope, raw request), or None on timeout. Malformed framing is dropped.
+
+        A request arrives as ``[identity, ..., b"", request]``: one identity from a client
+        connected directly, one more per relay (``protocol.relay``) it passed through, at
+        most ``MAX_HOPS``. ``reply`` sends the answer back along the same envelope.
+        """
         if not self.socket.poll(timeout_ms, zmq.POLLIN):
             return None
         parts = self.socket.recv_multipart(zmq.NOBLOCK)
-        if len(parts) != 3 or parts[1] != b"":
+        if b"" not in parts[1:]:
             return None
-        return parts[0], parts[2]
+        hops = parts.index(b"", 1)
+        if hops > MAX_HOPS or len(parts) != hops + 2:
+            return None
+        return tuple(parts[:hops]), parts[-1]
 
-    def reply(self, peer: bytes, message: Message) -> None:
+    def reply(self, peer: tuple[bytes, ...], message: Message) -> None:
         try:
-            self.socket.send_multipart([peer, b"", encode_message(message)], zmq.NOBLOCK)
+            self.socket.send_multipart([*peer, b"", encode_message(message)], zmq.NOBLOCK)
         except zmq.Again:
             pass
+
+
+class PeerCounter:
+    """How many peers are connected to a bound socket, from libzmq's socket monitor.
+
+    A peer counts from the moment its TCP connection is accepted until it disconnects
+    (``EVENT_ACCEPTED`` minus ``EVENT_DISCONNECTED``, matched by file descriptor). This counts
+    connections, not people: a relay counts as one peer however many receivers it serves,
+    and a peer still in its handshake counts too (under CURVE a refused client is counted
+    for the moment of its attempt; libzmq's handshake events carry no descriptor to match).
+    Close it before the socket it watches.
+    """
+
+    def __init__(self, socket: _Socket) -> None:
+        self._socket = socket.socket
+        self._monitor = self._socket.get_monitor_socket(
+            zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
+        self._peers: set[int] = set()
+        self.most = 0  # the most peers connected at once, up to the last ``count``
+
+    def count(self) -> int:
+        """Peers connected now (reads the monitor's pending events; never blocks)."""
+        while self._monitor.poll(0, zmq.POLLIN):
+            event = zmq.utils.monitor.recv_monitor_message(self._monitor, zmq.NOBLOCK)
+            if event["event"] == zmq.EVENT_ACCEPTED:
+                self._peers.add(event["value"])
+                self.most = max(self.most, len(self._peers))
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                self._peers.discard(event["value"])
+        return len(self._peers)
+
+    def close(self) -> None:
+        if not self._monitor.closed:
+            self._socket.disable_monitor()
+            self._monitor.close(linger=0)
+
+    def __enter__(self) -> PeerCounter:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
 
 class ControlClient(_Socket):

@@ -1,0 +1,167 @@
+"""The relay (``facewire relay --in tcp://SENDER:P --out tcp://*:Q``): ZeroMQ's own proxies.
+
+Two ``zmq.proxy_steerable`` loops, each on its own thread:
+
+- packets: an XSUB socket connected to the sender's packet endpoint ``inp``, an XPUB socket
+  bound at ``out``. Receivers subscribe at the relay, the relay subscribes upstream, and
+  every packet from the sender is fanned out to every receiver (one stream upstream
+  however many receivers there are). Several senders can be relayed by several relays
+  into one hub the same way.
+- control: a ROUTER socket bound at ``control_endpoint(out)`` (port + 1), a DEALER socket
+  connected to ``control_endpoint(inp)``. A receiver's request gains the ROUTER's routing
+  identity on the way in, the sender's ``ControlServer`` replies along that envelope, and
+  the ROUTER returns the reply to the receiver: receivers behind a relay fetch the Hello
+  and the model as if they were connected directly.
+
+Queues are bounded like the sender's (``protocol.transport``): the XPUB drops packets for a
+receiver whose queue is full rather than stall the others.
+
+Keys: ``curve_in`` is a client key folder (the relay's pair, and the sender's public key in
+``authorized/``: ``protocol.keys.client_keys``) for the upstream link; ``curve_out`` a server
+key folder (the relay's pair, and the receivers it admits in ``authorized/``) for the
+downstream side. The relay decrypts and re-encrypts, so it must be trusted with the stream.
+
+Stopping (``stop`` set, or Ctrl-C): each proxy is asked for its statistics and then to
+terminate over its inproc control socket (``STATISTICS``, ``TERMINATE``), the threads are
+joined and the sockets closed.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import threading
+import time
+from contextlib import ExitStack
+from typing import Any
+
+import zmq
+import zmq.auth.thread
+
+from protocol.keys import CurveClient, CurveServer, client_keys, server_keys
+from protocol.transport import CONTROL_HWM, PACKET_HWM, TransportError, control_endpoint
+
+WAIT_S = 0.1
+STATISTICS_TIMEOUT_MS = 2000
+_COUNTER = struct.Struct("=Q")  # libzmq sends its counters as native uint64
+
+
+class _Proxy:
+    """``zmq.proxy_steerable(frontend, backend)`` on a thread, steered over inproc PAIRs."""
+
+    def __init__(self, context: zmq.Context, name: str, frontend: zmq.Socket,
+                 backend: zmq.Socket) -> None:
+        address = f"inproc://facewire-relay-{name}-{id(self)}"
+        self._steer = context.socket(zmq.PAIR)
+        self._steer.bind(address)
+        self._steered = context.socket(zmq.PAIR)
+        self._steered.connect(address)
+        self._thread = threading.Thread(target=zmq.proxy_steerable, name=f"relay-{name}",
+                                        args=(frontend, backend, None, self._steered),
+                                        daemon=True)
+        self._thread.start()
+
+    def stop(self) -> list[int]:
+        """Terminate the proxy; its 8 counters: frontend messages in, bytes in, messages out,
+        bytes out, then the same for the backend (zeros if it did not answer)."""
+        self._steer.send(b"STATISTICS")
+        stats = [0] * 8
+        if self._steer.poll(STATISTICS_TIMEOUT_MS, zmq.POLLIN):
+            stats = [_COUNTER.unpack(part)[0] for part in self._steer.recv_multipart()]
+        self._steer.send(b"TERMINATE")
+        self._thread.join()
+        self._steer.close(linger=0)
+        self._steered.close(linger=0)
+        return stats
+
+
+def _socket(context: zmq.Context, kind: int, hwm: int) -> zmq.Socket:
+    socket = context.socket(kind)
+    socket.linger = 0
+    socket.sndhwm = hwm
+    socket.rcvhwm = hwm
+    return socket
+
+
+def _bind(socket: zmq.Socket, endpoint: str, curve: CurveServer | None) -> None:
+    if curve is not None:
+        socket.curve_secretkey = curve.secret
+        socket.curve_publickey = curve.public
+        socket.curve_server = True
+    try:
+        socket.bind(endpoint)
+    except zmq.ZMQError as exc:
+        raise TransportError(f"cannot bind {endpoint}: {exc}") from None
+
+
+def _connect(socket: zmq.Socket, endpoint: str, curve: CurveClient | None) -> None:
+    if curve is not None:
+        socket.curve_secretkey = curve.secret
+        socket.curve_publickey = curve.public
+        socket.curve_serverkey = curve.server_public
+    try:
+        socket.connect(endpoint)
+    except zmq.ZMQError as exc:
+        raise TransportError(f"cannot connect to {endpoint}: {exc}") from None
+
+
+def relay(inp: str, out: str, stop: threading.Event | None = None,
+          curve_in: str | os.PathLike[str] | None = None,
+          curve_out: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+    """Relay one sender's packets and control requests until ``stop`` is set or Ctrl-C.
+
+    Args:
+        inp: the sender's packet endpoint ``tcp://HOST:PORT`` (control on PORT + 1).
+        out: where receivers connect, ``tcp://HOST:PORT`` (control on PORT + 1).
+        stop: set it (from another thread) to stop.
+        curve_in: client key folder for the link to the sender, or None (plain).
+        curve_out: server key folder for the receivers' side, or None (plain).
+
+    Returns:
+        libzmq's proxy counters: ``packets`` (from the sender), ``subscriptions`` (subscribe
+        and unsubscribe messages from receivers), ``request_parts`` and ``reply_parts``
+        (control message parts from receivers and from the sender: a request or reply is 3,
+        routing identity, empty delimiter and body), ``reply_bytes`` (their size: the Hellos
+        and model chunks that went through); and ``seconds``, ``stopped`` (``stop`` or
+        ``interrupt``).
+
+    Raises:
+        TransportError: a bad endpoint or a port in use.
+        KeyFileError: a missing or malformed key folder.
+    """
+    control_in, control_out = control_endpoint(inp), control_endpoint(out)
+    client = client_keys(curve_in) if curve_in is not None else None
+    server = server_keys(curve_out) if curve_out is not None else None
+    stop = stop if stop is not None else threading.Event()
+    start = time.monotonic()
+    context = zmq.Context()
+    with ExitStack() as stack:
+        stack.callback(context.term)
+        if server is not None:
+            auth = zmq.auth.thread.ThreadAuthenticator(context)
+            auth.start()
+            stack.callback(auth.stop)
+            auth.configure_curve(domain="*", location=str(server.authorized))
+        sockets = [_socket(context, kind, hwm) for kind, hwm in (
+            (zmq.XSUB, PACKET_HWM), (zmq.XPUB, PACKET_HWM), (zmq.ROUTER, CONTROL_HWM),
+            (zmq.DEALER, CONTROL_HWM))]
+        for socket in sockets:
+            stack.callback(socket.close, linger=0)
+        xsub, xpub, router, dealer = sockets
+        _bind(xpub, out, server)
+        _bind(router, control_out, server)
+        _connect(xsub, inp, client)
+        _connect(dealer, control_in, client)
+        packets = _Proxy(context, "packets", xsub, xpub)
+        control = _Proxy(context, "control", router, dealer)
+        stopped = "stop"
+        try:
+            while not stop.wait(WAIT_S):
+                pass
+        except KeyboardInterrupt:
+            stopped = "interrupt"
+        packet_stats, control_stats = packets.stop(), control.stop()
+    return {"packets": packet_stats[0], "subscriptions": packet_stats[4],
+            "request_parts": control_stats[0], "reply_parts": control_stats[4],
+            "reply_bytes": control_stats[5],
+            "seconds": round(time.monotonic() - start, 3), "stopped": stopped}

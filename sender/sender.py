@@ -1,0 +1,348 @@
+"""The live send loop (``facewire send``): frames in, one packet per frame out to any receivers.
+
+Per frame, on the calling thread: read the next frame from ``sender.capture.open_source``
+(a camera, or a video file released in real time, below), run
+``sender.pipeline.SenderPipeline``, publish the 39-byte packet on the PUB socket
+(``protocol.transport.PacketPublisher``) and, with a record path, append it to a packet log
+(``protocol.log``; each record stamped with the Unix time it was published).
+
+The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
+``--rate 30`` goes out at 25 Hz, and the Hello says so. A camera limits itself to the rate
+(``sender.capture``). A file's frames are thinned to at most one per slot of the rate
+(``sender.capture.RateLimiter``) and kept frame ``t`` (seconds) is released at wall time
+``origin + t``, ``origin`` fixed at the first frame. Receivers play one slot per
+``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a frame that is late
+(the machine was busy) is sent at once and the next ones catch up, rather than every later
+frame being shifted (the rule of ``sender.capture.Pacer``, which would leave the stream
+slower than announced and the receivers' buffers running dry). Only when more than
+``MAX_LAG_S`` behind (a stalled machine) does the schedule restart from the late frame.
+
+Control requests (``protocol.control``) are answered on a second thread, at the control
+endpoint (the bind port plus one): a HelloRequest gets the Hello; ModelRequest(sha256, index)
+gets chunk ``index`` of the model file, split once, from the bytes the model was loaded from
+(``protocol.control.model_chunks``); a malformed request, an unknown sha256, or an index out of
+range gets an ``Error`` reply. A thread of its own because a receiver fetches the model one
+chunk per round trip: answered between frames, every chunk would wait for a frame's tracking
+and pacing, one frame period each, and a Hello would wait behind the tracker. Its work
+(a lookup and a send) is small beside the frame loop's. Each thread uses only its own
+sockets.
+
+Receiver count: TCP connections open to the packet socket (``protocol.transport.PeerCounter``):
+a relay counts as one, a peer still in its handshake counts too.
+
+Encryption: with a key folder, both sockets are CURVE servers admitting only the receivers
+in ``DIR/authorized`` (``protocol.keys``); each socket has its own ZeroMQ context, since each
+runs an authenticator and libzmq allows one per context. Without keys, binding to anything
+but loopback sends the face stream in the clear: ``unencrypted_warning`` says so.
+
+Stopping: the source ends (a file, unless ``loop``), ``stop`` is set, or Ctrl-C
+(KeyboardInterrupt, caught): the control thread is stopped and joined, the log closed (every
+finished record is on disk, so ``protocol.log.read_log`` reads it), and the sockets closed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import ipaddress
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from models.modelfile import ModelFileError, load_model
+from protocol.control import (ControlError, Error, Hello, HelloRequest, Message, ModelChunk,
+                              ModelRequest, decode_message, model_chunks)
+from protocol.keys import server_keys
+from protocol.log import LogError, LogWriter
+from protocol.packet import PACKET_BYTES
+from protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
+from sender.capture import CaptureError, RateLimiter, Source, open_source
+from sender.pipeline import SenderPipeline, sender_camera
+
+DEFAULT_BIND = "tcp://127.0.0.1:5555"
+STATUS_PERIOD_S = 1.0
+CONTROL_POLL_MS = 100
+MAX_LAG_S = 0.5
+
+Status = Callable[[dict[str, Any]], None]
+
+
+def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> str | None:
+    """The warning to show when ``bind`` reaches beyond this host without encryption, else None.
+
+    Loopback is ``127.0.0.0/8``, ``::1``, ``localhost`` and the interface ``lo``; anything else
+    (``*``, ``0.0.0.0``, an address, a host or interface name) can be reached from the network.
+    """
+    if curve_dir is not None:
+        return None
+    match = re.fullmatch(r"tcp://(\[?)(?P<host>[^\]]*)\]?:\S+", bind)
+    host = match["host"] if match else bind
+    if host in ("localhost", "lo"):
+        return None
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return None
+    except ValueError:
+        pass
+    return (f"warning: {bind} is reachable from the network and the face stream and the model "
+            f"are sent unencrypted; use --curve-dir DIR (facewire keys generate DIR)")
+
+
+def answer_request(raw: bytes, hello: Hello, chunks: list[ModelChunk]) -> Message:
+    """The reply to one raw control request: the Hello, a model chunk, or an Error.
+
+    Args:
+        raw: the request's bytes as received.
+        hello: this stream's Hello.
+        chunks: the model file's chunks (``protocol.control.model_chunks``), index order.
+    """
+    try:
+        request = decode_message(raw)
+    except ControlError as exc:
+        return Error(f"bad request: {exc}")
+    if isinstance(request, HelloRequest):
+        return hello
+    if isinstance(request, ModelRequest):
+        if request.sha256 != hello.model_sha256:
+            return Error(f"model_request.sha256: this sender serves model "
+                         f"{hello.model_sha256}, not {request.sha256}")
+        if request.index >= len(chunks):
+            return Error(f"model_request.index: {request.index} is out of range (the model "
+                         f"has {len(chunks)} chunks)")
+        return chunks[request.index]
+    return Error(f"{request.TYPE} is not a request")
+
+
+class _Responder:
+    """Answers control requests on its own thread until ``done`` is set (module docstring)."""
+
+    def __init__(self, server: ControlServer, hello: Hello, chunks: list[ModelChunk]) -> None:
+        self.server = server
+        self.hello = hello
+        self.chunks = chunks
+        self.counts = {"hello_requests": 0, "chunk_requests": 0, "errors": 0}
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="facewire-control", daemon=True)
+
+    def _run(self) -> None:
+        while not self.done.is_set():
+            request = self.server.recv(CONTROL_POLL_MS)
+            if request is None:
+                continue
+            peer, raw = request
+            reply = answer_request(raw, self.hello, self.chunks)
+            key = {Hello: "hello_requests", ModelChunk: "chunk_requests"}.get(type(reply),
+                                                                               "errors")
+            self.counts[key] += 1
+            self.server.reply(peer, reply)
+
+    def stop(self) -> None:
+        self.done.set()
+        self.thread.join()
+
+
+def _read_model(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
+    """The model and the exact bytes it was loaded from (served to receivers by hash)."""
+    model = load_model(path)
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ModelFileError(f"{os.fspath(path)}: cannot read ({exc})") from None
+    if hashlib.sha256(data).hexdigest() != model.sha256:
+        raise ModelFileError(f"{os.fspath(path)}: the file changed while it was being read")
+    return model, data
+
+
+def _log_writer(path: str | os.PathLike[str], hello: Hello) -> LogWriter:
+    try:
+        return LogWriter(path, hello)
+    except OSError as exc:
+        raise LogError(f"{os.fspath(path)}: cannot write the log: {exc.strerror or exc}"
+                       ) from None
+
+
+def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
+            ) -> Iterator[tuple[np.ndarray, float]]:
+    """(image, time s) of the frames to send, released in real time (module docstring).
+
+    A camera delivers in real time and limits its own rate. A file's frames are thinned to
+    at most one per slot of ``rate_hz`` (``RateLimiter``) and each kept frame is released at
+    ``origin + t``; a looped file's times keep increasing across passes. Waits end early
+    when ``stop`` is set (the caller checks it).
+
+    Raises:
+        CaptureError: a pass yields no frame (an empty video).
+    """
+    if source.live:
+        yield from ((frame.image, frame.time) for frame in source)
+        return
+    limiter = RateLimiter(rate_hz)
+    origin = None
+    offset = 0.0
+    while True:
+        last = None
+        for frame in source:
+            last = frame.time
+            t = offset + frame.time
+            if not limiter.keep(t):
+                continue
+            now = time.monotonic()
+            if origin is None:
+                origin = now - t
+            lag = now - (origin + t)
+            if lag > MAX_LAG_S:
+                origin += lag  # too far behind to catch up: start the schedule again here
+            elif lag < 0:
+                stop.wait(-lag)
+            yield frame.image, t
+        if last is None:
+            raise CaptureError(f"{source.name}: holds no frames")
+        if not loop:
+            return
+        offset += last + 1.0 / source.rate_hz
+
+
+def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BIND,
+         record: str | os.PathLike[str] | None = None, rate_hz: float = 30.0,
+         curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
+         stop: threading.Event | None = None, loop: bool = False) -> dict[str, Any]:
+    """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
+
+    Args:
+        model_path: the person model (``.fwm``), announced and served by its sha256.
+        source: ``camera:N``, a video file or a folder of images
+            (``sender.capture.open_source``; files are sent in real time).
+        bind: the packet endpoint ``tcp://HOST:PORT``; control is on PORT + 1.
+        record: a packet log to write (replaced if it exists), or None.
+        rate_hz: the target rate, in (0, 1000]; a slower file sets the stream's rate.
+        curve_dir: a key folder (``facewire keys generate``) to encrypt and admit only
+            authorised receivers, or None for plain TCP.
+        status: called about once per second from this thread with ``seconds``, ``frames``,
+            ``fps``, ``payload_kbps`` (measured over the last period), ``face`` (the last
+            frame had one) and ``receivers``.
+        stop: set it (from another thread) to stop cleanly.
+        loop: start a video file again when it ends (until stopped).
+
+    Returns:
+        ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
+        ``payload_kbps``, ``cpu_percent`` (the process's CPU time over ``seconds``; 100 is
+        one core), ``receivers_max``, ``log`` (path or None), ``model_sha256``,
+        ``model_bytes``, ``model_chunks``, ``rate_hz`` (the stream's), ``endpoint``,
+        ``control_endpoint``, ``encrypted``, ``warning`` (``unencrypted_warning`` or None),
+        ``control`` (``hello_requests``, ``chunk_requests``, ``errors``) and ``stopped``
+        (``end``, ``stop`` or ``interrupt``).
+
+    Raises:
+        ValueError: rate out of range.
+        TransportError: a bad endpoint or a port in use.
+        ModelFileError, KeyFileError: a missing or invalid model or key folder (named).
+        LogError: the log cannot be written (named).
+        CaptureError: no such camera, an unreadable or empty video (named).
+    """
+    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float))
+                                         and np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
+        raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
+    control_at = control_endpoint(bind)
+    stop = stop if stop is not None else threading.Event()
+    report = status if status is not None else (lambda _: None)
+    model, data = _read_model(model_path)
+    curve = server_keys(curve_dir) if curve_dir is not None else None
+    with ExitStack() as stack:
+        src = stack.enter_context(open_source(str(source), rate_hz))
+        rate = float(min(rate_hz, src.rate_hz))
+        pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
+        hello = pipeline.hello()
+        chunks = model_chunks(data, hello.model_sha256)
+        contexts = [zmq.Context(), zmq.Context()]
+        for context in contexts:
+            stack.callback(context.term)
+        publisher = stack.enter_context(PacketPublisher(bind, curve, contexts[0]))
+        server = stack.enter_context(ControlServer(control_at, curve, contexts[1]))
+        peers = stack.enter_context(PeerCounter(publisher))
+        log = stack.enter_context(_log_writer(record, hello)) if record is not None else None
+        responder = _Responder(server, hello, chunks)
+        responder.thread.start()
+        stack.callback(responder.stop)
+        try:
+            counts, stopped = _stream(src, pipeline, publisher, log, peers, rate, loop, stop,
+                                      report)
+        except CaptureError:
+            if log is not None and log.records == 0:
+                log.close()
+                Path(record).unlink(missing_ok=True)
+            raise
+    seconds, cpu = counts.pop("seconds"), counts.pop("cpu_seconds")
+    per_second = 1.0 / seconds if seconds > 0 else 0.0
+    return {
+        **counts,
+        "seconds": round(seconds, 3),
+        "fps": round(counts["frames"] * per_second, 2),
+        "payload_kbps": round(counts["packets"] * PACKET_BYTES * 8 * per_second / 1000, 3),
+        "cpu_percent": round(100 * cpu * per_second, 1),
+        "log": None if record is None else str(record),
+        "model_sha256": hello.model_sha256,
+        "model_bytes": len(data),
+        "model_chunks": len(chunks),
+        "rate_hz": rate,
+        "endpoint": bind,
+        "control_endpoint": control_at,
+        "encrypted": curve is not None,
+        "warning": unencrypted_warning(bind, curve_dir),
+        "control": dict(responder.counts),
+        "stopped": stopped,
+    }
+
+
+def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
+            log: LogWriter | None, peers: PeerCounter, rate_hz: float, loop: bool,
+            stop: threading.Event, report: Status) -> tuple[dict[str, Any], str]:
+    """The frame loop of ``send``: returns the counts and why it stopped."""
+    counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0}
+    start = cpu = None
+    window = (0.0, 0)  # (start of the status period, frames up to its first)
+    face = False
+    stopped = "end"
+    try:
+        for image, t in _frames(src, rate_hz, loop, stop):
+            if stop.is_set():
+                stopped = "stop"
+                break
+            out = pipeline.process(image, t)
+            publisher.send(out.packet)
+            if log is not None:
+                log.write(out.packet, time.time())
+            now = time.monotonic()
+            if start is None:
+                start, cpu, window = now, time.process_time(), (now, 1)
+            face = out.points is not None
+            counts["frames"] += 1
+            counts["packets"] += 1
+            counts["face_frames"] += face
+            if now - window[0] >= STATUS_PERIOD_S:
+                report(_status(counts, peers, now - start, now - window[0],
+                               counts["frames"] - window[1], face))
+                window = (now, counts["frames"])
+        else:
+            stopped = "stop" if stop.is_set() else "end"
+    except KeyboardInterrupt:
+        stopped = "interrupt"
+    peers.count()
+    counts["receivers_max"] = peers.most
+    counts["seconds"] = 0.0 if start is None else time.monotonic() - start
+    counts["cpu_seconds"] = 0.0 if cpu is None else time.process_time() - cpu
+    return counts, stopped
+
+
+def _status(counts: dict[str, Any], peers: PeerCounter, elapsed: float, period: float,
+            frames: int, face: bool) -> dict[str, Any]:
+    return {"seconds": round(elapsed, 1), "frames": counts["frames"],
+            "fps": round(frames / period, 1),
+            "payload_kbps": round(frames * PACKET_BYTES * 8 / period / 1000, 2),
+            "face": face, "receivers": peers.count()}
