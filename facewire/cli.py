@@ -108,6 +108,23 @@ class _StatusLine:
             print(file=sys.stderr)
 
 
+def _demo(args: argparse.Namespace) -> int:
+    from bench.report import report
+    from facewire.demo import demo
+
+    r = demo(args.out, args.source, args.seconds, progress=_progress,
+             status=lambda line: print(f"facewire demo: {line}", file=sys.stderr))
+    s = r.summary()
+    report(s, [f"video:     {s['video']} (performer | reconstruction, {s['frames']} frames)",
+               f"bandwidth: {s['bandwidth_plot']}: {s['payload_kbps']} kbit/s payload, "
+               f"{s['wire_kbps']} on the wire at 30 Hz ({s['packet_bytes']}-byte packets)",
+               f"speed:     sender {s['sender_fps']} fps, receiver {s['render_fps']} fps; "
+               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95",
+               f"model:     {s['model']} ({s['model_bytes']} bytes, preview {s['preview']})",
+               f"time:      {s['seconds']['total']} s"], args.json)
+    return 0
+
+
 def _inspect(args: argparse.Namespace) -> int:
     from bench.inspect import inspect_log
 
@@ -350,8 +367,13 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(run=_relay)
 
     d = sub.add_parser("demo", help="the embedded default: build, perform, send, receive, render")
-    d.add_argument("--source", help="a real video to use instead of the embedded portrait")
-    d.set_defaults(run=_not_implemented("demo", 7))
+    d.add_argument("--source", help="a real video of one person instead of the embedded "
+                   "performance: its first 4 s build the model, the rest is streamed")
+    d.add_argument("--out", default="facewire-demo", help="output folder (default: "
+                   "facewire-demo)")
+    d.add_argument("--seconds", type=float, help="stream at most this many seconds")
+    d.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    d.set_defaults(run=_demo)
 
     k = sub.add_parser("keys", help="CURVE key management")
     ksub = k.add_subparsers(dest="keys_command", metavar="ACTION", required=True)
@@ -384,9 +406,13 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from models.regions import RegionError
     from sender.capture import CaptureError
     from sender.enroll import EnrollError
+    from facewire.demo import DemoError
+    from facewire.performer import PerformerError
+    from receiver.liveview import LiveViewError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
-            TransportError, BuildError, CaptureError, EnrollError, GltfError, ModelFileError,
+            TransportError, BuildError, CaptureError, DemoError, EnrollError, GltfError,
+            LiveViewError, ModelFileError, PerformerError,
             OpenFaceError, OutputError, RegionError, RenderError, ReplayError, VideoError,
             FileNotFoundError, PermissionError, IsADirectoryError)
 

@@ -57,7 +57,7 @@ def test_help_lists_the_contract() -> None:
         assert all(word in sub.stdout for word in nested[1:])
 
 
-@pytest.mark.parametrize("args", [["demo"]])
+@pytest.mark.parametrize("args", [["receive", "--connect", "tcp://127.0.0.1:1"]])
 def test_unlanded_commands_say_so(args: list[str]) -> None:
     out = run(*args)
     assert out.returncode == 2
