@@ -1,17 +1,18 @@
 """``facewire``: the command-line contract of DESIGN.md, parsed and dispatched.
 
-Every subcommand of the contract is listed by ``facewire --help``. One whose work has not
-landed yet exits with status 2 and says "not implemented yet"; it never pretends. Errors a
-user can cause (a missing file, a corrupt log, a bad address) print one clear line to stderr
-and exit with status 2; a benchmark whose target is missed exits with status 1.
+Every subcommand of the contract is listed by ``facewire --help``. Errors a user can cause
+(a missing file, a corrupt log, a bad address) print one clear line to stderr and exit with
+status 2; a benchmark whose target is missed exits with status 1.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from typing import TypeVar
+from typing import Any, TypeVar
 
 EXIT_USAGE = 2
 T = TypeVar("T")
@@ -21,27 +22,11 @@ class CommandError(Exception):
     """A user-facing failure: printed as one line, no traceback."""
 
 
-def _not_implemented(what: str, issue: int) -> Callable[[argparse.Namespace], int]:
-    def run(_: argparse.Namespace) -> int:
-        print(f"facewire {what}: not implemented yet (tracked in issue {issue})", file=sys.stderr)
-        return EXIT_USAGE
-
-    return run
-
-
 def _replay(args: argparse.Namespace) -> int:
     from bench.report import report
     from receiver.replay import replay_log
 
-    size = None
-    if args.size is not None:
-        try:
-            width, height = (int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            raise CommandError(f"--size: expected WxH, e.g. 1280x720, got {args.size!r}") \
-                from None
-        size = (width, height)
-    s = replay_log(args.log, args.model, args.out, args.view, size, args.side_by_side,
+    s = replay_log(args.log, args.model, args.out, args.view, _size(args.size), args.side_by_side,
                    progress=_progress)
     report(s, [f"wrote {s['out']}: {s['frames']} frames ({s['width']}x{s['height']}, "
                f"{s['view']} view)",
@@ -76,6 +61,59 @@ def _send(args: argparse.Namespace) -> int:
     return 0
 
 
+def _receive(args: argparse.Namespace) -> int:
+    from contextlib import nullcontext
+
+    from bench.report import report
+    from receiver.liveview import LiveView
+    from receiver.receiver import receive
+
+    with LiveView(args.view_port) if args.view else nullcontext() as live:
+        view = None
+        if live is not None:
+            print(f"facewire receive: live view at {live.url}", file=sys.stderr)
+
+            def view(frame: object, stats: dict) -> None:
+                played = stats["received"] + stats["lost"]
+                live.publish(frame, {**stats, "loss_pct": 100 * stats["lost"] / played
+                                     if played else None})
+
+        stop = threading.Event()
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.set())  # Ctrl-C: clean stop
+        try:
+            with _StatusLine(lambda line: line) as line:
+                s = receive(args.connect, args.model, args.out, args.frames, view,
+                            args.curve_dir, size=_size(args.size), status=line, stop=stop,
+                            idle_timeout_s=args.idle_timeout)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+    if s["model_sha256"] is None:
+        report(s, [f"no sender answered at {args.connect}; ended: {s['ended']}"], args.json)
+        return 0
+    report(s, [f"received {s['received']} packets ({s['kbps']} kbit/s): {s['lost']} lost, "
+               f"{s['late']} late, {s['corrupt']} corrupt, {s['duplicates']} duplicates; "
+               f"{s['restarts']} sender restarts",
+               f"rendered {s['frames']} frames at {s['fps']} fps ({s['width']}x{s['height']}); "
+               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95",
+               f"model {s['model_sha256'][:16]}... ({s['model_source']}"
+               + (f", {s['model_bytes']} bytes in {s['model_fetch_s']} s" if s["model_fetch_s"]
+                  else "") + ")"
+               + (f"; wrote {s['out']}" if s["out"] else "") + f"; ended: {s['ended']}"],
+           args.json)
+    return 0
+
+
+def _size(text: str | None) -> tuple[int, int] | None:
+    """``--size WxH`` as (width, height), or None."""
+    if text is None:
+        return None
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise CommandError(f"--size: expected WxH, e.g. 1280x720, got {text!r}") from None
+    return width, height
+
+
 def _relay(args: argparse.Namespace) -> int:
     from bench.report import report
     from protocol.relay import relay
@@ -91,11 +129,11 @@ def _relay(args: argparse.Namespace) -> int:
 class _StatusLine:
     """A live status: one line of stderr rewritten in place by each call."""
 
-    def __init__(self, render: Callable[[dict], str]) -> None:
+    def __init__(self, render: Callable[[Any], str]) -> None:
         self.render = render
         self.width = 0
 
-    def __call__(self, status: dict) -> None:
+    def __call__(self, status: Any) -> None:
         text = self.render(status)
         print("\r" + text.ljust(self.width), end="", file=sys.stderr, flush=True)
         self.width = len(text)
@@ -298,9 +336,17 @@ def build_parser() -> argparse.ArgumentParser:
     out = r.add_mutually_exclusive_group()
     out.add_argument("--out", help="write an H.264 video (.mp4)")
     out.add_argument("--frames", help="write PNG frames to this folder")
-    out.add_argument("--view", action="store_true", help="serve a live view on 127.0.0.1")
-    r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate')")
-    r.set_defaults(run=_not_implemented("receive", 7))
+    out.add_argument("--view", action="store_true", help="serve a live view (a web page with "
+                     "the picture and the statistics) on 127.0.0.1")
+    r.add_argument("--view-port", type=int, default=8765, help="the live view's port "
+                   "(default 8765; 0: any free port)")
+    r.add_argument("--size", help="rendering size WxH (default: the sender camera's)")
+    r.add_argument("--idle-timeout", type=float, help="stop after this many seconds without "
+                   "packets (default: run until Ctrl-C)")
+    r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
+                   "connect only to the sender whose key is in DIR/authorized")
+    r.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    r.set_defaults(run=_receive)
 
     e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
     e.add_argument("--model", required=True, help="person model (.fwm)")
@@ -409,10 +455,12 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from facewire.demo import DemoError
     from facewire.performer import PerformerError
     from receiver.liveview import LiveViewError
+    from receiver.modelcache import ModelCacheError
+    from receiver.receiver import ReceiveError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
             TransportError, BuildError, CaptureError, DemoError, EnrollError, GltfError,
-            LiveViewError, ModelFileError, PerformerError,
+            LiveViewError, ModelCacheError, ModelFileError, PerformerError, ReceiveError,
             OpenFaceError, OutputError, RegionError, RenderError, ReplayError, VideoError,
             FileNotFoundError, PermissionError, IsADirectoryError)
 

@@ -57,13 +57,6 @@ def test_help_lists_the_contract() -> None:
         assert all(word in sub.stdout for word in nested[1:])
 
 
-@pytest.mark.parametrize("args", [["receive", "--connect", "tcp://127.0.0.1:1"]])
-def test_unlanded_commands_say_so(args: list[str]) -> None:
-    out = run(*args)
-    assert out.returncode == 2
-    assert "not implemented yet" in out.stderr
-
-
 @pytest.mark.parametrize("args", [["relay", "--in", "sender:5555", "--out", "tcp://*:5557"],
                                   ["send", "--model", "missing.fwm", "--source", "camera:0"]])
 def test_network_commands_refuse_bad_arguments_in_one_line(args: list[str]) -> None:

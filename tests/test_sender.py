@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import hashlib
-import random
 import shutil
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -26,30 +24,9 @@ from protocol.transport import (ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, control_endpoint)
 from sender.capture import CaptureError
 from sender.sender import send, unencrypted_warning
+from conftest import free_endpoint
 
 TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model and the tracker
-
-
-def free_endpoint() -> str:
-    """``tcp://127.0.0.1:P`` with ports P (packets) and P + 1 (control) both free now.
-
-    The ports lie below the kernel's ephemeral range: a client that connects before the server
-    has bound retries every 100 ms from an ephemeral port, and on loopback one of those tries
-    can connect to itself (TCP simultaneous open) when the target port is in that range,
-    taking the port the server is about to bind.
-    """
-    ranges = Path("/proc/sys/net/ipv4/ip_local_port_range")
-    low = int(ranges.read_text().split()[0]) if ranges.is_file() else 32768
-    for _ in range(200):
-        port = random.randrange(10_000, low - 1)
-        try:
-            with socket.socket() as first, socket.socket() as second:
-                first.bind(("127.0.0.1", port))
-                second.bind(("127.0.0.1", port + 1))
-        except OSError:
-            continue
-        return f"tcp://127.0.0.1:{port}"
-    raise RuntimeError("no two adjacent free ports on 127.0.0.1")
 
 
 def start_sender(**kwargs: Any) -> tuple[threading.Thread, threading.Event, dict[str, Any]]:
@@ -133,7 +110,8 @@ def test_live_sender_serves_the_hello_the_model_and_every_packet(
     assert "error" not in result, result.get("error")
     assert result["stopped"] == "end" and result["frames"] == result["packets"] == 78
     assert result["face_frames"] >= 70
-    assert 0.95 * 77 / 25 <= result["seconds"] < 77 / 25 + 1.0  # real time, on schedule
+    # paced to real time: never faster (a loaded machine may make it slower, never by much)
+    assert 0.95 * 77 / 25 <= result["seconds"] < 3 * 77 / 25
     assert result["control"] == {"hello_requests": 2, "chunk_requests": count, "errors": 4}
     assert result["receivers_max"] == 2 and statuses and statuses[-1]["receivers"] == 1
     assert {"fps", "payload_kbps", "face", "receivers"} <= statuses[-1].keys()

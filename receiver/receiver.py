@@ -1,0 +1,863 @@
+"""The live receive loop: ``facewire receive --connect tcp://HOST:5555``.
+
+Session
+-------
+1. Sockets. A SUB socket for packets at ``connect`` and a DEALER for control requests at
+   ``protocol.transport.control_endpoint(connect)`` (port + 1), both under CURVE when a key
+   folder is given (``protocol.keys.client_keys``). ZeroMQ connects in the background and
+   reconnects by itself: a sender may start after the receiver, stop, and come back.
+2. Hello. Asked again every ``HELLO_TIMEOUT_S`` until a sender answers; meanwhile the status
+   says that the receiver waits, where, and for how long. ``idle_timeout_s`` ends the wait.
+3. Model. With ``model_path``, the file's sha256 must be the Hello's, or ``ReceiveError``.
+   Without, the model cache (``receiver.modelcache``) by the Hello's sha256, else the sender's
+   file in chunks (``ModelRequest`` -> ``ModelChunk``, reassembled by
+   ``protocol.control.ModelAssembler``), each chunk asked up to ``CHUNK_ATTEMPTS`` times;
+   the whole is verified (sha256, then decoded) before it is cached and used. A sender that
+   stops answering mid-transfer sends the receiver back to step 2; a sender whose file
+   fails its own sha256 ``MODEL_ATTEMPTS`` times ends the session with ``ReceiveError``.
+4. Play (below), until ``stop`` is set, ``max_frames`` frames are out, or no packet (and
+   no control reply) has come for ``idle_timeout_s``.
+
+Control requests (ZeroMQ's "lazy pirate" pattern)
+-------------------------------------------------
+One request at a time, each with a timeout. A DEALER queues a request even when no sender is
+there yet and delivers it when one appears, so a reply may come after its request timed out.
+After a timeout or a bad reply (malformed, an ``Error``, or not the answer asked for) the
+socket is closed and opened again, so a late reply can never be taken for the answer to the
+next request. Both are counted (``control_timeouts``, ``control_errors``), neither is fatal.
+
+Packets and the render clock
+----------------------------
+A reader thread owns the SUB socket and stamps each packet with its arrival time (one
+monotonic clock) into a queue of at most ``QUEUE_PACKETS`` (beyond that, dropped:
+``overflow``). The render loop ticks at the Hello's rate, tick k at ``T_k = T_0 + k /
+rate_hz``: it pushes every queued packet that arrived by ``T_k`` into the playout buffer
+(``receiver.playout.Playout``, in arrival order), pops one ``FrameState`` and renders it, as
+``receiver.playout.replay_states`` does with a log's recorded times. A frame that takes long
+delays the next ticks, which then come at once until the loop has caught up, so a slow frame
+costs no packet. A renderer slower than the stream:
+
+- with a live ``view``, the loop keeps to real time: more than the playout's latency
+  (``Playout.latency_s``) behind, it re-anchors its clock to now and pushes everything that
+  has arrived, and the playout's skip rule gives up the slots in excess (``skipped``,
+  ``discarded``), so the picture stays at most a few slots late;
+- without one (a file, or nothing), every slot is rendered: the loop falls behind as far as
+  it must (the latency grows, bounded by the queue) and catches up when the stream pauses or
+  ends.
+
+The same holds for the packets that arrive before the loop starts (the reader runs from the
+start, while the Hello is asked, the model fetched and the renderer set up): without a view
+the clock starts at the first of them and they are played, late; with a view they are
+dropped (``ignored``), since the picture is to be live.
+
+Per slot (``StateRenderer``, the steps of ``receiver.replay`` too): the playout's state (pose,
+tangent residuals r, Q; held or eased when concealed), ``vertices =
+rig.morph(rig.from_tangent(r))``, the sender's view (``receiver.views.sender_view``: the
+Hello's camera with the state's pose) at the output size, ``FaceRenderer.render``.
+
+Output frames (the file, and ``frames`` in the summary)
+------------------------------------------------------
+A *stream* is what the playout plays between two resyncs (a restarted sender starts a new
+one). The output holds one frame per slot of each stream from its first played packet to its
+last: one frame per packet played, and one per slot concealed between two played packets of
+the same stream (its packet lost, or late: ``lost``). Slots before a stream's first packet
+(the playout's countdown) and after its last (the sender stopped, or restarted and its new
+stream has not started) are not written. A concealed slot is therefore written when the next
+packet of its stream plays, and rendered then; the live view shows it at its tick. A gap of
+more than ``MAX_GAP_S`` is not written at all: the stream counts as ended where the gap
+began, and its next packet starts a new one (this also bounds the slots held back). When the
+loop ends on ``stop`` or on the idle timeout, the packets already received are played first
+(ticks without waiting, a bounded number of them), so every packet received is in the output:
+on a link without loss, ``frames == received``. ``max_frames`` ends at once, after that many
+frames. The output size is the first Hello's camera size, or ``size``; a later Hello with
+another camera is rendered at that size (its intrinsics scaled, ``sender_view``).
+
+Sender restart
+--------------
+A restarted sender numbers its packets from 0 again (or from anywhere): the playout resyncs
+(``receiver.playout``, restart rules) and the receiver asks for the Hello again, as it does
+when packets resume after a silence of ``RESUME_GAP_S`` (a restart that the sequence numbers
+alone may not show). An identical Hello changes nothing. Another rate means a new playout; a
+new model sha256 means that model (cache, else fetched; with ``model_path``:
+``ReceiveError``), a new renderer and a new playout. A new playout starts like the first one:
+the packets the old one still held count as ``discarded``, and those that arrived meanwhile
+(while the model was fetched) are played late or ``ignored``, as above. Until the Hello is
+answered the loop goes on rendering with what it has, asking every ``RECHECK_EVERY_S`` (each
+try waits at most ``RECHECK_TIMEOUT_S``).
+
+Statistics
+----------
+Summary keys: ``frames`` (output frames, above), ``received``, ``lost`` (concealed slots
+written), ``late``, ``corrupt``, ``duplicates``, ``stray``, ``discarded``, ``skipped``,
+``restarts`` (the playout's counts), ``ignored``, ``overflow``, ``streams`` (runs of output
+frames: each stream, split again by a gap over ``MAX_GAP_S``), ``hellos`` (Hellos answered),
+``control_timeouts``, ``control_errors``, ``fps`` (frames over the time from the first to
+the last), ``kbps`` (packet bytes, kbit/s, from the first packet's arrival to the last's),
+``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
+rendered: the playout depth, ``Playout.latency_s``, plus the wait for the tick and the
+frame's own time, and any backlog of a loop that fell behind), ``render_ms_median`` (morph,
+view and render with readback), ``model_sha256``, ``model_source`` (file, cache or fetched),
+``model_bytes``, ``model_fetch_s`` (fetch and verification, None unless fetched), ``cached``
+(the cache file, or None), ``width``, ``height``, ``out``, ``seconds``, and ``ended``: stop,
+max_frames or idle_timeout. The live statistics (``LIVE_KEYS``: the second argument of
+``view``, and the status line every ``STATUS_EVERY_S``) measure fps and kbit/s over the last
+``WINDOW_S``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import numbers
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+
+from models.modelfile import ModelFileError, PersonModel, load_model
+from models.raster import RenderError
+from models.rig import Rig
+from protocol import control as ctl
+from protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
+                              ModelRequest)
+from protocol.keys import CurveClient, client_keys
+from protocol.packet import N_REGIONS
+from protocol.transport import ControlClient, PacketSubscriber, control_endpoint
+from receiver.modelcache import ModelCache, ModelCacheError, verify_model
+from receiver.output import FrameFolderWriter, VideoWriter
+from receiver.playout import FrameState, Playout
+from receiver.render import FaceRenderer
+from receiver.views import VIEW_KINDS, sender_view, virtual_view
+
+VIEWS = ("camera", *VIEW_KINDS)
+HELLO_TIMEOUT_S = 1.0
+CHUNK_TIMEOUT_S = 5.0
+CHUNK_ATTEMPTS = 5
+MODEL_ATTEMPTS = 3
+RECHECK_TIMEOUT_S = 0.5
+RECHECK_EVERY_S = 2.0
+RESUME_GAP_S = 0.5
+MAX_GAP_S = 10.0
+QUEUE_PACKETS = 4096
+STATS_FRAMES = 108_000  # the summary's latency and render medians: the last hour at 30 Hz
+STATUS_EVERY_S = 1.0
+WINDOW_S = 1.0
+MAX_SIZE = 4096
+LIVE_KEYS = ("state", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
+             "duplicates", "latency_ms")
+_POLL_MS = 50
+_PLAYOUT_KEYS = ("received", "corrupt", "duplicate", "late", "stray", "discarded",
+                 "skipped", "restarts")
+
+Status = Callable[[str], None]
+View = Callable[[np.ndarray, dict[str, Any]], None]
+
+
+class ReceiveError(ValueError):
+    """The receive cannot go on: a bad option, or a model that is not the sender's."""
+
+
+def rest_q(model: PersonModel) -> np.ndarray:
+    """(8,) float32: each region's rest Q (``Region.rest``) in packet order, 0 beyond the
+    model's regions: what the playout shows for a face at rest or lost (``Playout(rest_q=)``)."""
+    rest = np.zeros(N_REGIONS, np.float32)
+    rest[:len(model.regions)] = [r.rest for r in model.regions]
+    return rest
+
+
+class StateRenderer:
+    """A playout state to pixels: the per-slot steps of every receiver (live and replay).
+
+    ``vertices = rig.morph(rig.from_tangent(state.residuals))``; the camera is the sender's
+    (``view="camera"``: ``sender_view`` with ``hello_camera`` and the state's pose) or a
+    virtual one (``virtual_view``, the head turning by the state's rotation); the image is
+    ``FaceRenderer.render(vertices, state.q, camera)``.
+
+    Args:
+        model: the person model.
+        width, height: output size, pixels.
+        hello_camera: the sender's intrinsics (the Hello's); may be replaced later.
+        view: one of ``VIEWS``.
+
+    Attributes:
+        model, rig, width, height, view, hello_camera: as given (``rig`` built from the mesh).
+        render_seconds: the time each of the last ``STATS_FRAMES`` ``render`` calls took, s.
+
+    Raises:
+        RenderError: a bad view or size. EGLUnavailable: no headless OpenGL.
+    """
+
+    def __init__(self, model: PersonModel, width: int, height: int,
+                 hello_camera: ctl.Camera, view: str = "camera") -> None:
+        if view not in VIEWS:
+            raise RenderError(f"view: expected one of {', '.join(VIEWS)}, got {view!r}")
+        self.model, self.width, self.height, self.view = model, width, height, view
+        self.hello_camera = hello_camera
+        self.rig = Rig(model.mesh)
+        self.render_seconds: deque[float] = deque(maxlen=STATS_FRAMES)
+        self._renderer = FaceRenderer(model, width, height)
+
+    def render(self, state: FrameState) -> np.ndarray:
+        """(height, width, 3) uint8 RGB: the face in ``state``."""
+        tick = time.perf_counter()
+        vertices = self.rig.morph(self.rig.from_tangent(state.residuals))
+        if self.view == "camera":
+            camera = sender_view(self.hello_camera, state.rotation, state.translation,
+                                 self.width, self.height)
+        else:
+            camera = virtual_view(self.view, self.model.mesh, state.rotation, self.width,
+                                  self.height)
+        image = self._renderer.render(vertices, state.q, camera)
+        self.render_seconds.append(time.perf_counter() - tick)
+        return image
+
+    def release(self) -> None:
+        """Free the renderer's OpenGL context."""
+        self._renderer.release()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.release()
+
+
+def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
+            out: str | os.PathLike[str] | None = None,
+            frames_dir: str | os.PathLike[str] | None = None, view: View | None = None,
+            curve_dir: str | os.PathLike[str] | None = None,
+            cache_dir: str | os.PathLike[str] | None = None,
+            size: tuple[int, int] | None = None, status: Status | None = None,
+            stop: threading.Event | None = None, max_frames: int | None = None,
+            idle_timeout_s: float | None = None) -> dict[str, Any]:
+    """Receive a sender's stream and render it until stopped (module docstring).
+
+    Args:
+        connect: the sender's packet address, ``tcp://HOST:PORT`` (control: port + 1).
+        model_path: the person model; its sha256 must be the sender's. Fetched when None.
+        out: an H.264 ``.mp4`` to write (``receiver.output.VideoWriter``).
+        frames_dir: a folder for PNG frames (``FrameFolderWriter``); not with ``out``.
+        view: called with each rendered frame ((H, W, 3) uint8 RGB) and the live statistics
+            (``LIVE_KEYS``), e.g. ``receiver.liveview.LiveView.publish``.
+        curve_dir: a CURVE key folder (``protocol.keys.client_keys``).
+        cache_dir: the model cache folder (``receiver.modelcache.default_folder`` if None).
+        size: (width, height) of the output; the sender camera's size by default.
+        status: called with one line of text when the state changes, and every
+            ``STATUS_EVERY_S`` while playing.
+        stop: set it (from another thread) to end the session cleanly.
+        max_frames: end after this many output frames.
+        idle_timeout_s: end when no packet and no control reply came for this long (also
+            while waiting for a sender); None waits for ever.
+
+    Returns:
+        The summary (module docstring, "Statistics").
+
+    Raises:
+        ReceiveError: bad arguments; the model file is not the sender's; the sender's model
+            is not a valid model file or keeps failing its sha256.
+        ModelFileError / KeyFileError / TransportError / OutputError / EGLUnavailable: a
+            missing or bad model file or key folder, a bad address, an unwritable output,
+            no headless OpenGL.
+    """
+    if out is not None and frames_dir is not None:
+        raise ReceiveError("--out and --frames: give one or the other, not both")
+    for name, path in (("--out", out), ("--frames", frames_dir)):
+        if path is not None and Path(path).exists() and \
+                Path(path).is_dir() != (name == "--frames"):
+            raise ReceiveError(f"{name} {path}: exists and is "
+                               f"{'not ' if name == '--frames' else ''}a folder")
+    if out is not None and not Path(out).resolve().parent.is_dir():
+        raise ReceiveError(f"--out {out}: its folder does not exist")
+    if view is not None and view is not False and not callable(view):
+        raise ReceiveError(f"view: expected a callable (frame, stats) or None, got "
+                           f"{type(view).__name__}")
+    if size is not None:
+        if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(
+                isinstance(v, numbers.Integral) and 0 < v <= MAX_SIZE for v in size):
+            raise ReceiveError(f"size: expected a width and height in [1, {MAX_SIZE}], "
+                               f"got {size!r}")
+        size = (int(size[0]), int(size[1]))
+    if max_frames is not None and (isinstance(max_frames, bool) or
+                                   not isinstance(max_frames, numbers.Integral)
+                                   or max_frames < 1):
+        raise ReceiveError(f"max_frames: expected an integer >= 1, got {max_frames!r}")
+    if idle_timeout_s is not None and not (isinstance(idle_timeout_s, numbers.Real)
+                                           and math.isfinite(idle_timeout_s)
+                                           and idle_timeout_s > 0):
+        raise ReceiveError(f"idle_timeout_s: expected a number > 0, got {idle_timeout_s!r}")
+    local = load_model(model_path) if model_path is not None else None
+    curve = client_keys(curve_dir) if curve_dir is not None else None
+    session = _Session(connect, curve, local, ModelCache(cache_dir), out, frames_dir,
+                       view or None, size, status, stop, max_frames, idle_timeout_s)
+    return session.run()
+
+
+class _End(Exception):
+    """Unwinds the session: why it ends (``ended`` in the summary)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class _PacketReader:
+    """The SUB socket's own thread: packets in, stamped with their arrival time."""
+
+    def __init__(self, subscriber: PacketSubscriber) -> None:
+        self._sub = subscriber
+        self._queue: deque[tuple[bytes, float]] = deque()
+        self._closing = threading.Event()
+        self.overflow = 0
+        self.last_arrival: float | None = None
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="facewire packets",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._closing.is_set():
+                data = self._sub.recv(_POLL_MS)
+                if data is None:
+                    continue
+                now = time.monotonic()
+                self.last_arrival = now
+                if len(self._queue) >= QUEUE_PACKETS:
+                    self.overflow += 1
+                else:
+                    self._queue.append((data, now))
+        except Exception as exc:  # noqa: BLE001 - reported by take()
+            self.error = exc
+        finally:
+            self._sub.close()
+
+    def take(self, until: float) -> list[tuple[bytes, float]]:
+        """The queued packets that arrived by ``until``, oldest first, as (bytes, arrival
+        time); they leave the queue."""
+        if self.error is not None:
+            raise ReceiveError(f"packet socket failed: {self.error}") from self.error
+        items = []
+        while self._queue and self._queue[0][1] <= until:
+            items.append(self._queue.popleft())
+        return items
+
+    def discard(self) -> int:
+        """Empty the queue; how many packets were in it."""
+        return len(self.take(math.inf))
+
+    def queued(self) -> int:
+        return len(self._queue)
+
+    def oldest(self) -> float | None:
+        """The arrival time of the oldest queued packet, None when the queue is empty."""
+        try:
+            return self._queue[0][1]
+        except IndexError:
+            return None
+
+    def newest(self) -> float | None:
+        """The arrival time of the newest queued packet, None when the queue is empty."""
+        try:
+            return self._queue[-1][1]
+        except IndexError:
+            return None
+
+    def close(self) -> None:
+        """Stop the thread and close the socket (what is queued can still be taken)."""
+        self._closing.set()
+        self._thread.join()
+
+
+class _Control:
+    """The control socket, reopened after any timeout or bad reply (module docstring)."""
+
+    def __init__(self, endpoint: str, curve: CurveClient | None) -> None:
+        self.endpoint = endpoint
+        self._curve = curve
+        self._client = ControlClient(endpoint, curve)
+        self.timeouts = 0
+        self.errors = 0
+        self.last_error = ""
+
+    def ask(self, message: ctl.Message, expect: type, timeout_s: float) -> Any:
+        """The reply if it is an ``expect``; None (counted, socket reopened) otherwise."""
+        try:
+            reply = self._client.request(message, max(1, round(timeout_s * 1000)))
+        except ControlError as exc:
+            return self.reject(f"malformed reply: {exc}")
+        if reply is None:
+            self.timeouts += 1
+            self._reopen()
+            return None
+        if isinstance(reply, expect):
+            return reply
+        if isinstance(reply, ctl.Error):
+            return self.reject(f"the sender says: {reply.message}")
+        return self.reject(f"a {reply.TYPE} reply to a {message.TYPE}")
+
+    def reject(self, why: str) -> None:
+        """Count a reply that is not the answer asked for, and reopen the socket."""
+        self.errors += 1
+        self.last_error = why
+        self._reopen()
+
+    def _reopen(self) -> None:
+        self._client.close()
+        self._client = ControlClient(self.endpoint, self._curve)
+
+    def close(self) -> None:
+        self._client.close()
+
+
+class _Session:
+    """One ``receive`` call: its sockets, model, renderer, playout, output and counts."""
+
+    def __init__(self, connect: str, curve: CurveClient | None, local: PersonModel | None,
+                 cache: ModelCache, out: str | os.PathLike[str] | None,
+                 frames_dir: str | os.PathLike[str] | None, view: View | None,
+                 size: tuple[int, int] | None, status: Status | None,
+                 stop: threading.Event | None, max_frames: int | None,
+                 idle_timeout_s: float | None) -> None:
+        self.connect = connect
+        self.control_endpoint = control_endpoint(connect)
+        self.curve, self.local, self.cache = curve, local, cache
+        self.out, self.frames_dir, self.view, self.size = out, frames_dir, view, size
+        self.say = status or (lambda _: None)
+        self.stop = stop if stop is not None else threading.Event()
+        self.max_frames, self.idle_timeout_s = max_frames, idle_timeout_s
+        self.reader: _PacketReader | None = None
+        self.control: _Control | None = None
+        # what is played
+        self.hello: Hello | None = None
+        self.scene: StateRenderer | None = None
+        self.playout: Playout | None = None
+        self.writer: VideoWriter | FrameFolderWriter | None = None
+        self.pending: list[FrameState] = []  # concealed slots awaiting the stream's next packet
+        self.played = 0  # packets played by the current playout
+        self.restarts_seen = 0  # the current playout's restarts already handled
+        self.stream_played = False  # a stream is open: its next packet writes the pending
+        self.hello_due = False
+        self.next_check = 0.0
+        self.t0, self.k = 0.0, 0  # the render clock: tick k at t0 + k / rate
+        self.last_contact = time.monotonic()  # the last control reply or ready loop
+        # counts and measurements
+        self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos"), 0)
+        self.totals = dict.fromkeys(_PLAYOUT_KEYS, 0)  # of the playouts already retired
+        self.model_info: dict[str, Any] = {"model_sha256": None, "model_source": None,
+                                           "model_bytes": None, "model_fetch_s": None,
+                                           "cached": None}
+        self.first_packet: tuple[float, int] | None = None  # arrival, bytes
+        self.last_packet: float | None = None
+        self.bytes_total = 0
+        self.first_frame: float | None = None
+        self.last_frame: float | None = None
+        self.latencies: deque[float] = deque(maxlen=STATS_FRAMES)
+        self.recent_packets: deque[tuple[float, int]] = deque()  # arrival, bytes
+        self.recent_frames: deque[tuple[float, float | None]] = deque()  # time, latency
+        self.next_status = 0.0
+
+    # -- the session -----------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        start = time.monotonic()
+        with contextlib.ExitStack() as stack:
+            self.reader = _PacketReader(PacketSubscriber(self.connect, self.curve))
+            stack.callback(self.reader.close)
+            self.control = _Control(self.control_endpoint, self.curve)
+            stack.callback(self.control.close)
+            stack.callback(self._release)
+            try:
+                while True:  # until _End: _play returns only by raising it
+                    hello = self._await_hello()
+                    model = self._obtain(hello)
+                    if model is not None:
+                        self._adopt(hello, model)
+                        self._play()
+            except _End as end:
+                ended = end.reason
+            if self.writer is not None:
+                self.writer.close()
+        return self._summary(ended, time.monotonic() - start)
+
+    def _release(self) -> None:
+        if self.writer is not None:
+            with contextlib.suppress(Exception):
+                self.writer.close()  # closed already on a normal end (then no effect)
+        if self.scene is not None:
+            self.scene.release()
+
+    def _idle_s(self) -> float:
+        """Seconds since the last sign of a sender (packet, control reply) or ready loop."""
+        return time.monotonic() - max(self.last_contact, self.reader.last_arrival or 0.0)
+
+    def _check_end(self) -> None:
+        if self.stop.is_set():
+            raise _End("stop")
+        if self.idle_timeout_s is not None and self._idle_s() > self.idle_timeout_s:
+            raise _End("idle_timeout")
+
+    def _await_hello(self) -> Hello:
+        """Ask until a sender answers, saying that the receiver waits."""
+        since = time.monotonic()
+        while True:
+            self._check_end()
+            timeout = HELLO_TIMEOUT_S
+            if self.idle_timeout_s is not None:
+                timeout = min(timeout, max(0.05, self.idle_timeout_s - self._idle_s()))
+            hello = self.control.ask(HelloRequest(), Hello, timeout)
+            if hello is not None:
+                self.last_contact = time.monotonic()
+                self.counts["hellos"] += 1
+                cam = hello.camera
+                self.say(f"sender at {self.connect}: model {hello.model_sha256[:12]}, "
+                         f"{hello.rate_hz:g} Hz, camera {cam.width}x{cam.height}, "
+                         f"{len(hello.regions)} regions")
+                return hello
+            why = f"; last reply: {self.control.last_error}" if self.control.last_error \
+                else ""
+            self.say(f"waiting for a sender at {self.connect} (control "
+                     f"{self.control_endpoint}): no answer for "
+                     f"{time.monotonic() - since:.0f} s{why}")
+
+    def _obtain(self, hello: Hello) -> PersonModel | None:
+        """The Hello's model: the local file, the cache, or fetched; None: sender gone."""
+        sha = hello.model_sha256
+        if self.local is not None:
+            if self.local.sha256 != sha:
+                raise ReceiveError(
+                    f"--model: {self.local.sha256[:16]}... is not the sender's model "
+                    f"({sha[:16]}..., announced by {self.connect}); omit --model to fetch it")
+            self._note_model(self.local, "file")
+            return self.local
+        try:
+            model = self.cache.get(sha)
+        except ModelCacheError as exc:
+            self.say(f"{exc}: fetching it again")
+            model = None
+        if model is not None:
+            self._note_model(model, "cache", cached=self.cache.path(sha))
+            self.say(f"model {sha[:12]} from the cache ({self.cache.path(sha)})")
+            return model
+        for _ in range(MODEL_ATTEMPTS):
+            tick = time.monotonic()
+            data = self._fetch(hello)
+            if data is None:
+                return None
+            if not data:  # the chunks did not hash to the announced sha256
+                continue
+            try:
+                model = verify_model(data, sha, f"model {sha[:12]} from {self.connect}")
+            except ModelFileError as exc:
+                raise ReceiveError(f"the sender's model is not a valid model file: {exc}") \
+                    from None
+            seconds = time.monotonic() - tick
+            try:
+                path = self.cache.put(data, model)
+            except ModelCacheError as exc:
+                path = None
+                self.say(f"model not cached: {exc}")
+            self._note_model(model, "fetched", cached=path, seconds=seconds)
+            self.say(f"model {sha[:12]} fetched: {len(data)} bytes in {seconds:.2f} s"
+                     + (f", cached as {path}" if path else ""))
+            return model
+        raise ReceiveError(f"the model announced by {self.connect} ({sha[:16]}...) failed "
+                           f"its sha256 {MODEL_ATTEMPTS} times")
+
+    def _fetch(self, hello: Hello) -> bytes | None:
+        """The model file's bytes; None when the sender stopped answering, b"" when the
+        whole does not hash to the announced sha256."""
+        sha, total = hello.model_sha256, hello.model_bytes
+        assembler = ModelAssembler(sha, total)
+        for index in assembler.missing():
+            for _ in range(CHUNK_ATTEMPTS):
+                self._check_end()
+                chunk = self.control.ask(ModelRequest(sha, index), ModelChunk, CHUNK_TIMEOUT_S)
+                if chunk is None:
+                    continue
+                if (chunk.sha256, chunk.index, chunk.total) != (sha, index, total):
+                    self.control.reject(f"chunk {chunk.index} of {chunk.sha256[:12]} "
+                                        f"({chunk.total} bytes) for chunk {index} of "
+                                        f"{sha[:12]} ({total} bytes)")
+                    continue
+                self.last_contact = time.monotonic()
+                assembler.add(chunk)
+                self.say(f"fetching model {sha[:12]}: chunk {index + 1}/{assembler.count} "
+                         f"({min((index + 1) * ctl.CHUNK_BYTES, total) // 1024} of "
+                         f"{total // 1024} KiB)")
+                break
+            else:
+                self.say(f"model {sha[:12]}: chunk {index} failed {CHUNK_ATTEMPTS} times "
+                         f"({self.control.last_error or 'no answer'}); asking the sender "
+                         f"again")
+                return None
+        try:
+            return assembler.result()
+        except ControlError as exc:
+            self.say(f"model {sha[:12]}: {exc}; fetching it again")
+            return b""
+
+    def _note_model(self, model: PersonModel, source: str, cached: Path | None = None,
+                    seconds: float | None = None) -> None:
+        self.model_info = {"model_sha256": model.sha256, "model_source": source,
+                           "model_bytes": model.file_bytes,
+                           "model_fetch_s": None if seconds is None else round(seconds, 3),
+                           "cached": None if cached is None else str(cached)}
+
+    # -- playing ---------------------------------------------------------------------------
+
+    def _adopt(self, hello: Hello, model: PersonModel) -> None:
+        """Play this Hello with this model: a renderer if the model is new, a new playout
+        and clock; the packets queued meanwhile are played or ignored (module docstring)."""
+        if self.size is None:
+            self.size = (hello.camera.width, hello.camera.height)
+        if self.scene is not None and self.scene.model is not model:
+            self.scene.release()
+            self.scene = None
+        if self.scene is None:
+            self.scene = StateRenderer(model, *self.size, hello.camera)
+        self.scene.hello_camera = hello.camera
+        self._retire_playout()
+        self.hello = hello
+        self.playout = Playout(hello.rate_hz, rest_q=rest_q(model))
+        self.played, self.restarts_seen, self.stream_played = 0, 0, False
+        self.pending.clear()
+        now = time.monotonic()
+        self.t0, self.k = now, 0
+        if self.view is not None:
+            self.counts["ignored"] += self.reader.discard()
+        else:  # every slot is rendered: start the clock at the first packet waiting
+            self.t0 = min(now, self.reader.oldest() or now)
+        self.last_contact = now  # the idle timeout counts from a ready loop
+        self.say(f"playing {self.connect} at {hello.rate_hz:g} Hz, {self.size[0]}x"
+                 f"{self.size[1]}: waiting for packets")
+
+    def _retire_playout(self) -> None:
+        """Add the current playout's counts to the totals; what it still held is
+        ``discarded``."""
+        if self.playout is None:
+            return
+        stats = self.playout.stats
+        for key in _PLAYOUT_KEYS:
+            self.totals[key] += stats[key]
+        unplayed = stats["received"] - self.played - sum(
+            stats[k] for k in ("duplicate", "late", "stray", "discarded"))
+        self.totals["discarded"] += max(unplayed, 0)
+        self.playout = None
+
+    def _play(self) -> None:
+        """Tick until the session ends: raises ``_End``, after playing what was received
+        (not after ``max_frames``)."""
+        try:
+            while True:
+                self._check_end()
+                t_k = self.t0 + self.k / self.hello.rate_hz
+                now = time.monotonic()
+                if t_k > now:
+                    if self.stop.wait(t_k - now):
+                        raise _End("stop")
+                elif self.view is not None and now - t_k > self.playout.latency_s:
+                    self.t0 += now - t_k  # keep to real time (module docstring)
+                    t_k = now
+                self._tick(t_k, live=True)
+                self._status()
+        except _End as end:
+            if end.reason != "max_frames":
+                self._drain()
+            raise
+
+    def _drain(self) -> None:
+        """Play what was received, ticking without waiting (module docstring)."""
+        self.reader.close()
+        if self.playout is None:
+            return
+        newest = self.reader.newest()
+        behind = 0.0 if newest is None else newest - (self.t0 + self.k / self.hello.rate_hz)
+        # the ticks until the clock passes the newest arrival, then the playout's window
+        bound = (math.ceil(max(behind, 0.0) * self.hello.rate_hz) + self.reader.queued()
+                 + 4 * (self.playout.window + self.playout.depth) + 16)
+        for _ in range(bound):
+            if self.reader.newest() is None and self.playout.drained:
+                return
+            self._tick(self.t0 + self.k / self.hello.rate_hz, live=False)
+
+    def _tick(self, t_k: float, live: bool) -> None:
+        """Push what arrived by ``t_k``, check the Hello if due (only ``live``: not while
+        draining), pop one state and show it. A changed Hello adopted (a new playout and
+        clock) ends the tick without a pop."""
+        for data, arrival in self.reader.take(t_k):
+            self._note_packet(data, arrival)
+            self.playout.push(data, arrival)
+        restarts = self.playout.stats["restarts"]
+        if restarts > self.restarts_seen:
+            self.restarts_seen = restarts
+            self.pending.clear()
+            self.stream_played = False
+            self.hello_due, self.next_check = True, 0.0
+            self.say(f"the stream from {self.connect} restarted: asking for its Hello")
+        if live and self.hello_due and time.monotonic() >= self.next_check \
+                and self._recheck():
+            return
+        state = self.playout.pop()
+        self.k += 1
+        if state.seq is None:
+            return
+        if state.arrival_s is None:  # concealed: shown now, written if the stream goes on
+            if self.view is not None:
+                self.view(self.scene.render(state), self._live(state.status))
+            if self.stream_played:
+                self.pending.append(state)
+                if len(self.pending) > MAX_GAP_S * self.hello.rate_hz:
+                    self.pending.clear()  # too long a gap: the stream ends here
+                    self.stream_played = False
+            return
+        self.played += 1
+        if not self.stream_played:
+            self.stream_played = True
+            self.counts["streams"] += 1
+        for concealed in self.pending:
+            self.counts["lost"] += 1
+            self._emit(concealed, None, None)
+        self.pending.clear()
+        image = self.scene.render(state)
+        latency = time.monotonic() - state.arrival_s
+        if self.view is not None:
+            self.view(image, self._live(state.status))
+        self._emit(state, image, latency)
+
+    def _recheck(self) -> bool:
+        """Ask for the Hello again (a restart, or a stream resumed); True when a changed one
+        was adopted."""
+        hello = self.control.ask(HelloRequest(), Hello, RECHECK_TIMEOUT_S)
+        if hello is None:
+            self.next_check = time.monotonic() + RECHECK_EVERY_S
+            return False
+        self.last_contact = time.monotonic()
+        self.counts["hellos"] += 1
+        self.hello_due = False
+        same_model = hello.model_sha256 == self.hello.model_sha256
+        if same_model and hello.rate_hz == self.hello.rate_hz:
+            self.hello = hello  # at most another camera: the next frames use it
+            self.scene.hello_camera = hello.camera
+            return False
+        self.say(f"the sender at {self.connect} now sends model {hello.model_sha256[:12]} "
+                 f"at {hello.rate_hz:g} Hz")
+        model = self.scene.model if same_model else self._obtain(hello)
+        if model is None:
+            self.hello_due, self.next_check = True, time.monotonic() + RECHECK_EVERY_S
+            return False
+        self._adopt(hello, model)
+        return True
+
+    def _note_packet(self, data: bytes, arrival: float) -> None:
+        if self.last_packet is not None and arrival - self.last_packet > RESUME_GAP_S:
+            self.hello_due, self.next_check = True, 0.0
+        if self.first_packet is None:
+            self.first_packet = (arrival, len(data))
+        self.last_packet = arrival
+        self.bytes_total += len(data)
+        self.recent_packets.append((arrival, len(data)))
+
+    def _emit(self, state: FrameState, image: np.ndarray | None,
+              latency: float | None) -> None:
+        """One output frame: written if there is a file (rendered now if ``image`` is None),
+        counted, and the end of the session at ``max_frames``."""
+        if self.out is not None or self.frames_dir is not None:
+            if image is None:
+                image = self.scene.render(state)
+            if self.writer is None:
+                width, height = self.size
+                self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz) \
+                    if self.out is not None else FrameFolderWriter(self.frames_dir)
+            self.writer.write(image)
+        now = time.monotonic()
+        self.counts["frames"] += 1
+        self.first_frame = self.first_frame or now
+        self.last_frame = now
+        if latency is not None:
+            self.latencies.append(latency)
+        self.recent_frames.append((now, latency))
+        if self.max_frames is not None and self.counts["frames"] >= self.max_frames:
+            raise _End("max_frames")
+
+    # -- statistics ------------------------------------------------------------------------
+
+    def _playout_counts(self) -> dict[str, int]:
+        counts = dict(self.totals)
+        if self.playout is not None:
+            for key, value in self.playout.stats.items():
+                if key in counts:
+                    counts[key] += value
+        return counts
+
+    def _live(self, state: str) -> dict[str, Any]:
+        """The live statistics (``LIVE_KEYS``); ``state`` is the slot's playout status."""
+        now = time.monotonic()
+        while self.recent_packets and self.recent_packets[0][0] < now - WINDOW_S:
+            self.recent_packets.popleft()
+        while self.recent_frames and self.recent_frames[0][0] < now - WINDOW_S:
+            self.recent_frames.popleft()
+        counts = self._playout_counts()
+        latencies = [x for _, x in self.recent_frames if x is not None]
+        return {"state": state, "fps": round(len(self.recent_frames) / WINDOW_S, 1),
+                "kbps": round(sum(n for _, n in self.recent_packets) * 8 / 1000 / WINDOW_S, 2),
+                "frames": self.counts["frames"], "received": counts["received"],
+                "lost": self.counts["lost"], "late": counts["late"],
+                "corrupt": counts["corrupt"], "duplicates": counts["duplicate"],
+                "latency_ms": round(1000 * float(np.median(latencies)), 1) if latencies
+                else None}
+
+    def _status(self) -> None:
+        """The status line every ``STATUS_EVERY_S`` while playing."""
+        now = time.monotonic()
+        if now < self.next_status:
+            return
+        self.next_status = now + STATUS_EVERY_S
+        last = self.reader.last_arrival
+        if last is None or now - last > STATUS_EVERY_S:
+            quiet = now - max(last or 0.0, self.t0)
+            self.say(f"no packets from {self.connect} for {quiet:.0f} s: waiting for the "
+                     f"sender")
+            return
+        s = self._live("playing")
+        latency = "-" if s["latency_ms"] is None else f"{s['latency_ms']:.0f} ms"
+        self.say(f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
+                 f"lost {s['lost']}, late {s['late']}, corrupt {s['corrupt']}; latency "
+                 f"{latency}")
+
+    def _summary(self, ended: str, seconds: float) -> dict[str, Any]:
+        counts = self._playout_counts()
+        frames = self.counts["frames"]
+        span = (self.last_frame - self.first_frame) if frames > 1 else 0.0
+        packet_span = (self.last_packet - self.first_packet[0]) if self.first_packet else 0.0
+        latencies = np.asarray(self.latencies) * 1000
+        renders = np.asarray(self.scene.render_seconds if self.scene else []) * 1000
+        width, height = self.size if self.size is not None else (None, None)
+        out = self.out if self.out is not None else self.frames_dir
+
+        def ms(values: np.ndarray, q: float) -> float | None:
+            return round(float(np.percentile(values, q)), 1) if len(values) else None
+
+        return {
+            "connect": self.connect, "ended": ended, "out": None if out is None else str(out),
+            "width": width, "height": height, "frames": frames,
+            "received": counts["received"], "lost": self.counts["lost"],
+            "late": counts["late"], "corrupt": counts["corrupt"],
+            "duplicates": counts["duplicate"], "stray": counts["stray"],
+            "discarded": counts["discarded"], "skipped": counts["skipped"],
+            "restarts": counts["restarts"], "ignored": self.counts["ignored"],
+            "overflow": self.reader.overflow, "streams": self.counts["streams"],
+            "hellos": self.counts["hellos"], "control_timeouts": self.control.timeouts,
+            "control_errors": self.control.errors,
+            "fps": round((frames - 1) / span, 1) if span > 0 else None,
+            "kbps": round((self.bytes_total - self.first_packet[1]) * 8 / 1000 / packet_span, 3)
+            if packet_span > 0 else None,
+            "latency_ms_median": ms(latencies, 50), "latency_ms_p95": ms(latencies, 95),
+            "render_ms_median": None if not len(renders) else round(float(np.median(renders)),
+                                                                   2),
+            **self.model_info, "seconds": round(seconds, 2),
+        }

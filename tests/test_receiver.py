@@ -1,0 +1,482 @@
+"""The live receive loop over real ZeroMQ on 127.0.0.1, fed by a real log's packets.
+
+The sender here is the real transport (``PacketPublisher`` and ``ControlServer``) answering
+the real control messages, publishing the packets of lp_d0.mp4 encoded with its own model;
+only the pacing and the scripted faults (junk, a restart) are the test's. Rendering is real
+(EGL), at 160x120 to keep the tests short.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import shutil
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+import zmq
+
+from conftest import free_endpoint
+from models.modelfile import ModelFileError, load_model
+from protocol.control import (Error, Hello, HelloRequest, ModelRequest,
+                              decode_message, model_chunks)
+from protocol.keys import CurveServer, generate_keys, server_keys
+from protocol.log import read_log
+from protocol.packet import decode, encode
+from protocol.transport import ControlServer, PacketPublisher, TransportError
+from receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
+from receiver.receiver import LIVE_KEYS, ReceiveError, receive
+from sender.pipeline import encode_video
+
+SIZE = (160, 120)
+
+
+@pytest.fixture(scope="module")
+def log(person_model: Path, shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
+    """lp_d0.mp4 (78 frames, 25 Hz) encoded with its own model."""
+    path = tmp_path_factory.mktemp("receiver") / "lp_d0.fwlog"
+    encode_video(person_model, shared_data / "video" / "lp_d0.mp4", path)
+    return read_log(path)
+
+
+def _free_port_pair() -> int:
+    """A port P with P and P + 1 free on 127.0.0.1, below the ephemeral range
+    (``conftest.free_endpoint``)."""
+    return int(free_endpoint().rsplit(":", 1)[1])
+
+
+class LogSender(threading.Thread):
+    """A sender on ``tcp://127.0.0.1:port`` (and port + 1) made of the real sockets.
+
+    It answers Hello and model requests (counting them) and, once ``go`` is set (at once
+    when None), publishes ``count`` packets at the Hello's rate: the log's packets in order,
+    cycling, numbered ``first_seq``, ``first_seq + 1``, ...; after every ``junk_every``-th
+    packet it also publishes three corrupt messages, and every ``drop_every``-th packet is
+    numbered and timed but not sent (lost). ``faulty`` lists the control requests (1 for
+    the first) answered wrongly: garbage bytes, then a chunk other than the one asked for.
+    ``stop()`` closes the sockets.
+    """
+
+    def __init__(self, port: int, hello: Hello, model: bytes, packets: np.ndarray,
+                 count: int, go: threading.Event | None = None, first_seq: int = 0,
+                 junk_every: int = 0, drop_every: int = 0, faulty: tuple[int, ...] = (),
+                 curve: CurveServer | None = None) -> None:
+        super().__init__(daemon=True)
+        self.port, self.hello, self.count, self.go = port, hello, count, go
+        self.chunks = {c.index: c for c in model_chunks(model, hello.model_sha256)}
+        self.frames = [decode(p.tobytes()) for p in packets]
+        self.first_seq = first_seq
+        self.junk_every, self.drop_every, self.faulty = junk_every, drop_every, faulty
+        self.dropped = 0
+        self.curve = curve
+        self.requests: Counter[str] = Counter()
+        self.sent = 0
+        self.junk = 0
+        self.bound = threading.Event()
+        self.done = threading.Event()
+        self._halt = threading.Event()
+        self.start()
+        assert self.bound.wait(10), "the test sender could not bind"
+
+    def run(self) -> None:
+        endpoint = f"tcp://127.0.0.1:{self.port}"
+        contexts = [zmq.Context(), zmq.Context()]  # one CURVE authenticator per context
+        for _ in range(50):  # the port of a sender that just closed may take a moment
+            try:
+                pub = PacketPublisher(endpoint, self.curve, context=contexts[0])
+                break
+            except TransportError:
+                time.sleep(0.1)
+        ctl = ControlServer(f"tcp://127.0.0.1:{self.port + 1}", self.curve,
+                            context=contexts[1])
+        self.bound.set()
+        period = 1.0 / self.hello.rate_hz
+        rng = np.random.default_rng(3)
+        next_t = None
+        try:
+            while not self._halt.is_set():
+                now = time.monotonic()
+                if next_t is None and (self.go is None or self.go.is_set()):
+                    next_t = now
+                if next_t is not None and self.sent < self.count and now >= next_t:
+                    frame = self.frames[self.sent % len(self.frames)]
+                    packet = encode(dataclasses.replace(
+                        frame, seq=(self.first_seq + self.sent) % 65536))
+                    if self.drop_every and (self.sent + 1) % self.drop_every == 0:
+                        self.dropped += 1
+                    else:
+                        pub.send(packet)
+                    self.sent += 1
+                    next_t += period
+                    if self.junk_every and self.sent % self.junk_every == 0:
+                        bad = bytearray(packet)
+                        bad[5] ^= 0x10
+                        for junk in (rng.bytes(39), b"abc", bytes(bad)):
+                            pub.send(junk)
+                            self.junk += 1
+                    if self.sent == self.count:
+                        self.done.set()
+                wait = 10 if next_t is None or self.sent == self.count else \
+                    max(0, round((next_t - time.monotonic()) * 1000))
+                request = ctl.recv(wait)
+                if request is not None:
+                    self._answer(ctl, *request)
+        finally:
+            pub.close()
+            ctl.close()
+            for context in contexts:
+                context.term()
+
+    def _answer(self, ctl: ControlServer, peer: tuple[bytes, ...], raw: bytes) -> None:
+        message = decode_message(raw)
+        self.requests[message.TYPE] += 1
+        n = self.requests.total()
+        if n in self.faulty:
+            if self.faulty.index(n) % 2 == 0:
+                ctl.socket.send_multipart([*peer, b"", b"\xc1 not msgpack"])
+            else:
+                ctl.reply(peer, self.chunks[len(self.chunks) - 1])
+        elif isinstance(message, HelloRequest):
+            ctl.reply(peer, self.hello)
+        elif isinstance(message, ModelRequest) and message.sha256 == self.hello.model_sha256 \
+                and message.index in self.chunks:
+            ctl.reply(peer, self.chunks[message.index])
+        else:
+            ctl.reply(peer, Error("unknown request"))
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(10)
+
+
+def _hello_for(model_path: Path, hello: Hello) -> Hello:
+    data = model_path.read_bytes()
+    return dataclasses.replace(hello, model_sha256=hashlib.sha256(data).hexdigest(),
+                               model_bytes=len(data),
+                               regions=tuple(r.name for r in load_model(model_path).regions))
+
+
+def _ready(go: threading.Event, lines: list[str]):
+    """A status callback that records the lines and sets ``go`` once the loop plays."""
+    def status(line: str) -> None:
+        lines.append(line)
+        if "waiting for packets" in line:
+            go.set()
+    return status
+
+
+def _video_frames(path: Path) -> list[np.ndarray]:
+    with av.open(str(path)) as container:
+        return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+
+
+# -- the model cache -------------------------------------------------------------------------
+
+def test_model_is_fetched_by_hash_verified_cached_and_not_fetched_again(
+        log, person_model: Path, tmp_path: Path) -> None:
+    port = _free_port_pair()
+    data = person_model.read_bytes()
+    cache = tmp_path / "cache"
+    go, lines = threading.Event(), []
+    sender = LogSender(port, log.hello, data, log.packets, count=10**6, go=go)
+    try:
+        summary = receive(f"tcp://127.0.0.1:{port}", cache_dir=cache, size=SIZE,
+                          status=_ready(go, lines), max_frames=10, idle_timeout_s=10)
+        chunks = len(sender.chunks)
+        assert chunks > 1  # a real multi-chunk transfer
+        assert sender.requests["model_request"] == chunks
+        assert summary["model_source"] == "fetched" and summary["frames"] == 10
+        assert summary["model_sha256"] == log.hello.model_sha256
+        cached = cache / f"{log.hello.model_sha256}.fwm"
+        assert summary["cached"] == str(cached) and cached.read_bytes() == data
+        assert not list(cache.glob(".*.tmp"))
+        assert any("fetched" in line for line in lines)
+
+        # a second receiver on this host finds it: no model request at all
+        summary = receive(f"tcp://127.0.0.1:{port}", cache_dir=cache, size=SIZE, max_frames=5,
+                          idle_timeout_s=10)
+        assert sender.requests["model_request"] == chunks
+        assert summary["model_source"] == "cache" and summary["frames"] == 5
+
+        # a damaged cached file is refused and fetched again (and repaired)
+        damaged = bytearray(data)
+        damaged[len(damaged) // 2] ^= 0xFF
+        cached.write_bytes(bytes(damaged))
+        lines.clear()
+        summary = receive(f"tcp://127.0.0.1:{port}", cache_dir=cache, size=SIZE,
+                          status=lines.append, max_frames=5, idle_timeout_s=10)
+        assert summary["model_source"] == "fetched"
+        assert sender.requests["model_request"] == 2 * chunks
+        assert cached.read_bytes() == data
+        assert any("damaged" in line and "refused" in line for line in lines)
+    finally:
+        sender.stop()
+
+
+def test_cache_refuses_bytes_that_are_not_the_announced_model(person_model: Path,
+                                                               tmp_path: Path) -> None:
+    data = person_model.read_bytes()
+    sha = hashlib.sha256(data).hexdigest()
+    with pytest.raises(ModelCacheError, match="hash to"):
+        verify_model(data[:-1] + b"x", sha)
+    junk = b"not a model at all"
+    with pytest.raises(ModelFileError):  # hashes right, but is no model file
+        verify_model(junk, hashlib.sha256(junk).hexdigest())
+    cache = ModelCache(tmp_path)
+    model = verify_model(data, sha)
+    with pytest.raises(ModelCacheError, match="not those of model"):
+        cache.put(data[:-1], model)
+    with pytest.raises(ModelCacheError, match="64 lowercase hex"):
+        cache.path("../" + sha[3:])
+    assert cache.get(sha) is None and not list(tmp_path.iterdir())
+
+
+def test_concurrent_writers_leave_one_whole_file(person_model: Path, tmp_path: Path) -> None:
+    """Receivers that fetched the same model at once: each renames its own temporary file
+    over the same name; the result is the whole file and no temporary is left behind."""
+    data = person_model.read_bytes()
+    model = verify_model(data, hashlib.sha256(data).hexdigest())
+    cache = ModelCache(tmp_path / "models")
+    seen: list[bool] = []
+    writers = [threading.Thread(target=cache.put, args=(data, model)) for _ in range(6)]
+
+    def reader() -> None:
+        path = cache.path(model.sha256)
+        while any(w.is_alive() for w in writers) or not seen:
+            if path.exists():
+                seen.append(hashlib.sha256(path.read_bytes()).hexdigest() == model.sha256)
+
+    threads = [*writers, threading.Thread(target=reader)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert cache.get(model.sha256).sha256 == model.sha256
+    assert (tmp_path / "models" / f"{model.sha256}.fwm").read_bytes() == data
+    assert [p.name for p in (tmp_path / "models").iterdir()] == [f"{model.sha256}.fwm"]
+    assert all(seen)  # a reader never saw a partial file (only none, or the whole one)
+    assert os.stat(tmp_path / "models").st_mode & 0o077 == 0  # private: a person's face
+
+
+def test_default_cache_folder(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("FACEWIRE_CACHE", str(tmp_path / "c"))
+    assert default_folder() == tmp_path / "c"
+    monkeypatch.delenv("FACEWIRE_CACHE")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert default_folder() == tmp_path / ".cache" / "facewire" / "models"
+
+
+# -- the receive loop ------------------------------------------------------------------------
+
+def test_a_model_that_is_not_the_senders_is_refused(log, generic_model: Path,
+                                                     tmp_path: Path) -> None:
+    port = _free_port_pair()
+    sender = LogSender(port, log.hello, b"x", log.packets, count=0)
+    try:
+        with pytest.raises(ReceiveError, match="is not the sender's model"):
+            receive(f"tcp://127.0.0.1:{port}", model_path=generic_model,
+                    out=tmp_path / "x.mp4", idle_timeout_s=10)
+        assert sender.requests["hello_request"] == 1 and not sender.requests["model_request"]
+        assert not (tmp_path / "x.mp4").exists()
+    finally:
+        sender.stop()
+
+
+def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
+                                                     tmp_path: Path) -> None:
+    """Junk between the packets is counted as corrupt and changes nothing else."""
+    port = _free_port_pair()
+    go, lines = threading.Event(), []
+    sender = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=40,
+                       go=go, junk_every=8)
+    out = tmp_path / "live.mp4"
+    try:
+        summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model, out=out,
+                          size=SIZE, status=_ready(go, lines), idle_timeout_s=1.0)
+    finally:
+        sender.stop()
+    assert sender.sent == 40 and sender.junk == 15
+    assert summary["ended"] == "idle_timeout" and summary["model_source"] == "file"
+    assert not sender.requests["model_request"]
+    assert summary["received"] == 40 and summary["corrupt"] == 15
+    assert summary["frames"] == 40 and summary["lost"] == 0
+    frames = _video_frames(out)
+    assert len(frames) == summary["frames"]
+    assert frames[0].shape == (SIZE[1], SIZE[0], 3)
+    assert all(f.mean() > 5 for f in frames)  # a face in every frame
+    assert summary["fps"] == pytest.approx(25, rel=0.2)
+    assert summary["kbps"] > 7  # 39-byte packets at 25 Hz, plus the junk
+    assert 50 < summary["latency_ms_median"] < 400  # the playout's 3 slots = 120 ms
+
+
+def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retried(
+        log, person_model: Path, tmp_path: Path) -> None:
+    """Every 7th packet is lost on the way: its slot is concealed and still one frame (frames
+    == received + lost). The first Hello and the first chunk get wrong answers: counted,
+    asked again, and the model still arrives whole."""
+    port = _free_port_pair()
+    go, lines = threading.Event(), []
+    sender = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=40,
+                       go=go, drop_every=7, faulty=(1, 3))
+    out = tmp_path / "frames"
+    try:
+        summary = receive(f"tcp://127.0.0.1:{port}", frames_dir=out, size=SIZE,
+                          cache_dir=tmp_path / "cache", status=_ready(go, lines),
+                          idle_timeout_s=1.0)
+    finally:
+        sender.stop()
+    assert summary["control_errors"] == 2 and summary["model_source"] == "fetched"
+    assert sender.requests["hello_request"] == 2
+    assert sender.requests["model_request"] == len(sender.chunks) + 1
+    assert sender.dropped == 5 and summary["received"] == 35
+    assert summary["lost"] == 5 and summary["frames"] == 40
+    assert len(list(out.glob("frame_*.png"))) == 40
+
+
+def test_a_restarted_sender_with_a_new_model_is_followed(log, person_model: Path,
+                                                         generic_model: Path,
+                                                         tmp_path: Path) -> None:
+    """The sender stops after 30 packets and a new one (another model) takes its address,
+    numbering from 0 again: the receiver fetches the new Hello and model and renders it."""
+    port = _free_port_pair()
+    go, lines = threading.Event(), []
+    first = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=30,
+                      go=go, first_seq=1000)
+    out = tmp_path / "restart.mp4"
+    result: dict = {}
+    thread = threading.Thread(target=lambda: result.update(receive(
+        f"tcp://127.0.0.1:{port}", out=out, cache_dir=tmp_path / "cache", size=SIZE,
+        status=_ready(go, lines), idle_timeout_s=1.5)))
+    thread.start()
+    try:
+        assert first.done.wait(20)
+        time.sleep(0.3)
+        first.stop()
+        hello = _hello_for(generic_model, log.hello)
+        second = LogSender(port, hello, generic_model.read_bytes(), log.packets, count=60)
+        assert second.done.wait(20)
+        thread.join(30)
+        second.stop()
+    finally:
+        first.stop()
+    assert not thread.is_alive() and result, "receive did not end"
+    assert result["ended"] == "idle_timeout"
+    assert second.requests["hello_request"] >= 1 and second.requests["model_request"] >= 1
+    assert result["model_sha256"] == hello.model_sha256 and result["streams"] == 2
+    assert result["received"] >= 60  # (the new sender's first packets may go before the
+    # receiver has reconnected, and those that come while the model is fetched are ignored)
+    frames = _video_frames(out)
+    assert len(frames) == result["frames"] >= 30 + 20
+    person, generic = frames[5].astype(float), frames[-1].astype(float)
+    face = generic.max(axis=2) > 20
+    assert face.mean() > 0.05  # the new stream renders a face...
+    grey = np.abs(generic[face] - generic[face].mean(axis=1, keepdims=True)).mean()
+    skin = np.abs(person[person.max(axis=2) > 20]
+                  - person[person.max(axis=2) > 20].mean(axis=1, keepdims=True)).mean()
+    assert grey < 8 < skin  # ...with the new model's flat grey texture, not the person's
+
+
+def test_a_restarted_sender_with_the_same_model_resumes(log, person_model: Path,
+                                                        tmp_path: Path) -> None:
+    port = _free_port_pair()
+    go, lines = threading.Event(), []
+    data = person_model.read_bytes()
+    first = LogSender(port, log.hello, data, log.packets, count=30, go=go, first_seq=500)
+    result: dict = {}
+    shown: list[tuple[tuple[int, ...], dict]] = []
+    thread = threading.Thread(target=lambda: result.update(receive(
+        f"tcp://127.0.0.1:{port}", model_path=person_model, size=SIZE,
+        view=lambda rgb, stats: shown.append((rgb.shape, stats)),
+        status=_ready(go, lines), idle_timeout_s=1.5)))
+    thread.start()
+    try:
+        assert first.done.wait(20)
+        time.sleep(0.3)
+        first.stop()
+        later = threading.Event()  # a restarting sender takes a moment (model, camera), in
+        threading.Timer(0.5, later.set).start()  # which the receiver reconnects
+        second = LogSender(port, log.hello, data, log.packets, count=30, go=later)
+        assert second.done.wait(20)
+        thread.join(30)
+        second.stop()
+    finally:
+        first.stop()
+    assert not thread.is_alive() and result
+    assert result["streams"] == 2 and result["restarts"] >= 1
+    assert second.requests["hello_request"] >= 1  # the Hello was asked again
+    assert result["received"] == 60
+    # the new stream plays from its first packets: at most the two the resync needs are lost
+    assert result["frames"] >= 58 and result["frames"] == result["received"] - \
+        result["late"] - result["discarded"] - result["duplicates"] - result["stray"]
+    assert any("restarted" in line for line in lines)
+    # the live view saw every frame, and the concealed slots between the streams too
+    assert len(shown) > result["frames"]
+    assert all(shape == (SIZE[1], SIZE[0], 3) for shape, _ in shown)
+    assert all(tuple(stats) == LIVE_KEYS for _, stats in shown)
+    assert shown[-1][1]["received"] == result["received"]
+
+
+def test_with_keys_the_stream_and_the_model_come_only_to_an_authorised_receiver(
+        log, person_model: Path, tmp_path: Path) -> None:
+    for name in ("sender", "good", "stranger"):
+        generate_keys(tmp_path / name)
+    shutil.copy(tmp_path / "good/id.key", tmp_path / "sender/authorized/good.key")
+    for name in ("good", "stranger"):
+        shutil.copy(tmp_path / "sender/id.key", tmp_path / f"{name}/authorized/sender.key")
+    port = _free_port_pair()
+    sender = LogSender(port, log.hello, person_model.read_bytes(), log.packets,
+                       count=10**6, curve=server_keys(tmp_path / "sender"))
+    try:
+        good = receive(f"tcp://127.0.0.1:{port}", curve_dir=tmp_path / "good",
+                       cache_dir=tmp_path / "cache", size=SIZE, max_frames=3,
+                       idle_timeout_s=10)
+        assert good["frames"] == 3 and good["model_source"] == "fetched"
+        requests = sender.requests.total()
+        lines: list[str] = []
+        stranger = receive(f"tcp://127.0.0.1:{port}", curve_dir=tmp_path / "stranger",
+                           cache_dir=tmp_path / "cache2", status=lines.append,
+                           idle_timeout_s=1.5)
+        assert stranger["received"] == 0 and stranger["model_sha256"] is None
+        assert sender.requests.total() == requests  # not one request got through
+        assert lines and all("waiting for a sender" in line for line in lines)
+    finally:
+        sender.stop()
+
+
+def test_without_a_sender_it_waits_with_a_status_then_ends_on_the_idle_timeout(
+        tmp_path: Path) -> None:
+    port = _free_port_pair()
+    lines: list[str] = []
+    tick = time.monotonic()
+    summary = receive(f"tcp://127.0.0.1:{port}", out=tmp_path / "none.mp4",
+                      status=lines.append, idle_timeout_s=1.5)
+    assert 1.4 < time.monotonic() - tick < 4
+    assert summary["ended"] == "idle_timeout" and summary["frames"] == 0
+    assert summary["model_sha256"] is None and summary["control_timeouts"] >= 1
+    assert lines and all("waiting for a sender" in line for line in lines)
+    assert f"127.0.0.1:{port}" in lines[0]
+    assert not (tmp_path / "none.mp4").exists()
+
+
+def test_stop_event_ends_a_waiting_receiver(tmp_path: Path) -> None:
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    summary = receive(f"tcp://127.0.0.1:{_free_port_pair()}", stop=stop)
+    assert summary["ended"] == "stop"
+
+
+def test_bad_arguments_are_refused_before_connecting(tmp_path: Path) -> None:
+    with pytest.raises(ReceiveError, match="one or the other"):
+        receive("tcp://127.0.0.1:5555", out=tmp_path / "a.mp4", frames_dir=tmp_path / "f")
+    with pytest.raises(ReceiveError, match="size"):
+        receive("tcp://127.0.0.1:5555", size=(0, 10))
+    with pytest.raises(ReceiveError, match="callable"):
+        receive("tcp://127.0.0.1:5555", view=5)
+    with pytest.raises(TransportError):
+        receive("udp://nowhere", idle_timeout_s=1)
