@@ -95,18 +95,17 @@ import json
 import math
 import os
 import re
-import secrets
 import stat
 import struct
 import zipfile
 import zlib
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 
+from models.atomic import write_atomically
 from models.mesh import Mesh, MeshError
 
 FORMAT = "facewire-model"
@@ -376,24 +375,8 @@ def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
     if not isinstance(model, PersonModel):
         raise TypeError(f"save_model: expected a PersonModel, got {_kind(model)}")
     data = _encode(model)
-    target = Path(path)
-    tmp = target.with_name(f".{target.name}.{secrets.token_hex(8)}.tmp")
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, target)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        folder = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(folder)
-        finally:
-            os.close(folder)
+        write_atomically(path, data)
     except OSError as e:
         raise ModelFileError(f"{os.fspath(path)}: cannot write ({e})") from e
     return hashlib.sha256(data).hexdigest()

@@ -36,10 +36,10 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import secrets
 import stat
 from pathlib import Path
 
+from models.atomic import write_atomically
 from models.modelfile import MAX_FILE_BYTES, PersonModel, load_model_bytes
 
 ENV_FOLDER = "FACEWIRE_CACHE"
@@ -157,24 +157,9 @@ class ModelCache:
             raise ModelCacheError(f"put: the bytes are not those of model "
                                   f"{model.sha256[:16]}...")
         target = self.path(model.sha256)
-        tmp = self.folder / f".{model.sha256}.{secrets.token_hex(8)}.tmp"
         try:
             self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    f.write(data)
-                    f.flush()
-                    os.fsync(f.fileno())
-                os.replace(tmp, target)
-            except BaseException:
-                tmp.unlink(missing_ok=True)
-                raise
-            folder = os.open(self.folder, os.O_RDONLY)
-            try:
-                os.fsync(folder)
-            finally:
-                os.close(folder)
+            write_atomically(target, data, 0o600)
         except OSError as exc:
             raise ModelCacheError(f"{target}: cannot write ({exc.strerror or exc})") from None
         return target

@@ -9,8 +9,10 @@ from __future__ import annotations
 import os
 import random
 import socket
+import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import av
 import numpy as np
@@ -115,3 +117,19 @@ def free_endpoint() -> str:
             continue
         return f"tcp://127.0.0.1:{port}"
     raise RuntimeError("no two adjacent free ports on 127.0.0.1")
+
+
+def start(target: Any, **kwargs: Any) -> tuple[threading.Thread, threading.Event, dict]:
+    """``target(stop=..., **kwargs)`` on a thread; its summary (or ``error``) in the dict."""
+    stop = threading.Event()
+    result: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            result.update(target(stop=stop, **kwargs))
+        except Exception as exc:  # reported to the test through the dict
+            result["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, stop, result

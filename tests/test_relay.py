@@ -6,7 +6,6 @@ import hashlib
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from protocol.control import (Camera, Hello, HelloRequest, ModelAssembler, ModelChunk,
                               ModelRequest, decode_message)
@@ -17,25 +16,9 @@ from protocol.transport import (ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, control_endpoint)
 from sender.sender import send
 
-from conftest import free_endpoint
+from conftest import free_endpoint, start
 
 SETTLE_S = 5.0
-
-
-def start(target: Any, **kwargs: Any) -> tuple[threading.Thread, threading.Event, dict]:
-    """``target(stop=..., **kwargs)`` on a thread; its summary (or ``error``) in the dict."""
-    stop = threading.Event()
-    result: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            result.update(target(stop=stop, **kwargs))
-        except Exception as exc:  # reported to the test through the dict
-            result["error"] = exc
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread, stop, result
 
 
 def settle(pub: PacketPublisher, subs: list[PacketSubscriber]) -> None:

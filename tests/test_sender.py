@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import shutil
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,25 +23,9 @@ from protocol.transport import (ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, control_endpoint)
 from sender.capture import CaptureError
 from sender.sender import send, unencrypted_warning
-from conftest import free_endpoint
+from conftest import free_endpoint, start
 
 TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model and the tracker
-
-
-def start_sender(**kwargs: Any) -> tuple[threading.Thread, threading.Event, dict[str, Any]]:
-    """``send(**kwargs)`` on a thread; its summary (or ``error``) lands in the returned dict."""
-    stop = threading.Event()
-    result: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            result.update(send(stop=stop, **kwargs))
-        except Exception as exc:  # reported to the test through the dict
-            result["error"] = exc
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread, stop, result
 
 
 def fetch_model(client: ControlClient, hello: Hello) -> tuple[bytes, int]:
@@ -72,8 +55,8 @@ def test_live_sender_serves_the_hello_the_model_and_every_packet(
     statuses: list[dict[str, Any]] = []
     with PacketSubscriber(endpoint) as sub, PacketSubscriber(endpoint) as leaver, \
             ControlClient(control_endpoint(endpoint)) as client:
-        thread, _, result = start_sender(
-            model_path=person_model, source=str(shared_data / "video" / "lp_d0.mp4"),
+        thread, _, result = start(
+            send, model_path=person_model, source=str(shared_data / "video" / "lp_d0.mp4"),
             bind=endpoint, record=log_path, status=statuses.append)
         hello = client.request(HelloRequest(), TIMEOUT_MS)
         assert isinstance(hello, Hello), result
@@ -136,7 +119,7 @@ def test_stop_event_ends_a_looping_send_cleanly(generic_model: Path, grey_clip: 
                                                  tmp_path: Path) -> None:
     endpoint, log_path = free_endpoint(), tmp_path / "loop.fwlog"
     with ControlClient(control_endpoint(endpoint)) as client:
-        thread, stop, result = start_sender(model_path=generic_model, source=str(grey_clip),
+        thread, stop, result = start(send, model_path=generic_model, source=str(grey_clip),
                                             bind=endpoint, record=log_path, loop=True)
         assert isinstance(client.request(HelloRequest(), TIMEOUT_MS), Hello), result
         time.sleep(1.0)
@@ -173,7 +156,7 @@ def test_curve_sender_serves_only_authorised_receivers(generic_model: Path, grey
     with PacketSubscriber(endpoint, good) as sub, ControlClient(control, good) as client, \
             PacketSubscriber(endpoint, stranger) as intruder, \
             ControlClient(control, stranger) as intruder_client:
-        thread, stop, result = start_sender(model_path=generic_model, source=str(grey_clip),
+        thread, stop, result = start(send, model_path=generic_model, source=str(grey_clip),
                                             bind=endpoint, curve_dir=keys / "sender",
                                             loop=True)
         hello = client.request(HelloRequest(), TIMEOUT_MS)
