@@ -57,17 +57,15 @@ from facewire.performer import ENROLL_S, PerformanceResult, perform
 from models.build import BuildResult, build_model
 from models.modelfile import PersonModel, load_model
 from models.progress import Progress, no_progress
-from models.rig import Rig
 from models.video import read_frames, video_info
 from protocol.control import ControlError, Hello, HelloRequest, decode_message
 from protocol.log import LogWriter
-from protocol.packet import N_REGIONS, PACKET_BYTES
+from protocol.packet import PACKET_BYTES
 from protocol.transport import (WIRE_OVERHEAD, ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, TransportError, control_endpoint)
 from receiver.output import VideoWriter, side_by_side
 from receiver.playout import Playout
-from receiver.render import FaceRenderer
-from receiver.views import sender_view
+from receiver.scene import StateRenderer, rest_q
 from sender.capture import open_source
 from sender.enroll import enroll_regions
 from sender.pipeline import SenderPipeline, sender_camera
@@ -411,10 +409,7 @@ def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sen
     """The receiver: packets in, one rendered slot per packet, side by side with the video."""
     start = time.perf_counter()
     width, height = hello.camera.width, hello.camera.height
-    rig = Rig(model.mesh)
-    rest = np.zeros(N_REGIONS, np.float32)
-    rest[:len(model.regions)] = [r.rest for r in model.regions]
-    playout = Playout(hello.rate_hz, rest_q=rest)
+    playout = Playout(hello.rate_hz, rest_q=rest_q(model))
     performer = read_frames(video, frames)
     arrivals: list[float] = []
     sizes: list[int] = []
@@ -455,7 +450,7 @@ def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sen
     count = video_info(video).frames or None  # 0: the container does not say
     stop = count if frames.stop is None else min(frames.stop, count or frames.stop)
     total = None if stop is None else max(stop - frames.start, 0)
-    with FaceRenderer(model, width, height) as renderer, \
+    with StateRenderer(model, width, height, hello.camera) as renderer, \
             VideoWriter(out_video, 2 * width, height, hello.rate_hz, crf=DEMO_CRF,
                         preset=DEMO_PRESET) as writer:
         for state in progress(states(), "streaming", total):
@@ -467,9 +462,7 @@ def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sen
             if frame is None:
                 raise DemoError(f"{video}: no frame {frames.start + ext} for slot {state.seq}")
             tick = time.perf_counter()
-            vertices = rig.morph(rig.from_tangent(state.residuals))
-            camera = sender_view(hello.camera, state.rotation, state.translation, width, height)
-            image = renderer.render(vertices, state.q, camera)
+            image = renderer.render(state)
             render_seconds += time.perf_counter() - tick
             if state.status == "received" and state.seq in sender.sent_at:
                 latency.append(1000.0 * (time.monotonic() - sender.sent_at[state.seq]))

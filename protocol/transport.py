@@ -224,8 +224,10 @@ class ControlClient(_Socket):
     def request(self, message: Message, timeout_ms: int) -> Message | None:
         """Send a request and wait for its reply; None on timeout.
 
-        The timeout covers the send too: a DEALER with no connected peer (the server is down,
-        or refused our CURVE handshake) cannot take the message and would block forever.
+        The timeout covers the send too (a full queue). A DEALER with no peer yet queues the
+        request and delivers it when a server appears, so a reply can come after its request
+        timed out: a caller that asks again after a timeout must use a new socket, or it may
+        take that late reply for the answer to its next request (``receiver.receiver`` does).
 
         Raises:
             ControlError: the reply is malformed.

@@ -50,10 +50,8 @@ start, while the Hello is asked, the model fetched and the renderer set up): wit
 the clock starts at the first of them and they are played, late; with a view they are
 dropped (``ignored``), since the picture is to be live.
 
-Per slot (``StateRenderer``, the steps of ``receiver.replay`` too): the playout's state (pose,
-tangent residuals r, Q; held or eased when concealed), ``vertices =
-rig.morph(rig.from_tangent(r))``, the sender's view (``receiver.views.sender_view``: the
-Hello's camera with the state's pose) at the output size, ``FaceRenderer.render``.
+Per slot: ``receiver.scene.StateRenderer`` (morph, the sender's view at the output size,
+render), as ``receiver.replay`` does.
 
 Output frames (the file, and ``frames`` in the summary)
 ------------------------------------------------------
@@ -115,26 +113,21 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 
 from models.modelfile import ModelFileError, PersonModel, load_model
-from models.raster import RenderError
-from models.rig import Rig
 from protocol import control as ctl
 from protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
                               ModelRequest)
 from protocol.keys import CurveClient, client_keys
-from protocol.packet import N_REGIONS
 from protocol.transport import ControlClient, PacketSubscriber, control_endpoint
 from receiver.modelcache import ModelCache, ModelCacheError, verify_model
 from receiver.output import FrameFolderWriter, VideoWriter
 from receiver.playout import FrameState, Playout
-from receiver.render import FaceRenderer
-from receiver.views import VIEW_KINDS, sender_view, virtual_view
+from receiver.scene import STATS_FRAMES, StateRenderer, rest_q
 
-VIEWS = ("camera", *VIEW_KINDS)
 HELLO_TIMEOUT_S = 1.0
 CHUNK_TIMEOUT_S = 5.0
 CHUNK_ATTEMPTS = 5
@@ -144,7 +137,6 @@ RECHECK_EVERY_S = 2.0
 RESUME_GAP_S = 0.5
 MAX_GAP_S = 10.0
 QUEUE_PACKETS = 4096
-STATS_FRAMES = 108_000  # the summary's latency and render medians: the last hour at 30 Hz
 STATUS_EVERY_S = 1.0
 WINDOW_S = 1.0
 MAX_SIZE = 4096
@@ -160,71 +152,6 @@ View = Callable[[np.ndarray, dict[str, Any]], None]
 
 class ReceiveError(ValueError):
     """The receive cannot go on: a bad option, or a model that is not the sender's."""
-
-
-def rest_q(model: PersonModel) -> np.ndarray:
-    """(8,) float32: each region's rest Q (``Region.rest``) in packet order, 0 beyond the
-    model's regions: what the playout shows for a face at rest or lost (``Playout(rest_q=)``)."""
-    rest = np.zeros(N_REGIONS, np.float32)
-    rest[:len(model.regions)] = [r.rest for r in model.regions]
-    return rest
-
-
-class StateRenderer:
-    """A playout state to pixels: the per-slot steps of every receiver (live and replay).
-
-    ``vertices = rig.morph(rig.from_tangent(state.residuals))``; the camera is the sender's
-    (``view="camera"``: ``sender_view`` with ``hello_camera`` and the state's pose) or a
-    virtual one (``virtual_view``, the head turning by the state's rotation); the image is
-    ``FaceRenderer.render(vertices, state.q, camera)``.
-
-    Args:
-        model: the person model.
-        width, height: output size, pixels.
-        hello_camera: the sender's intrinsics (the Hello's); may be replaced later.
-        view: one of ``VIEWS``.
-
-    Attributes:
-        model, rig, width, height, view, hello_camera: as given (``rig`` built from the mesh).
-        render_seconds: the time each of the last ``STATS_FRAMES`` ``render`` calls took, s.
-
-    Raises:
-        RenderError: a bad view or size. EGLUnavailable: no headless OpenGL.
-    """
-
-    def __init__(self, model: PersonModel, width: int, height: int,
-                 hello_camera: ctl.Camera, view: str = "camera") -> None:
-        if view not in VIEWS:
-            raise RenderError(f"view: expected one of {', '.join(VIEWS)}, got {view!r}")
-        self.model, self.width, self.height, self.view = model, width, height, view
-        self.hello_camera = hello_camera
-        self.rig = Rig(model.mesh)
-        self.render_seconds: deque[float] = deque(maxlen=STATS_FRAMES)
-        self._renderer = FaceRenderer(model, width, height)
-
-    def render(self, state: FrameState) -> np.ndarray:
-        """(height, width, 3) uint8 RGB: the face in ``state``."""
-        tick = time.perf_counter()
-        vertices = self.rig.morph(self.rig.from_tangent(state.residuals))
-        if self.view == "camera":
-            camera = sender_view(self.hello_camera, state.rotation, state.translation,
-                                 self.width, self.height)
-        else:
-            camera = virtual_view(self.view, self.model.mesh, state.rotation, self.width,
-                                  self.height)
-        image = self._renderer.render(vertices, state.q, camera)
-        self.render_seconds.append(time.perf_counter() - tick)
-        return image
-
-    def release(self) -> None:
-        """Free the renderer's OpenGL context."""
-        self._renderer.release()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.release()
 
 
 def receive(connect: str, model_path: str | os.PathLike[str] | None = None,

@@ -7,8 +7,8 @@ missing packet is concealed), and every frame slot from the first sequence numbe
 last becomes one output frame:
 
     state     = the slot's pose, tangent residuals r and Q (held or eased when concealed)
-    vertices  = rig.morph(rig.from_tangent(r))                 the person's morphed mesh
-    image     = FaceRenderer.render(vertices, Q, view camera)  base texture + region volumes
+    image     = receiver.scene.StateRenderer.render(state)   morphed mesh, base texture and
+                                                              region volumes, from the view
 
 Views (``VIEWS``): ``camera`` is the sender's camera with the received pose and the Hello's
 intrinsics (the output lines up with the sender's frame; its size is the Hello's unless
@@ -33,16 +33,12 @@ import numpy as np
 
 from models.modelfile import load_model
 from models.progress import Progress, no_progress
-from models.rig import Rig
 from models.video import read_frames
 from protocol.log import read_log
-from protocol.packet import N_REGIONS
 from receiver.output import FrameFolderWriter, VideoWriter, side_by_side
 from receiver.playout import Playout, replay_states
-from receiver.render import FaceRenderer
-from receiver.views import sender_view, virtual_view
+from receiver.scene import VIEWS, StateRenderer, rest_q
 
-VIEWS = ("camera", "front", "three-quarter")
 VIRTUAL_SIZE = (640, 480)
 
 
@@ -89,10 +85,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     width, height = size
     if not (0 < width <= 4096 and 0 < height <= 4096):
         raise ReplayError(f"--size: expected a width and height in [1, 4096], got {size}")
-    rig = Rig(model.mesh)
-    rest = np.zeros(N_REGIONS, np.float32)
-    rest[:len(model.regions)] = [r.rest for r in model.regions]
-    playout = Playout(hello.rate_hz, rest_q=rest)
+    playout = Playout(hello.rate_hz, rest_q=rest_q(model))
     states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
     frames = _SourceFrames(source) if source is not None else None
     out = Path(out)
@@ -102,16 +95,10 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     t0 = float(np.min(log.times)) if len(log.times) else 0.0
     written = 0
     render_seconds = 0.0
-    with FaceRenderer(model, width, height) as renderer, writer:
+    with StateRenderer(model, width, height, hello.camera, view) as renderer, writer:
         for k, state in enumerate(progress(states, "rendering", None)):
-            vertices = rig.morph(rig.from_tangent(state.residuals))
-            if view == "camera":
-                camera = sender_view(hello.camera, state.rotation, state.translation,
-                                     width, height)
-            else:
-                camera = virtual_view(view, model.mesh, state.rotation, width, height)
             tick = time.perf_counter()
-            image = renderer.render(vertices, state.q, camera)
+            image = renderer.render(state)
             render_seconds += time.perf_counter() - tick
             if frames is not None:
                 image = side_by_side(frames.at(t0 + k / hello.rate_hz), image, height)
