@@ -92,7 +92,7 @@ def _receive(args: argparse.Namespace) -> int:
         return 0
     report(s, [f"received {s['received']} packets ({s['kbps']} kbit/s): {s['lost']} lost, "
                f"{s['late']} late, {s['corrupt']} corrupt, {s['duplicates']} duplicates; "
-               f"{s['restarts']} sender restarts",
+               f"{s['restarts']} resyncs (sender restarts, or falling behind)",
                f"rendered {s['frames']} frames at {s['fps']} fps ({s['width']}x{s['height']}); "
                f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95",
                f"model {s['model_sha256'][:16]}... ({s['model_source']}"
