@@ -24,9 +24,9 @@ How a frame is made (``Performer.frame``), and what in it is synthetic
    ``CHIN_MM`` with the jaw line in proportion (``JAW_SHARE``), the lower lip with it, the
    upper lip a little up and the corners in and down (``LIP_MM``, ``CORNER_*``); the jaw's
    phantoms follow the chin as the rig's do (``Rig.follow``), the skull's stay. The inner
-   lips part, so the cavity shows: the rig, which moves 9 points, cannot part them that far
-   (its inner lips follow the outer ones by about a third), and the receiver shows the open
-   mouth through the mouth region's appearance layers, as the paper intends. The eyeballs
+   lips part along their whole width, so the cavity shows (the rig moves 9 points, of the
+   lips only the middles and the corners), and the receiver shows the open mouth through
+   its morph and the mouth region's appearance layers, as the paper intends. The eyeballs
    stay rigid. The real renderer (``models.raster.MeshRenderer``) draws the morphed mesh.
 4. Compositing over the portrait. Only the face is taken from the render: the polygon of the
    projected jaw contour (0-16) and the brows raised by ``FOREHEAD`` times their height

@@ -73,12 +73,17 @@ class Pacer:
     """Release frames in real time: frame time ``t`` no earlier than ``origin + t - t0``.
 
     ``origin`` is the clock when the first frame (time ``t0``) was released. A consumer
-    slower than real time is never made to wait more: lateness is not made up later.
+    slower than real time is never made to wait more. Lateness up to ``catch_up_s`` is made
+    up: the next frames are released at once until the schedule is met again (a live stream
+    whose receivers play it on their own clock); beyond it, and always with the default 0,
+    the schedule shifts by the lateness: it is not made up later.
     """
 
-    def __init__(self, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
+    def __init__(self, clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
+                 catch_up_s: float = 0.0) -> None:
         self._clock = clock
         self._sleep = sleep
+        self._catch_up_s = catch_up_s
         self._origin: float | None = None
 
     def wait(self, t: float) -> None:
@@ -90,8 +95,8 @@ class Pacer:
         delay = self._origin + t - now
         if delay > 0:
             self._sleep(delay)
-        else:
-            self._origin -= delay  # running late: shift the schedule, do not rush
+        elif -delay > self._catch_up_s:
+            self._origin -= delay  # too late to catch up: shift the schedule, do not rush
 
 
 class RateLimiter:

@@ -13,9 +13,10 @@ The stream's rate is the smaller of the target rate and the source's: a 25 Hz fi
 ``origin + t``, ``origin`` fixed at the first frame. Receivers play one slot per
 ``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a frame that is late
 (the machine was busy) is sent at once and the next ones catch up, rather than every later
-frame being shifted (the rule of ``sender.capture.Pacer``, which would leave the stream
+frame being shifted (``sender.capture.Pacer``'s default rule, which would leave the stream
 slower than announced and the receivers' buffers running dry). Only when more than
-``MAX_LAG_S`` behind (a stalled machine) does the schedule restart from the late frame.
+``MAX_LAG_S`` behind (a stalled machine) does the schedule restart from the late frame
+(``Pacer(catch_up_s=MAX_LAG_S)``).
 
 Control requests (``protocol.control``) are answered on a second thread, at the control
 endpoint (the bind port plus one): a HelloRequest gets the Hello; ModelRequest(sha256, index)
@@ -63,7 +64,7 @@ from protocol.keys import server_keys
 from protocol.log import LogError, LogWriter
 from protocol.packet import PACKET_BYTES
 from protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
-from sender.capture import CaptureError, RateLimiter, Source, open_source
+from sender.capture import CaptureError, Pacer, RateLimiter, Source, open_source
 from sender.pipeline import SenderPipeline, sender_camera
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
@@ -174,8 +175,9 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
 
     A camera delivers in real time and limits its own rate. A file's frames are thinned to
     at most one per slot of ``rate_hz`` (``RateLimiter``) and each kept frame is released at
-    ``origin + t``; a looped file's times keep increasing across passes. Waits end early
-    when ``stop`` is set (the caller checks it).
+    ``origin + t`` (``Pacer``, catching up lateness up to ``MAX_LAG_S``); a looped file's
+    times keep increasing across passes. Waits end early when ``stop`` is set (the caller
+    checks it).
 
     Raises:
         CaptureError: a pass yields no frame (an empty video).
@@ -184,24 +186,16 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
         yield from ((frame.image, frame.time) for frame in source)
         return
     limiter = RateLimiter(rate_hz)
-    origin = None
+    pacer = Pacer(sleep=stop.wait, catch_up_s=MAX_LAG_S)
     offset = 0.0
     while True:
         last = None
         for frame in source:
             last = frame.time
             t = offset + frame.time
-            if not limiter.keep(t):
-                continue
-            now = time.monotonic()
-            if origin is None:
-                origin = now - t
-            lag = now - (origin + t)
-            if lag > MAX_LAG_S:
-                origin += lag  # too far behind to catch up: start the schedule again here
-            elif lag < 0:
-                stop.wait(-lag)
-            yield frame.image, t
+            if limiter.keep(t):
+                pacer.wait(t)
+                yield frame.image, t
         if last is None:
             raise CaptureError(f"{source.name}: holds no frames")
         if not loop:
