@@ -1,7 +1,9 @@
 """``facewire bench speed``: per-frame cost of the pipeline's stages, one core where possible.
 
-Stages measured so far (issues 3 to 6); the latency keys of the DESIGN.md contract need the
-live link (issue 7), are listed under ``not_measured`` and are never estimated.
+Every key of the DESIGN.md contract is measured; the end-to-end latency and the memory
+growth come from a live run of a real sender and receiver over loopback
+(``bench.loopback``, ``loopback_s`` seconds; 0 leaves them out, listed under
+``not_measured``, never estimated).
 
 The sender stages are timed by running the whole ``sender.pipeline.SenderPipeline`` (the
 model, the intrinsics guess of ``sender.capture.estimate_intrinsics`` for the video's size)
@@ -28,8 +30,14 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
   the base texture and the region volumes, multisample resolve and read back), and
   ``receiver_ms_median`` (decode, ``Rig.from_tangent`` and ``Rig.morph``, the view camera,
   render and read back) with ``receiver_fps`` = 1000 / it, at 640 x 480; the same at
-  1280 x 720 as ``receiver_fps_1280x720`` and ``render_ms_1280x720``. The playout buffer
-  and writing a video are not timed (the video writer runs on its own thread).
+  1280 x 720 as ``receiver_fps_1280x720`` and ``render_ms_1280x720``. The 640 x 480 frames
+  also go to a ``receiver.output.VideoWriter`` as ``facewire receive --out`` writes them:
+  ``encode_ms`` is the median time its thread takes to encode one (H.264, on its own thread,
+  beside the rendering, so not part of ``receiver_ms_median``).
+- ``latency_ms_median``, ``latency_ms_p95``, ``sender_rss_growth_mb``,
+  ``receiver_rss_growth_mb`` and the rest of ``bench.loopback.measure_loopback``: a real
+  ``facewire send`` process on the video (looped) and a live receiver in this process for
+  ``loopback_s`` seconds.
 - ``morph_ms``: median wall time of one ``Rig.morph`` call (``models/rig.py``: an
   (N, 9) @ (9, 3) float32 product and an add) on the model's mesh, over ``MORPH_CALLS`` calls
   cycling through residuals drawn uniformly from +-``RESIDUAL_MM`` mm, after a warm-up.
@@ -49,7 +57,8 @@ Targets (printed, informative): morph <= 0.2 ms per 10,000 vertices on one core 
 linear in the vertex count, so a mesh of N vertices is judged by ``morph_ms * 10000 / N``),
 tracking <= 2 ms per acquired frame on 640x480, the sender >= 150 fps on 640x480,
 classification of all regions <= 1 ms per frame, the receiver >= 60 fps at 640x480 and
->= 30 fps at 1280x720 (CPU rendering here: Mesa llvmpipe). A miss
+>= 30 fps at 1280x720 (CPU rendering here: Mesa llvmpipe), the loopback latency median
+<= 25 ms and each side's resident memory growing by under 10 MB. A miss
 does not fail the command (exit 0): wall times on a shared machine vary by +-20 % from run
 to run, so a hard threshold on them would fail at random; the report states whether each
 target was met in this run.
@@ -60,6 +69,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -67,6 +77,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
 from bench.report import report
 from models.modelfile import load_model
 from models.progress import Progress, no_progress
@@ -74,6 +85,7 @@ from models.rig import N_RESIDUALS, Rig
 from models.video import VideoError, read_frames, video_info
 from sender.capture import estimate_intrinsics
 from protocol.packet import decode as decode_packet
+from receiver.output import VideoWriter
 from receiver.render import FaceRenderer
 from receiver.views import sender_view
 from sender.pipeline import SenderPipeline
@@ -90,12 +102,14 @@ TARGET_RECEIVER_FPS = 60.0
 TARGET_RECEIVER_FPS_HD = 30.0
 RECEIVER_SIZES = ((640, 480), (1280, 720))
 RECEIVER_WARMUP = 3  # frames rendered before timing (shader compilation, first uploads)
+LOOPBACK_S = 30.0
 TARGET_SIZE = (640, 480)
 SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "pack")
 _FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify")
 
-# The speed keys of the DESIGN.md contract that no stage measures yet.
-NOT_MEASURED = ("latency_ms_median", "latency_ms_p95")
+# The keys that only the loopback run measures.
+LOOPBACK_KEYS = ("latency_ms_median", "latency_ms_p95", "sender_rss_growth_mb",
+                 "receiver_rss_growth_mb")
 
 # get/set symbol pairs of OpenBLAS builds: plain, numpy's (64-bit ints) and scipy's bundles.
 _BLAS_SYMBOLS = (
@@ -110,8 +124,8 @@ class NoFaceError(VideoError):
 
 
 def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-                  frames: slice | None = None, progress: Progress = no_progress
-                  ) -> dict[str, Any]:
+                  frames: slice | None = None, progress: Progress = no_progress,
+                  loopback_s: float = LOOPBACK_S) -> dict[str, Any]:
     """Time tracking on a video and the morph on a model (module docstring).
 
     Args:
@@ -119,6 +133,7 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         source: a video file.
         frames: the frame range to track (``models.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+        loopback_s: seconds of the live loopback run (``bench.loopback``); 0 skips it.
 
     Returns:
         A dict: ``frames`` (frames tracked), ``tracked_frames``, ``detect_frames``,
@@ -127,11 +142,13 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         ``classify_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``, ``sender_fps``,
         ``width``, ``height``, ``vertices``, ``morph_ms``, ``morph_ms_default_threads``,
         ``morph_calls``, ``threads`` (what was pinned),
-        ``targets`` and ``met`` (per target), ``not_measured`` (contract keys not measured
-        yet); times in milliseconds.
+        ``encode_ms``, the keys of ``bench.loopback.measure_loopback`` (None when skipped),
+        ``targets`` and ``met`` (per target), ``not_measured`` (the loopback keys when it was
+        skipped); times in milliseconds.
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
+        LoopbackError: the loopback run failed (says which side).
         VideoError: the video is missing or unreadable, or the range holds no frame;
             ``NoFaceError`` when no frame holds a face (names the file).
     """
@@ -139,15 +156,23 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
     model = load_model(model_path)
     source = Path(source)
     info = video_info(source)
-    tracking, packets, hello_camera = _time_sender(model, source, frames, info, progress)
+    tracking, packets, hello = _time_sender(model, source, frames, info, progress)
     rig = Rig(model.mesh)
     with _one_blas_thread():
-        receiver = _time_receiver(model, rig, packets, hello_camera, RECEIVER_SIZES[0])
-        receiver_hd = _time_receiver(model, rig, packets, hello_camera, RECEIVER_SIZES[1])
+        receiver = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[0],
+                                  hello.rate_hz)
+        receiver_hd = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[1],
+                                     hello.rate_hz)
     n = len(model.mesh.vertices)
     pinned, threads = _time_morph_pinned(rig)
     default = _time_morph(rig)
     morph_per_10k = pinned * 10_000 / n
+    if loopback_s > 0:
+        loopback = measure_loopback(model_path, source, loopback_s)
+    else:
+        loopback = dict.fromkeys(LOOPBACK_KEYS)
+    latency, growth = loopback["latency_ms_median"], (loopback["sender_rss_growth_mb"],
+                                                      loopback["receiver_rss_growth_mb"])
     result: dict[str, Any] = {
         "model": str(model_path),
         "source": str(source),
@@ -161,10 +186,12 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         "morph_ms_default_threads": round(default, 4),
         "morph_calls": MORPH_CALLS,
         "threads": threads,
+        **loopback,
         "targets": {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K,
                     "track_ms": TARGET_TRACK_MS, "sender_fps": TARGET_SENDER_FPS,
                     "classify_ms": TARGET_CLASSIFY_MS, "receiver_fps": TARGET_RECEIVER_FPS,
-                    "receiver_fps_1280x720": TARGET_RECEIVER_FPS_HD},
+                    "receiver_fps_1280x720": TARGET_RECEIVER_FPS_HD,
+                    "latency_ms_median": TARGET_LATENCY_MS, "rss_growth_mb": TARGET_GROWTH_MB},
         "met": {"morph": morph_per_10k <= TARGET_MORPH_MS_PER_10K,
                 "track": (tracking["track_ms"] is not None
                           and tracking["track_ms"] <= TARGET_TRACK_MS),
@@ -172,8 +199,10 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
                 "classify": (tracking["classify_ms"] is not None
                              and tracking["classify_ms"] <= TARGET_CLASSIFY_MS),
                 "receiver": receiver["receiver_fps"] >= TARGET_RECEIVER_FPS,
-                "receiver_1280x720": receiver_hd["receiver_fps"] >= TARGET_RECEIVER_FPS_HD},
-        "not_measured": list(NOT_MEASURED),
+                "receiver_1280x720": receiver_hd["receiver_fps"] >= TARGET_RECEIVER_FPS_HD,
+                "latency": latency is not None and latency <= TARGET_LATENCY_MS,
+                "memory": all(g is not None and g < TARGET_GROWTH_MB for g in growth)},
+        "not_measured": [k for k in LOOPBACK_KEYS if loopback[k] is None],
     }
     return result
 
@@ -218,17 +247,30 @@ def format_speed(result: dict[str, Any]) -> str:
         f"({r['morph_ms_per_10k_vertices']:.4f} ms per 10k); "
         f"{_verdict(r['met']['morph'])} <= {TARGET_MORPH_MS_PER_10K:g} ms per 10k vertices",
         f"        {r['morph_ms_default_threads']:.4f} ms with the default BLAS threads",
+        f"encode: {r['encode_ms']:.3f} ms median per 640x480 frame (H.264, its own thread)",
         f"threads: {r['threads']}",
-        f"not measured yet: {', '.join(r['not_measured'])}",
     ]
+    if r["latency_ms_median"] is not None:
+        lines.append(f"latency: {r['latency_ms_median']:.1f} ms median, "
+                     f"{r['latency_ms_p95']:.1f} ms p95 from a packet sent to its frame "
+                     f"rendered ({r['latency_frames']} frames, {r['loopback_s']:g} s live on "
+                     f"loopback); {_verdict(r['met']['latency'])} <= {TARGET_LATENCY_MS:g} ms")
+    grow = [f"{side} {r[side + '_rss_mb']:.0f} MB, grew {r[side + '_rss_growth_mb']:+.1f} MB"
+            for side in ("sender", "receiver") if r[side + "_rss_growth_mb"] is not None]
+    if grow:
+        lines.append(f"memory: {'; '.join(grow)} after warm-up; "
+                     f"{_verdict(r['met']['memory'])} < {TARGET_GROWTH_MB:g} MB")
+    if r["not_measured"]:
+        lines.append(f"not measured: {', '.join(r['not_measured'])} (a longer loopback run "
+                     f"gives them)")
     return "\n".join(lines)
 
 
 def speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
           as_json: bool = False, frames: slice | None = None,
-          progress: Progress = no_progress) -> int:
+          progress: Progress = no_progress, loopback_s: float = LOOPBACK_S) -> int:
     """Run ``measure_speed`` and print its report; the exit status is 0 (targets inform)."""
-    result = measure_speed(model_path, source, frames, progress)
+    result = measure_speed(model_path, source, frames, progress, loopback_s)
     report(result, format_speed(result).splitlines(), as_json)
     return 0
 
@@ -240,7 +282,7 @@ def _verdict(met: bool) -> str:
 def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: Progress
                  ) -> tuple[dict[str, Any], list[bytes], Any]:
     """Run the sender pipeline over the range: median stage times (module docstring), the
-    packets it made and the Hello's camera."""
+    packets it made and its Hello."""
     total = None
     if info.frames:
         stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
@@ -292,16 +334,18 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
         "sender_ms_median": round(sender_ms, 4),
         "sender_fps": round(1000.0 / sender_ms, 2),
     }
-    return timings, packets, pipeline.hello().camera
+    return timings, packets, pipeline.hello()
 
 
 def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
-                   size: tuple[int, int]) -> dict[str, Any]:
+                   size: tuple[int, int], rate_hz: float) -> dict[str, Any]:
     """The receiver's per-frame work on the sender's packets (module docstring): decode,
-    morph, render and read back at ``size``; medians in ms."""
+    morph, render and read back at ``size``, and the encoding of the frames; medians in ms."""
     width, height = size
     decode, render, total = [], [], []
-    with FaceRenderer(model, width, height) as renderer:
+    with tempfile.TemporaryDirectory(prefix="facewire-speed-") as tmp, \
+            FaceRenderer(model, width, height) as renderer, \
+            VideoWriter(Path(tmp) / "out.mp4", width, height, rate_hz) as writer:
         for k, packet in enumerate(packets):
             t0 = time.perf_counter()
             frame = decode_packet(packet)
@@ -309,14 +353,17 @@ def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
             vertices = rig.morph(rig.from_tangent(frame.residuals))
             view = sender_view(camera, frame.rotation, frame.translation, width, height)
             t2 = time.perf_counter()
-            renderer.render(vertices, frame.q, view)
+            image = renderer.render(vertices, frame.q, view)
             t3 = time.perf_counter()
+            writer.write(image)
             if k >= RECEIVER_WARMUP:
                 decode.append((t1 - t0) * 1000)
                 render.append((t3 - t2) * 1000)
                 total.append((t3 - t0) * 1000)
     receiver_ms = float(np.median(total)) if total else float("nan")
+    encode = [t * 1000 for t in list(writer.consume_seconds)[RECEIVER_WARMUP:]]
     return {"decode_ms": _median(decode), "render_ms": _median(render),
+            "encode_ms": _median(encode),
             "receiver_ms_median": round(receiver_ms, 4),
             "receiver_fps": round(1000.0 / receiver_ms, 2) if total else 0.0,
             "receiver_size": f"{width}x{height}"}

@@ -51,7 +51,7 @@ def _send(args: argparse.Namespace) -> int:
                                f"{'yes' if t['face'] else 'no '}  receivers {t['receivers']}"
                      ) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
-                 status=line)
+                 status=line, loop=args.loop)
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers",
@@ -261,7 +261,8 @@ def _model_export(args: argparse.Namespace) -> int:
 def _bench_speed(args: argparse.Namespace) -> int:
     from bench.speed import speed
 
-    return speed(args.model, args.source, as_json=args.json, progress=_progress)
+    return speed(args.model, args.source, as_json=args.json, progress=_progress,
+                 loopback_s=args.loopback_seconds)
 
 
 def _encode(args: argparse.Namespace) -> int:
@@ -325,6 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ address to publish on")
     s.add_argument("--record", help="also write the packets to this log (.fwlog)")
     s.add_argument("--rate", type=float, default=30.0, help="target frame rate in Hz")
+    s.add_argument("--loop", action="store_true", help="play a video file over and over, "
+                   "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "encrypt, and admit only the receivers in DIR/authorized")
     s.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
@@ -387,6 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs = bsub.add_parser("speed", help="per-stage timings of sender and receiver")
     bs.add_argument("--model", required=True, help="person model (.fwm)")
     bs.add_argument("--source", required=True, help="video file")
+    bs.add_argument("--loopback-seconds", type=float, default=30.0, metavar="S",
+                    help="seconds of the live run of a real sender process and a receiver on "
+                    "127.0.0.1 that measures the end-to-end latency and the memory growth "
+                    "(default 30; 0 skips it)")
     bs.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     bs.set_defaults(run=_bench_speed)
     bq = bsub.add_parser("quality", help="geometry and appearance fidelity on a real video")

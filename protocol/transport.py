@@ -26,8 +26,11 @@ MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags 
 
 from __future__ import annotations
 
+import random
 import re
+import socket
 import time
+from pathlib import Path
 
 import zmq
 import zmq.auth.thread
@@ -56,6 +59,31 @@ def control_endpoint(endpoint: str) -> str:
     if not 0 < port < 65535:
         raise TransportError(f"{endpoint!r}: port must be in 1..65534")
     return f"tcp://{m['host']}:{port + 1}"
+
+
+def free_loopback_endpoint() -> str:
+    """``tcp://127.0.0.1:P`` with ports P (packets) and P + 1 (control) both free now.
+
+    The ports lie below the kernel's ephemeral range: a client that connects before the server
+    has bound retries every 100 ms from an ephemeral port, and on loopback one of those tries
+    can connect to itself (TCP simultaneous open) when the target port is in that range,
+    taking the port the server is about to bind.
+
+    Raises:
+        TransportError: no two adjacent free ports were found in 200 tries.
+    """
+    ranges = Path("/proc/sys/net/ipv4/ip_local_port_range")
+    low = int(ranges.read_text().split()[0]) if ranges.is_file() else 32768
+    for _ in range(200):
+        port = random.randrange(10_000, low - 1)
+        try:
+            with socket.socket() as first, socket.socket() as second:
+                first.bind(("127.0.0.1", port))
+                second.bind(("127.0.0.1", port + 1))
+        except OSError:
+            continue
+        return f"tcp://127.0.0.1:{port}"
+    raise TransportError("no two adjacent free ports on 127.0.0.1")
 
 
 class _Socket:

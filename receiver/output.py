@@ -40,6 +40,8 @@ import math
 import os
 import queue
 import threading
+import time
+from collections import deque
 from fractions import Fraction
 from pathlib import Path
 from typing import Self
@@ -49,6 +51,7 @@ import cv2
 import numpy as np
 
 QUEUE_FRAMES = 8
+TIMED_FRAMES = 1000
 CRF = 18
 PRESET = "fast"
 FRAME_PATTERN = "frame_{:06d}.png"
@@ -64,7 +67,8 @@ class _QueuedWriter:
     """The writers' common part: validation, the bounded queue and the encoding thread.
 
     Subclasses implement ``_consume(index, rgb)`` (encode one frame) and ``_finish()``
-    (flush and close the file); both run on the writer's thread only.
+    (flush and close the file); both run on the writer's thread only. ``consume_seconds``
+    holds the wall time of the last ``TIMED_FRAMES`` frames' ``_consume`` (``bench speed``).
     """
 
     def __init__(self, target: Path, size: tuple[int, int] | None) -> None:
@@ -74,6 +78,7 @@ class _QueuedWriter:
         self._queue: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=QUEUE_FRAMES)
         self._error: BaseException | None = None
         self._closed = False
+        self.consume_seconds: deque[float] = deque(maxlen=TIMED_FRAMES)
         self._thread = threading.Thread(target=self._run, name=f"output {target.name}",
                                         daemon=True)
         self._thread.start()
@@ -146,10 +151,12 @@ class _QueuedWriter:
             if rgb is _STOP:
                 break
             if self._error is None:
+                tick = time.perf_counter()
                 try:
                     self._consume(index, rgb)
                 except Exception as exc:  # noqa: BLE001 - any failure reaches write/close
                     self._error = exc
+                self.consume_seconds.append(time.perf_counter() - tick)
             index += 1
         try:
             self._finish(failed=self._error is not None)

@@ -56,6 +56,26 @@ packets that triggered it. Two rules:
    that completes the run. Stragglers delivered in a burst after a network stall arrive at
    about the same time and do not trigger it.
 
+Playing on arrival (the live receiver)
+--------------------------------------
+A live receiver need not wait for a clock: ``ready`` says that the next pop plays a packet
+already buffered (or runs the countdown of a stream whose packets are buffered), so the
+receiver pops at once and the slot is rendered as soon as its packet is in; the countdown then
+costs nothing. Only a missing slot waits, until ``due()``: the latest time its packet is
+expected, after which it is concealed and the slots behind it play. With ``n`` the slot's
+extended number, ``P = 1 / rate_hz`` and ``o_i = a_i - e_i P`` the offset of each of the last
+``JITTER_PACKETS`` packets of the stream (arrival ``a_i``, extended number ``e_i``; late ones
+included, duplicates not)::
+
+    due(n) = min(o) + n P + margin,   margin = min(max(max(o) - min(o), P) + GUARD_S, depth P)
+
+``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
+``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
+same packets. The margin is at least one slot period, so a packet overtaken by its successor
+is not given up before that successor arrives, and at most the depth, as on the tick clock.
+A lost packet thus delays the slots behind it by about one period, and a packet on time is
+never delayed.
+
 Skip (``stats["skipped"]``): when the newest buffered packet is ``2 depth`` or more slots
 ahead of the playout point ``n``, the latency has grown by ``depth`` slots or more; the
 playout point moves forward so that the newest is ``depth`` slots ahead again (``target =
@@ -105,6 +125,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -117,6 +138,8 @@ DEFAULT_DEPTH = 3
 HOLD_S = 0.2
 EASE_S = 0.5
 JUMP_S = 2.0
+JITTER_PACKETS = 64
+GUARD_S = 0.005
 MAX_DEPTH = 1024
 MAX_RATE_HZ = 1000.0
 MAX_REPLAY_SLOTS = 1 << 24  # about 6 days at 30 Hz
@@ -260,6 +283,7 @@ class Playout:
         self._candidate: tuple[_Packet, bytes] | None = None
         self._late_run = 0
         self._late_start = 0.0
+        self._offsets: deque[float] = deque(maxlen=JITTER_PACKETS)  # a_i - e_i / rate_hz
         # output
         self._rotation = _DEFAULT_ROTATION
         self._translation = _DEFAULT_TRANSLATION
@@ -272,7 +296,9 @@ class Playout:
 
     @property
     def latency_s(self) -> float:
-        """The latency the buffer adds to an on-time packet, s: ``depth / rate_hz``."""
+        """The latency the buffer adds to an on-time packet on a tick clock
+        (``replay_states``), s: ``depth / rate_hz``; a live receiver playing on arrival
+        adds none, and waits at most this long for a missing packet (``margin_s``)."""
         return self.depth / self.rate_hz
 
     @property
@@ -280,6 +306,36 @@ class Playout:
         """Counts so far: received, corrupt, duplicate, late, stray, discarded (packets);
         concealed (slots played without their packet), skipped (slots jumped over); restarts."""
         return dict(self._counts)
+
+    @property
+    def ready(self) -> bool:
+        """True when the next pop plays a buffered packet, or counts down towards one: a live
+        receiver pops at once (module docstring, "Playing on arrival")."""
+        return bool(self._buffer) and (not self._playing or self._next in self._buffer)
+
+    @property
+    def ahead(self) -> int:
+        """Slots from the playout point (the first buffered, before playing) to the newest
+        buffered packet, both counted; 0 when nothing is buffered."""
+        if not self._buffer:
+            return 0
+        return self._newest - (self._next if self._playing else min(self._buffer)) + 1
+
+    @property
+    def margin_s(self) -> float:
+        """How long after its earliest expected arrival a missing slot waits, s (module
+        docstring, "Playing on arrival"); one slot period and the guard before any packet."""
+        period = 1.0 / self.rate_hz
+        spread = max(self._offsets) - min(self._offsets) if self._offsets else 0.0
+        return min(max(spread, period) + GUARD_S, self.depth * period)
+
+    def due(self) -> float | None:
+        """The time, on the arrival clock, after which the next slot is concealed if its
+        packet has not come: ``min(o) + n / rate_hz + margin_s``; None when nothing plays
+        yet (before the first packet, or while ``ready`` counts down)."""
+        if not self._playing or not self._offsets:
+            return None
+        return min(self._offsets) + self._next / self.rate_hz + self.margin_s
 
     @property
     def drained(self) -> bool:
@@ -320,6 +376,7 @@ class Playout:
             self._counts["duplicate"] += 1
             return
         self._seen[ext] = raw
+        self._offsets.append(packet.arrival_s - ext / self.rate_hz)
         if behind:
             self._late(packet, raw)
             return
@@ -410,10 +467,12 @@ class Playout:
         self._late_run = 0
         self._started, self._playing, self._countdown = True, False, self.depth
         self._ref = packets[0][0].seq
+        self._offsets.clear()
         for packet, raw in packets:
             ext = self._ref + serial_distance(packet.seq, self._ref % SEQ_MODULO)
             self._buffer[ext] = packet
             self._seen[ext] = raw
+            self._offsets.append(packet.arrival_s - ext / self.rate_hz)
         self._newest = max(self._buffer)
 
     def _catch_up(self) -> None:

@@ -26,29 +26,36 @@ After a timeout or a bad reply (malformed, an ``Error``, or not the answer asked
 socket is closed and opened again, so a late reply can never be taken for the answer to the
 next request. Both are counted (``control_timeouts``, ``control_errors``), neither is fatal.
 
-Packets and the render clock
-----------------------------
-A reader thread owns the SUB socket and stamps each packet with its arrival time (one
-monotonic clock) into a queue of at most ``QUEUE_PACKETS`` (beyond that, dropped:
-``overflow``). The render loop ticks at the Hello's rate, tick k at ``T_k = T_0 + k /
-rate_hz``: it pushes every queued packet that arrived by ``T_k`` into the playout buffer
-(``receiver.playout.Playout``, in arrival order), pops one ``FrameState`` and renders it, as
-``receiver.playout.replay_states`` does with a log's recorded times. A frame that takes long
-delays the next ticks, which then come at once until the loop has caught up, so a slow frame
-costs no packet. A renderer slower than the stream:
+Threads, packets and playing on arrival
+---------------------------------------
+Two threads, so that the network never waits for rendering nor rendering for the network:
 
-- with a live ``view``, the loop keeps to real time: more than the playout's latency
-  (``Playout.latency_s``) behind, it re-anchors its clock to now and pushes everything that
-  has arrived, and the playout's skip rule gives up the slots in excess (``skipped``,
-  ``discarded``), so the picture stays at most a few slots late;
-- without one (a file, or nothing), every slot is rendered: the loop falls behind as far as
-  it must (the latency grows, bounded by the queue) and catches up when the stream pauses or
-  ends.
+- the reader thread owns the SUB socket; it stamps each packet with its arrival time (one
+  monotonic clock), appends it to a queue of at most ``QUEUE_PACKETS`` (beyond that,
+  dropped: ``overflow``) and wakes the render loop;
+- the render loop (the calling thread) owns the playout buffer (``receiver.playout.Playout``),
+  the renderer and the outputs; a video file is encoded on the writer's own thread
+  (``receiver.output.VideoWriter``), so encoding does not hold up the next frame either.
+
+The render loop moves the queued packets into the playout in arrival order and pops a
+``FrameState`` as soon as the playout is ``ready`` (the next slot's packet is in): a packet on
+time is rendered as soon as it arrives, with no buffering delay. A slot whose packet is
+missing waits until ``Playout.due()`` (its expected arrival plus the adaptive margin, one slot
+period or more) and is then concealed; in between the loop sleeps until a packet arrives or
+the deadline passes. A renderer slower than the stream:
+
+- with a live ``view``, every packet that has arrived is pushed, and the playout's skip rule
+  gives up the slots in excess (``skipped``, ``discarded``), so the picture stays at most a
+  few slots late;
+- without one (a file, or nothing), every slot is rendered: packets stay in the reader's
+  queue while the playout holds ``2 depth`` slots or more ahead (so its skip rule does not
+  fire), the latency grows as far as it must (bounded by the queue) and the loop catches up
+  when the stream pauses or ends.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view
-the clock starts at the first of them and they are played, late; with a view they are
-dropped (``ignored``), since the picture is to be live.
+they are played, late; with a view they are dropped (``ignored``), since the picture is to be
+live.
 
 Per slot: ``receiver.scene.StateRenderer`` (morph, the sender's view at the output size,
 render), as ``receiver.replay`` does.
@@ -92,8 +99,8 @@ frames: each stream, split again by a gap over ``MAX_GAP_S``), ``hellos`` (Hello
 ``control_timeouts``, ``control_errors``, ``fps`` (frames over the time from the first to
 the last), ``kbps`` (packet bytes, kbit/s, from the first packet's arrival to the last's),
 ``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
-rendered: the playout depth, ``Playout.latency_s``, plus the wait for the tick and the
-frame's own time, and any backlog of a loop that fell behind), ``render_ms_median`` (morph,
+rendered: the frame's own time, plus the wait behind a missing slot or a frame still
+rendering, and any backlog of a loop that fell behind), ``render_ms_median`` (morph,
 view and render with readback), ``model_sha256``, ``model_source`` (file, cache or fetched),
 ``model_bytes``, ``model_fetch_s`` (fetch and verification, None unless fetched), ``cached``
 (the cache file, or None), ``width``, ``height``, ``out``, ``seconds``, and ``ended``: stop,
@@ -140,9 +147,10 @@ QUEUE_PACKETS = 4096
 STATUS_EVERY_S = 1.0
 WINDOW_S = 1.0
 MAX_SIZE = 4096
-LIVE_KEYS = ("state", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
+LIVE_KEYS = ("state", "seq", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
              "duplicates", "latency_ms")
 _POLL_MS = 50
+_POLL_S = _POLL_MS / 1000
 _PLAYOUT_KEYS = ("received", "corrupt", "duplicate", "late", "stray", "discarded",
                  "skipped", "restarts")
 
@@ -239,6 +247,7 @@ class _PacketReader:
         self._sub = subscriber
         self._queue: deque[tuple[bytes, float]] = deque()
         self._closing = threading.Event()
+        self.arrived = threading.Event()  # set on each packet queued
         self.overflow = 0
         self.last_arrival: float | None = None
         self.error: BaseException | None = None
@@ -258,41 +267,30 @@ class _PacketReader:
                     self.overflow += 1
                 else:
                     self._queue.append((data, now))
+                    self.arrived.set()
         except Exception as exc:  # noqa: BLE001 - reported by take()
             self.error = exc
         finally:
             self._sub.close()
 
-    def take(self, until: float) -> list[tuple[bytes, float]]:
-        """The queued packets that arrived by ``until``, oldest first, as (bytes, arrival
-        time); they leave the queue."""
+    def take(self) -> tuple[bytes, float] | None:
+        """The oldest queued packet and its arrival time, out of the queue; None if empty."""
         if self.error is not None:
             raise ReceiveError(f"packet socket failed: {self.error}") from self.error
-        items = []
-        while self._queue and self._queue[0][1] <= until:
-            items.append(self._queue.popleft())
-        return items
+        try:
+            return self._queue.popleft()
+        except IndexError:
+            return None
 
     def discard(self) -> int:
         """Empty the queue; how many packets were in it."""
-        return len(self.take(math.inf))
+        count = 0
+        while self.take() is not None:
+            count += 1
+        return count
 
     def queued(self) -> int:
         return len(self._queue)
-
-    def oldest(self) -> float | None:
-        """The arrival time of the oldest queued packet, None when the queue is empty."""
-        try:
-            return self._queue[0][1]
-        except IndexError:
-            return None
-
-    def newest(self) -> float | None:
-        """The arrival time of the newest queued packet, None when the queue is empty."""
-        try:
-            return self._queue[-1][1]
-        except IndexError:
-            return None
 
     def close(self) -> None:
         """Stop the thread and close the socket (what is queued can still be taken)."""
@@ -370,7 +368,7 @@ class _Session:
         self.stream_played = False  # a stream is open: its next packet writes the pending
         self.hello_due = False
         self.next_check = 0.0
-        self.t0, self.k = 0.0, 0  # the render clock: tick k at t0 + k / rate
+        self.playing_since = 0.0  # when the current playout was set up
         self.last_contact = time.monotonic()  # the last control reply or ready loop
         # counts and measurements
         self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos"), 0)
@@ -554,11 +552,9 @@ class _Session:
         self.played, self.restarts_seen, self.stream_played = 0, 0, False
         self.pending.clear()
         now = time.monotonic()
-        self.t0, self.k = now, 0
+        self.playing_since = now
         if self.view is not None:
             self.counts["ignored"] += self.reader.discard()
-        else:  # every slot is rendered: start the clock at the first packet waiting
-            self.t0 = min(now, self.reader.oldest() or now)
         self.last_contact = now  # the idle timeout counts from a ready loop
         self.say(f"playing {self.connect} at {hello.rate_hz:g} Hz, {self.size[0]}x"
                  f"{self.size[1]}: waiting for packets")
@@ -577,20 +573,20 @@ class _Session:
         self.playout = None
 
     def _play(self) -> None:
-        """Tick until the session ends: raises ``_End``, after playing what was received
+        """Play until the session ends: raises ``_End``, after playing what was received
         (not after ``max_frames``)."""
         try:
             while True:
                 self._check_end()
-                t_k = self.t0 + self.k / self.hello.rate_hz
+                self.reader.arrived.clear()  # before taking: a packet after it wakes the wait
+                self._feed()
                 now = time.monotonic()
-                if t_k > now:
-                    if self.stop.wait(t_k - now):
-                        raise _End("stop")
-                elif self.view is not None and now - t_k > self.playout.latency_s:
-                    self.t0 += now - t_k  # keep to real time (module docstring)
-                    t_k = now
-                self._tick(t_k, live=True)
+                due = self.playout.due()
+                if self.playout.ready or (due is not None and now >= due):
+                    self._tick(live=True)
+                else:
+                    wait = _POLL_S if due is None else min(due - now, _POLL_S)
+                    self.reader.arrived.wait(wait)
                 self._status()
         except _End as end:
             if end.reason != "max_frames":
@@ -598,27 +594,29 @@ class _Session:
             raise
 
     def _drain(self) -> None:
-        """Play what was received, ticking without waiting (module docstring)."""
+        """Play what was received, concealing missing slots without waiting (module
+        docstring)."""
         self.reader.close()
         if self.playout is None:
             return
-        newest = self.reader.newest()
-        behind = 0.0 if newest is None else newest - (self.t0 + self.k / self.hello.rate_hz)
-        # the ticks until the clock passes the newest arrival, then the playout's window
-        bound = (math.ceil(max(behind, 0.0) * self.hello.rate_hz) + self.reader.queued()
-                 + 4 * (self.playout.window + self.playout.depth) + 16)
-        for _ in range(bound):
-            if self.reader.newest() is None and self.playout.drained:
+        per_packet = self.playout.window + self.playout.depth + 1  # pops, at most
+        for _ in range((self.reader.queued() + self.playout.ahead + 64) * per_packet):
+            self._feed()
+            if self.reader.queued() == 0 and self.playout.drained:
                 return
-            self._tick(self.t0 + self.k / self.hello.rate_hz, live=False)
+            self._tick(live=False)
 
-    def _tick(self, t_k: float, live: bool) -> None:
-        """Push what arrived by ``t_k``, check the Hello if due (only ``live``: not while
-        draining), pop one state and show it. A changed Hello adopted (a new playout and
-        clock) ends the tick without a pop."""
-        for data, arrival in self.reader.take(t_k):
-            self._note_packet(data, arrival)
-            self.playout.push(data, arrival)
+    def _feed(self) -> None:
+        """Move the queued packets into the playout, in arrival order (without a view only
+        while it holds fewer than ``2 depth`` slots ahead: module docstring), and notice a
+        restarted stream."""
+        limit = None if self.view is not None else 2 * self.playout.depth
+        while limit is None or self.playout.ahead < limit:
+            item = self.reader.take()
+            if item is None:
+                break
+            self._note_packet(*item)
+            self.playout.push(*item)
         restarts = self.playout.stats["restarts"]
         if restarts > self.restarts_seen:
             self.restarts_seen = restarts
@@ -626,16 +624,19 @@ class _Session:
             self.stream_played = False
             self.hello_due, self.next_check = True, 0.0
             self.say(f"the stream from {self.connect} restarted: asking for its Hello")
+
+    def _tick(self, live: bool) -> None:
+        """Check the Hello if due (only ``live``: not while draining), pop one state and
+        show it. A changed Hello adopted (a new playout) ends the tick without a pop."""
         if live and self.hello_due and time.monotonic() >= self.next_check \
                 and self._recheck():
             return
         state = self.playout.pop()
-        self.k += 1
         if state.seq is None:
             return
         if state.arrival_s is None:  # concealed: shown now, written if the stream goes on
             if self.view is not None:
-                self.view(self.scene.render(state), self._live(state.status))
+                self.view(self.scene.render(state), self._live(state))
             if self.stream_played:
                 self.pending.append(state)
                 if len(self.pending) > MAX_GAP_S * self.hello.rate_hz:
@@ -653,7 +654,7 @@ class _Session:
         image = self.scene.render(state)
         latency = time.monotonic() - state.arrival_s
         if self.view is not None:
-            self.view(image, self._live(state.status))
+            self.view(image, self._live(state))
         self._emit(state, image, latency)
 
     def _recheck(self) -> bool:
@@ -721,8 +722,9 @@ class _Session:
                     counts[key] += value
         return counts
 
-    def _live(self, state: str) -> dict[str, Any]:
-        """The live statistics (``LIVE_KEYS``); ``state`` is the slot's playout status."""
+    def _live(self, state: FrameState | None) -> dict[str, Any]:
+        """The live statistics (``LIVE_KEYS``) as of this slot (its playout status and wire
+        sequence number), or between slots (None: "playing")."""
         now = time.monotonic()
         while self.recent_packets and self.recent_packets[0][0] < now - WINDOW_S:
             self.recent_packets.popleft()
@@ -730,7 +732,9 @@ class _Session:
             self.recent_frames.popleft()
         counts = self._playout_counts()
         latencies = [x for _, x in self.recent_frames if x is not None]
-        return {"state": state, "fps": round(len(self.recent_frames) / WINDOW_S, 1),
+        return {"state": "playing" if state is None else state.status,
+                "seq": None if state is None else state.seq,
+                "fps": round(len(self.recent_frames) / WINDOW_S, 1),
                 "kbps": round(sum(n for _, n in self.recent_packets) * 8 / 1000 / WINDOW_S, 2),
                 "frames": self.counts["frames"], "received": counts["received"],
                 "lost": self.counts["lost"], "late": counts["late"],
@@ -746,11 +750,11 @@ class _Session:
         self.next_status = now + STATUS_EVERY_S
         last = self.reader.last_arrival
         if last is None or now - last > STATUS_EVERY_S:
-            quiet = now - max(last or 0.0, self.t0)
+            quiet = now - max(last or 0.0, self.playing_since)
             self.say(f"no packets from {self.connect} for {quiet:.0f} s: waiting for the "
                      f"sender")
             return
-        s = self._live("playing")
+        s = self._live(None)
         latency = "-" if s["latency_ms"] is None else f"{s['latency_ms']:.0f} ms"
         self.say(f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
                  f"lost {s['lost']}, late {s['late']}, corrupt {s['corrupt']}; latency "

@@ -8,9 +8,12 @@ Per frame, on the calling thread: read the next frame from ``sender.capture.open
 
 The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
 ``--rate 30`` goes out at 25 Hz, and the Hello says so. A camera limits itself to the rate
-(``sender.capture``). A file's frames are thinned to at most one per slot of the rate
-(``sender.capture.RateLimiter``) and kept frame ``t`` (seconds) is released at wall time
-``origin + t``, ``origin`` fixed at the first frame. Receivers play one slot per
+(``sender.capture``). A file is resampled to the rate's slots: slot ``k``, at ``t_0 + k /
+rate_hz`` (``t_0`` the first frame's time), gets the latest frame stamped at most a quarter
+period after it, so frames are dropped where the file has several per slot and repeated where
+it has none (a variable-rate file whose container states 15 Hz but holds stretches at
+12.5 Hz still goes out at 15 Hz). Slot ``k`` is released at wall time ``origin + t_0 + k /
+rate_hz``, ``origin`` fixed at the first frame. Receivers play one slot per
 ``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a frame that is late
 (the machine was busy) is sent at once and the next ones catch up, rather than every later
 frame being shifted (``sender.capture.Pacer``'s default rule, which would leave the stream
@@ -64,7 +67,7 @@ from protocol.keys import server_keys
 from protocol.log import LogError, LogWriter
 from protocol.packet import PACKET_BYTES
 from protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
-from sender.capture import CaptureError, Pacer, RateLimiter, Source, open_source
+from sender.capture import CaptureError, Pacer, Source, open_source
 from sender.pipeline import SenderPipeline, sender_camera
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
@@ -173,11 +176,12 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
             ) -> Iterator[tuple[np.ndarray, float]]:
     """(image, time s) of the frames to send, released in real time (module docstring).
 
-    A camera delivers in real time and limits its own rate. A file's frames are thinned to
-    at most one per slot of ``rate_hz`` (``RateLimiter``) and each kept frame is released at
-    ``origin + t`` (``Pacer``, catching up lateness up to ``MAX_LAG_S``); a looped file's
-    times keep increasing across passes. Waits end early when ``stop`` is set (the caller
-    checks it).
+    A camera delivers in real time and limits its own rate. A file is resampled to the slots
+    of ``rate_hz``, slot ``k`` released at ``origin + t_0 + k / rate_hz`` (``Pacer``,
+    catching up lateness up to ``MAX_LAG_S``) and stamped with that time; a slot's frame is
+    known once a frame stamped beyond its quarter-period tolerance has been read, or the file
+    has ended. A looped file's times keep increasing across passes. Waits end early when
+    ``stop`` is set (the caller checks it).
 
     Raises:
         CaptureError: a pass yields no frame (an empty video).
@@ -185,22 +189,31 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
     if source.live:
         yield from ((frame.image, frame.time) for frame in source)
         return
-    limiter = RateLimiter(rate_hz)
+    period = 1.0 / rate_hz
     pacer = Pacer(sleep=stop.wait, catch_up_s=MAX_LAG_S)
-    offset = 0.0
+    offset, t0, slot = 0.0, 0.0, 0
+    held: np.ndarray | None = None  # the latest frame read: the current slot's
     while True:
         last = None
         for frame in source:
             last = frame.time
             t = offset + frame.time
-            if limiter.keep(t):
-                pacer.wait(t)
-                yield frame.image, t
+            if held is None:
+                t0 = t
+            while held is not None and t0 + (slot + 0.25) * period < t:
+                pacer.wait(t0 + slot * period)
+                yield held, t0 + slot * period
+                slot += 1
+            held = frame.image
         if last is None:
             raise CaptureError(f"{source.name}: holds no frames")
         if not loop:
-            return
+            break
         offset += last + 1.0 / source.rate_hz
+    while t0 + (slot - 0.25) * period <= offset + last:  # the slots of the last frame
+        pacer.wait(t0 + slot * period)
+        yield held, t0 + slot * period
+        slot += 1
 
 
 def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BIND,

@@ -7,8 +7,6 @@ skip with a reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (set by CI), w
 from __future__ import annotations
 
 import os
-import random
-import socket
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +15,8 @@ from typing import Any
 import av
 import numpy as np
 import pytest
+
+from protocol.transport import free_loopback_endpoint
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -97,26 +97,7 @@ def grey_video(tmp_path: Path) -> Callable[..., Path]:
     return make
 
 
-def free_endpoint() -> str:
-    """``tcp://127.0.0.1:P`` with ports P (packets) and P + 1 (control) both free now.
-
-    The ports lie below the kernel's ephemeral range: a client that connects before the server
-    has bound retries every 100 ms from an ephemeral port, and on loopback one of those tries
-    can connect to itself (TCP simultaneous open) when the target port is in that range,
-    taking the port the server is about to bind.
-    """
-    ranges = Path("/proc/sys/net/ipv4/ip_local_port_range")
-    low = int(ranges.read_text().split()[0]) if ranges.is_file() else 32768
-    for _ in range(200):
-        port = random.randrange(10_000, low - 1)
-        try:
-            with socket.socket() as first, socket.socket() as second:
-                first.bind(("127.0.0.1", port))
-                second.bind(("127.0.0.1", port + 1))
-        except OSError:
-            continue
-        return f"tcp://127.0.0.1:{port}"
-    raise RuntimeError("no two adjacent free ports on 127.0.0.1")
+free_endpoint = free_loopback_endpoint
 
 
 def start(target: Any, **kwargs: Any) -> tuple[threading.Thread, threading.Event, dict]:

@@ -312,7 +312,7 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     assert all(f.mean() > 5 for f in frames)  # a face in every frame
     assert summary["fps"] == pytest.approx(25, rel=0.2)
     assert summary["kbps"] > 7  # 39-byte packets at 25 Hz, plus the junk
-    assert 50 < summary["latency_ms_median"] < 400  # the playout's 3 slots = 120 ms
+    assert 0 < summary["latency_ms_median"] < 400  # played on arrival (bench speed times it)
 
 
 def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retried(

@@ -1,4 +1,4 @@
-"""Tests for bench.speed: per-frame tracking and morph timings, their report and errors."""
+"""Tests for bench.speed: per-stage timings, the live loopback run, the report and errors."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.speed import (NOT_MEASURED, NoFaceError, _one_blas_thread, format_speed,
+from bench.speed import (LOOPBACK_KEYS, NoFaceError, _one_blas_thread, format_speed,
                          measure_speed, speed)
 from models.head import generic_head
 from models.modelfile import ModelFileError
@@ -17,7 +17,8 @@ from models.video import VideoError, frame_range
 
 @pytest.fixture(scope="module")
 def result(generic_model: Path, shared_data: Path) -> dict:
-    return measure_speed(generic_model, shared_data / "video" / "lp_d0.mp4", frame_range("0:60"))
+    return measure_speed(generic_model, shared_data / "video" / "lp_d0.mp4", frame_range("0:60"),
+                         loopback_s=0)
 
 
 def test_keys_and_values(result: dict) -> None:
@@ -34,13 +35,14 @@ def test_keys_and_values(result: dict) -> None:
     assert result["track_ms"] < result["track_detect_ms"]  # detection is the expensive path
     assert result["morph_ms"] < result["track_ms"]
     assert result["morph_calls"] >= 300
-    assert set(result["not_measured"]) == set(NOT_MEASURED)
-    assert not {"track_ms", "morph_ms"} & set(result["not_measured"])
-    assert not set(NOT_MEASURED) & set(result)  # never faked
+    assert set(result["not_measured"]) == set(LOOPBACK_KEYS)  # the loopback run was skipped
+    assert all(result[key] is None for key in LOOPBACK_KEYS)  # never faked
     assert set(result["met"]) == {"morph", "track", "sender", "classify", "receiver",
-                                  "receiver_1280x720"}
+                                  "receiver_1280x720", "latency", "memory"}
+    assert result["met"]["latency"] is False and result["met"]["memory"] is False
     # the receiver renders the sender's packets for real, at two sizes
-    for key in ("decode_ms", "render_ms", "receiver_ms_median", "render_ms_1280x720"):
+    for key in ("decode_ms", "render_ms", "receiver_ms_median", "render_ms_1280x720",
+                "encode_ms"):
         assert isinstance(result[key], float) and result[key] > 0, key
     assert result["receiver_ms_median"] > result["render_ms"] > result["decode_ms"]
     assert result["receiver_fps"] == pytest.approx(1000 / result["receiver_ms_median"], rel=1e-3)
@@ -56,7 +58,7 @@ def test_keys_and_values(result: dict) -> None:
 def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
                                                          shared_data: Path) -> None:
     result = measure_speed(person_model, shared_data / "video" / "lp_d0.mp4",
-                           frame_range("0:30"))
+                           frame_range("0:30"), loopback_s=0)
     assert result["regions"] == 7
     for key in ("sample_ms", "classify_ms"):
         assert isinstance(result[key], float) and 0 < result[key] < result["sender_ms_median"]
@@ -64,20 +66,30 @@ def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
     assert "classify: " in format_speed(result)
 
 
-def test_report_lines_and_json(result: dict, generic_model: Path, shared_data: Path,
-                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_report_lines_and_json_with_a_live_loopback_run(
+        result: dict, generic_model: Path, shared_data: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
     text = format_speed(result)
-    assert "track:" in text and "morph:" in text and "not measured yet: latency_ms" in text
-    assert "receiver: " in text and "at 1280x720" in text
+    assert "track:" in text and "morph:" in text and "not measured: latency_ms" in text
+    assert "receiver: " in text and "at 1280x720" in text and "encode: " in text
     assert "classify: not measured (the model has no regions" in text
     assert f"{result['morph_ms']:.4f} ms" in text
+    # a real `facewire send` process and a live receiver, 8 s of played frames
     status = speed(generic_model, shared_data / "video" / "lp_d0.mp4", as_json=True,
-                   frames=frame_range("0:12"))
+                   frames=frame_range("0:12"), loopback_s=8)
     assert status == 0
     out = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(out[-1])
     assert summary["frames"] == 12 and summary["morph_ms"] > 0
     assert out[0].startswith(str(shared_data / "video" / "lp_d0.mp4"))
+    assert summary["not_measured"] == []
+    assert summary["latency_frames"] > 100  # 25 Hz for 8 s, less the first second
+    assert 0 < summary["latency_ms_median"] <= summary["latency_ms_p95"]
+    assert summary["loopback"]["received"] >= summary["latency_frames"]
+    for side in ("sender", "receiver"):
+        assert summary[f"{side}_rss_mb"] > 50 and math.isfinite(summary[f"{side}_rss_growth_mb"])
+    assert any(line.startswith("latency: ") for line in out)
+    assert any(line.startswith("memory: sender ") for line in out)
 
 
 def test_blas_pinning_is_restored() -> None:
@@ -101,7 +113,7 @@ def test_unreadable_inputs(generic_model: Path, grey_video, tmp_path: Path) -> N
     text = tmp_path / "clip.mp4"
     text.write_text("not a video")
     with pytest.raises(VideoError, match="not a readable video") as err:
-        measure_speed(generic_model, text)
+        measure_speed(generic_model, text, loopback_s=0)
     assert str(text) in str(err.value)
     with pytest.raises(VideoError, match="no such video file"):
         measure_speed(generic_model, tmp_path / "missing.mp4")
