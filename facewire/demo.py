@@ -26,18 +26,20 @@ Steps (``demo``):
    ``demo-bandwidth.png``, the bit rate the receiver measured on the link over time; and the
    summary (``DemoResult.summary``).
 
-The demo's render clock. A live receiver pops its playout buffer on its own 30 Hz clock; this
-one pops once per packet that arrives (and drains the buffer at the end), so the output has
-exactly one frame per streamed frame, in step with the performer, even when this machine
-cannot run the sender at the video's rate. The playout buffer still orders, de-duplicates
-and conceals as it does live; its depth (3 packets) is part of the measured latency.
+The demo's render clock. A live receiver plays each slot as soon as its packet is in and
+conceals a missing one at a deadline on its clock (``receiver.receiver``); this one has no
+clock: it plays each slot as soon as its packet is in (``Playout.ready``), conceals a missing
+slot once ``depth`` packets behind it have arrived, and drains the buffer at the end, so the
+output has exactly one frame per streamed frame, in step with the performer, even when this
+machine cannot run the sender at the video's rate. The playout buffer still orders,
+de-duplicates and conceals as it does live.
 
 Bit rates. ``payload_kbps`` is the packet size at 30 Hz (the contract's number);
 ``wire_kbps`` adds ZeroMQ's 2 bytes of framing per message (``protocol.transport``).
 ``measured_payload_kbps`` is what arrived per second of the stream, at the rate the sender
 actually ran. Latency is measured per packet from the moment the sender handed it to the
-socket to the moment its frame was rendered (one process, one monotonic clock), so it
-includes the playout buffer's depth and the receiver's render.
+socket to the moment its frame was rendered (one process, one monotonic clock): the
+transport, any wait behind a missing slot or a frame still rendering, and the render.
 """
 
 from __future__ import annotations
@@ -428,7 +430,8 @@ def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sen
     ext = 0  # the slot's sequence number, extended past 16 bits: the sender starts at 0
 
     def states():
-        """Each slot the playout plays: one pop per packet, then the drain."""
+        """Each slot the playout plays: as soon as it is ready (module docstring), then the
+        drain."""
         while True:
             data = subscriber.recv(int(IDLE_S * 1000))
             if data is None:
@@ -439,9 +442,10 @@ def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sen
             arrivals.append(now)
             sizes.append(len(data))
             playout.push(data, now)
-            state = playout.pop()
-            if state.seq is not None:
-                yield state
+            while playout.ready or playout.ahead > playout.depth:
+                state = playout.pop()
+                if state.seq is not None:
+                    yield state
         while not playout.drained:
             state = playout.pop()
             if state.seq is not None:

@@ -1,10 +1,17 @@
 """The live send loop (``facewire send``): frames in, one packet per frame out to any receivers.
 
-Per frame, on the calling thread: read the next frame from ``sender.capture.open_source``
-(a camera, or a video file released in real time, below), run
-``sender.pipeline.SenderPipeline``, publish the 39-byte packet on the PUB socket
-(``protocol.transport.PacketPublisher``) and, with a record path, append it to a packet log
-(``protocol.log``; each record stamped with the Unix time it was published).
+Threads. Capture, processing and output do not stall each other:
+
+- the capture thread (``sender.framethread.FrameThread``) reads the source: a camera's
+  newest frame is held and older ones dropped, so a slow tracker gets the current frame;
+  a file is decoded up to a few frames ahead;
+- the frame loop (the calling thread), per frame: take the next frame (a video file released
+  in real time, below), run ``sender.pipeline.SenderPipeline``, publish the 39-byte packet
+  on the PUB socket (``protocol.transport.PacketPublisher``; ZeroMQ's own I/O thread sends
+  it, and a slow receiver's queue drops rather than blocks) and, with a record path, append
+  it to a packet log (``protocol.log``; each record stamped with the Unix time it was
+  published);
+- the control thread answers receivers' requests (below).
 
 The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
 ``--rate 30`` goes out at 25 Hz, and the Hello says so. A camera limits itself to the rate
@@ -68,6 +75,7 @@ from protocol.log import LogError, LogWriter
 from protocol.packet import PACKET_BYTES
 from protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
 from sender.capture import CaptureError, Pacer, Source, open_source
+from sender.framethread import FrameThread
 from sender.pipeline import SenderPipeline, sender_camera
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
@@ -187,7 +195,8 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
         CaptureError: a pass yields no frame (an empty video).
     """
     if source.live:
-        yield from ((frame.image, frame.time) for frame in source)
+        with FrameThread(source, latest=True) as frames:
+            yield from ((frame.image, frame.time) for frame in frames)
         return
     period = 1.0 / rate_hz
     pacer = Pacer(sleep=stop.wait, catch_up_s=MAX_LAG_S)
@@ -195,16 +204,17 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
     held: np.ndarray | None = None  # the latest frame read: the current slot's
     while True:
         last = None
-        for frame in source:
-            last = frame.time
-            t = offset + frame.time
-            if held is None:
-                t0 = t
-            while held is not None and t0 + (slot + 0.25) * period < t:
-                pacer.wait(t0 + slot * period)
-                yield held, t0 + slot * period
-                slot += 1
-            held = frame.image
+        with FrameThread(source, latest=False) as frames:
+            for frame in frames:
+                last = frame.time
+                t = offset + frame.time
+                if held is None:
+                    t0 = t
+                while held is not None and t0 + (slot + 0.25) * period < t:
+                    pacer.wait(t0 + slot * period)
+                    yield held, t0 + slot * period
+                    slot += 1
+                held = frame.image
         if last is None:
             raise CaptureError(f"{source.name}: holds no frames")
         if not loop:

@@ -492,3 +492,50 @@ def test_a_stray_far_packet_moves_nothing() -> None:
     s = playout.stats
     assert s["stray"] == 1 and s["restarts"] == 0 and s["received"] == 61
     ledger(playout, states)
+
+
+def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline() -> None:
+    rng = np.random.default_rng(7)
+    packets = [encode(make_frame(s, rng)) for s in range(40)]
+    playout = Playout(RATE, depth=DEPTH)
+    period = 1 / RATE
+    assert not playout.ready and playout.due() is None and playout.ahead == 0
+    playout.push(packets[0], 0.0)
+    assert playout.ready and playout.ahead == 1
+    states = []
+    while playout.ready:  # the countdown costs nothing: slot 0 plays at once
+        states.append(playout.pop())
+    assert [s.seq for s in states] == [None] * DEPTH + [0]
+    # steady arrivals: no jitter yet, the margin is one period and the guard
+    assert playout.margin_s == pytest.approx(period + 0.005)
+    assert playout.due() == pytest.approx(period + period + 0.005)
+    # slot 2 overtakes slot 1 by a few ms: slot 1 is waited for, then both play
+    playout.push(packets[2], 2 * period)
+    assert not playout.ready and playout.ahead == 2
+    playout.push(packets[1], 2 * period + 0.004)
+    assert playout.ready
+    assert [playout.pop().seq, playout.pop().seq] == [1, 2]
+    assert playout.stats["late"] == 0
+    # slot 3 is lost: nothing is ready until its deadline; slot 4 plays after it
+    playout.push(packets[4], 4 * period)
+    assert not playout.ready
+    due = playout.due()
+    assert 3 * period < due < 4 * period + 0.01  # the jitter so far is 4 ms
+    state = playout.pop()  # the caller pops at the deadline
+    assert state.seq == 3 and state.status == "held"
+    assert playout.ready and playout.pop().seq == 4
+    assert playout.stats["concealed"] == 1
+
+
+def test_the_margin_follows_the_jitter_up_to_the_depth() -> None:
+    rng = np.random.default_rng(8)
+    playout = Playout(RATE, depth=DEPTH)
+    period = 1 / RATE
+    for s in range(20):  # every other packet 50 ms late
+        playout.push(encode(make_frame(s, rng)), s * period + (0.05 if s % 2 else 0.0))
+        while playout.ready:
+            playout.pop()
+    assert playout.margin_s == pytest.approx(0.05 + 0.005)
+    for s in range(20, 40):  # jitter beyond the depth: capped
+        playout.push(encode(make_frame(s, rng)), s * period + (0.3 if s % 2 else 0.0))
+    assert playout.margin_s == pytest.approx(DEPTH * period)

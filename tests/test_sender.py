@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+import threading
 import time
 from collections.abc import Callable
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +23,8 @@ from protocol.log import LogError, read_log
 from protocol.packet import decode
 from protocol.transport import (ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, control_endpoint)
-from sender.capture import CaptureError
-from sender.sender import send, unencrypted_warning
+from sender.capture import CaptureError, open_source
+from sender.sender import _frames, send, unencrypted_warning
 from conftest import free_endpoint, start
 
 TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model and the tracker
@@ -205,3 +207,32 @@ def test_unencrypted_warning_only_off_loopback() -> None:
         warning = unencrypted_warning(bind, None)
         assert warning is not None and "unencrypted" in warning and bind in warning, bind
         assert unencrypted_warning(bind, "keys") is None
+
+
+def test_a_variable_rate_file_is_resampled_to_the_rate_s_slots(tmp_path: Path) -> None:
+    """15 Hz, then 12.5 Hz: every slot of 1/15 s gets the latest frame by its quarter-period
+    tolerance, repeated where the file has none; the stamps are the slots' own times."""
+    times_ms = [0, 67, 133, 200, 267, 333, 413, 493, 573, 653, 733, 813]
+    path = tmp_path / "vfr.mp4"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=15)
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        stream.codec_context.time_base = Fraction(1, 1000)
+        for i, t in enumerate(times_ms):
+            frame = av.VideoFrame.from_ndarray(np.full((48, 64, 3), 10 + 20 * i, np.uint8),
+                                               format="bgr24")
+            frame.pts, frame.time_base = t, Fraction(1, 1000)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    with open_source(str(path)) as source:
+        sent = list(_frames(source, 15.0, False, threading.Event()))
+    slots = np.arange(len(sent)) / 15.0
+    np.testing.assert_allclose([t for _, t in sent], slots, atol=1e-9)
+    assert len(sent) == 13  # 0.813 s of frames: slots 0 .. 12
+    expected = [max(j for j, t in enumerate(times_ms) if t / 1000 <= s + 0.25 / 15)
+                for s in slots]
+    got = [round((image.mean() - 10) / 20) for image, _ in sent]
+    assert got == expected
+    assert sorted(set(got)) == list(range(12))  # every frame sent, one of them twice
