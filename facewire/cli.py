@@ -44,12 +44,18 @@ def _send(args: argparse.Namespace) -> int:
     warning = unencrypted_warning(args.bind, args.curve_dir)
     if warning is not None:
         print(f"facewire send: {warning}", file=sys.stderr)
-    print(f"facewire send: publishing on {args.bind} (control on the next port); Ctrl-C "
-          f"stops", file=sys.stderr)
-    with _StatusLine(lambda t: f"{t['seconds']:7.1f} s  {t['fps']:5.1f} fps  "
-                               f"{t['payload_kbps']:5.2f} kbit/s  face "
-                               f"{'yes' if t['face'] else 'no '}  receivers {t['receivers']}"
-                     ) as line:
+    banner = [f"facewire send: publishing on {args.bind} (control on the next port); "
+              f"Ctrl-C stops"]
+
+    def status(t: dict) -> str:
+        """The live status line; the banner before the first one, once the sockets are
+        bound and frames flow (a refused model, source or address is the only line)."""
+        while banner:
+            print(banner.pop(), file=sys.stderr)
+        return (f"{t['seconds']:7.1f} s  {t['fps']:5.1f} fps  {t['payload_kbps']:5.2f} "
+                f"kbit/s  face {'yes' if t['face'] else 'no '}  receivers {t['receivers']}")
+
+    with _StatusLine(status) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
                  status=line, loop=args.loop)
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "

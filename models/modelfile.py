@@ -78,6 +78,9 @@ is absolute or holds ``..``, a drive or a NUL (refused as unsafe, never used). L
 templates) and 256 MiB in all, checked on the sizes the zip declares before anything is
 inflated, and then by reading no more than the declared size (zipfile checks each member's
 CRC-32 at its end); a member over 1 MiB may not inflate more than 100:1; 4096 members.
+The arrays the members decode to (PNG images too: a flat 4096 x 4096 PNG is a few kB and
+48 MiB decoded) may not hold more than 256 MiB in all, checked on the shapes ``model.json``
+declares before any member is read (a real model holds about 11 MiB).
 
 Determinism and identity: members are sorted by name, dated 1980-01-01 00:00, ``.npy`` and
 JSON deflated at level 6, PNGs stored (already compressed), the JSON written with sorted
@@ -115,6 +118,7 @@ MAX_FILE_BYTES = 256 * 1024**2
 MAX_TOTAL_BYTES = 256 * 1024**2
 MAX_MEMBER_BYTES = 64 * 1024**2
 MAX_SMALL_BYTES = 1024**2
+MAX_DECODED_BYTES = 256 * 1024**2
 MAX_MEMBERS = 4096
 MAX_RATIO = 100
 RATIO_FLOOR = 1024**2
@@ -789,6 +793,12 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
             raise ModelFileError(f"{where}: {name}: missing")
         if name not in manifest.members:
             raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
+    decoded = sum(math.prod(shape) * np.dtype(_spec(name).dtype).itemsize
+                  for name, shape in manifest.members.items())
+    if decoded > MAX_DECODED_BYTES:
+        raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: members: declare arrays of "
+                             f"{decoded} bytes in all, more than the {MAX_DECODED_BYTES} a "
+                             f"model may decode to (an image bomb?)")
     for region in manifest.regions:
         for folder in _area_folders(region):
             size = manifest.members[f"{folder}/mask.png"]

@@ -74,7 +74,8 @@ def read_frames(path: str | os.PathLike[str], frames: slice = slice(0, None)
     """Decode the frames of a file whose index falls in ``frames`` (a step of 1).
 
     Raises:
-        VideoError: the file is missing, not a video, or undecodable.
+        VideoError: the file is missing, not a video, or undecodable (a corrupt frame: the
+            message says how many frames were decoded before it).
     """
     path = Path(path)
     with _open(path) as container:
@@ -82,6 +83,7 @@ def read_frames(path: str | os.PathLike[str], frames: slice = slice(0, None)
         stream.thread_type = "AUTO"
         base = float(stream.time_base) if stream.time_base else 0.0
         rate = float(stream.average_rate or stream.guessed_rate or 30)
+        index = -1
         try:
             for index, frame in enumerate(container.decode(stream)):
                 if frames.stop is not None and index >= frames.stop:
@@ -91,7 +93,7 @@ def read_frames(path: str | os.PathLike[str], frames: slice = slice(0, None)
                 time = frame.pts * base if frame.pts is not None and base else index / rate
                 yield VideoFrame(index, time, frame.to_ndarray(format="bgr24"))
         except av.FFmpegError as exc:
-            raise VideoError(f"{path}: cannot decode frame: {exc}") from None
+            raise VideoError(f"{path}: cannot decode it after {index + 1} frames: {exc}") from None
 
 
 def _open(path: Path) -> av.container.InputContainer:

@@ -68,13 +68,17 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         ``view``, ``out``, ``seconds``, ``render_fps``.
 
     Raises:
-        ReplayError: a bad view or size, or the model is not the log's.
+        ReplayError: a bad view or size, the model is not the log's, the log holds no
+            intact packet, or its record times span more than the playout replays.
         LogError / ModelFileError / VideoError / OutputError: unreadable inputs or output.
     """
     start = time.perf_counter()
     if view not in VIEWS:
         raise ReplayError(f"--view: expected one of {', '.join(VIEWS)}, got {view!r}")
     log = read_log(log_path)
+    if not len(log.packets):
+        raise ReplayError(f"{log_path}: no intact packet to replay ({log.lost} damaged "
+                          f"records)")
     model = load_model(model_path)
     hello = log.hello
     if hello.model_sha256 != model.sha256:
@@ -86,7 +90,10 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     if not (0 < width <= 4096 and 0 < height <= 4096):
         raise ReplayError(f"--size: expected a width and height in [1, 4096], got {size}")
     playout = Playout(hello.rate_hz, rest_q=rest_q(model))
-    states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
+    try:
+        states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
+    except ValueError as exc:  # the record times (e.g. a span of weeks): the log's fault
+        raise ReplayError(f"{log_path}: {exc}") from None
     frames = _SourceFrames(source) if source is not None else None
     out = Path(out)
     out_width = width + (0 if frames is None else frames.width(height))

@@ -12,7 +12,8 @@
   first readable image's size (an error names the odd one out).
 - anything else: a video file, decoded by ``models.video.read_frames`` with the file's own
   timestamps and rate (``rate_hz`` does not apply to a file; its ``Source.rate_hz`` is the
-  container's).
+  container's). A file without a frame, or whose frame count (when the container gives
+  one) ``frames`` selects none of, is refused when opened.
 
 Files and folders run as fast as the consumer pulls unless ``pace=True``; then each frame is
 released no earlier than its timestamp after the first frame (real time, as a live camera
@@ -189,9 +190,15 @@ class VideoSource(Source):
                  sleep: Sleep) -> None:
         try:
             info = video_info(path)
+            # 0 frames: the container does not say, or it is empty (an interrupted
+            # recording); refused here, before a consumer makes its log or binds a socket
+            if not info.frames and next(read_frames(path, slice(0, 1)), None) is None:
+                raise CaptureError(f"{path}: holds no frames")
         except VideoError as exc:
             raise CaptureError(str(exc)) from None
         count = len(range(*frames.indices(info.frames))) if info.frames else 0
+        if info.frames and not count:
+            raise CaptureError(f"{path}: --frames selects none of its {info.frames} frames")
         super().__init__(str(path), info.width, info.height, info.rate_hz, count, pace,
                          clock, sleep)
         self._path = path
@@ -311,7 +318,8 @@ def open_source(spec: str, rate_hz: float = 30.0, pace: bool | None = None,
         clock, sleep: time functions (seconds), replaceable in tests.
 
     Raises:
-        CaptureError: no such camera, file or folder; unreadable file; empty folder.
+        CaptureError: no such camera, file or folder; unreadable file; empty folder or
+            video, or none of its frames selected.
     """
     if not (isinstance(rate_hz, (int, float)) and np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
         raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
