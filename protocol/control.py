@@ -19,7 +19,15 @@ of its own data, and the reassembled file must hash to the announced model sha25
 
 Decoding bounds every size before allocating (no message over ``MAX_MESSAGE_BYTES``, no
 extension types, string map keys only), then checks each field's type and range. Anything
-malformed or unknown raises ``ControlError``.
+malformed or unknown raises ``ControlError``. A stream's rate is in [``MIN_RATE_HZ``,
+``MAX_RATE_HZ``]: a slot longer than a second is no live stream, and a rate near zero would
+put the receiver's next slot at an absurd time.
+
+Text from a peer is shown to people (a receiver's status line quotes the sender's ``Error``
+and what was wrong with a reply), so no text leaves this module raw: an ``Error`` message and
+every ``ControlError`` message have their non-printable characters escaped (``printable``,
+as in a Python string literal: a terminal escape sequence arrives as ``\\x1b[...``) and are
+cut to ``MAX_TEXT_CHARS``.
 """
 
 from __future__ import annotations
@@ -37,11 +45,27 @@ from protocol.packet import N_REGIONS, VERSION, quantiser_table
 CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
+MIN_RATE_HZ = 1.0
+MAX_RATE_HZ = 1000.0
+MAX_TEXT_CHARS = 1000
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
+def printable(text: str, limit: int = MAX_TEXT_CHARS) -> str:
+    """``text`` safe to print: non-printable characters escaped as in a Python string literal
+    (a newline as ``\\n``, ESC as ``\\x1b``), cut to ``limit`` characters ending in "...".
+    """
+    if text.isprintable() and len(text) <= limit:
+        return text
+    clean = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text[:limit + 1])
+    return clean if len(clean) <= limit else clean[:limit - 3] + "..."
+
+
 class ControlError(ValueError):
-    """A control message is malformed, unknown or inconsistent."""
+    """A control message is malformed, unknown or inconsistent (the message ``printable``)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(printable(message))
 
 
 @dataclass(frozen=True)
@@ -88,10 +112,11 @@ class Hello:
                  "hello.model_sha256: expected 64 lowercase hex digits")
         _require(0 < self.model_bytes <= MAX_MODEL_BYTES,
                  f"hello.model_bytes: must be in [1, {MAX_MODEL_BYTES}]")
-        _require(0 < self.rate_hz <= 1000, "hello.rate_hz: must be in (0, 1000]")
+        _require(MIN_RATE_HZ <= self.rate_hz <= MAX_RATE_HZ,
+                 f"hello.rate_hz: must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}]")
         _require(len(self.regions) <= N_REGIONS, f"hello.regions: more than {N_REGIONS}")
-        _require(all(0 < len(r) <= 64 for r in self.regions),
-                 "hello.regions: names must have 1 to 64 characters")
+        _require(all(0 < len(r) <= 64 and r.isprintable() for r in self.regions),
+                 "hello.regions: names must have 1 to 64 printable characters")
         _require(list(self.quantisers) == quantiser_table(),
                  "hello.quantisers: do not match this receiver's protocol version 1 table")
 
@@ -133,8 +158,13 @@ class ModelChunk:
 
 @dataclass(frozen=True)
 class Error:
+    """A refusal; ``message`` is kept ``printable`` (escaped and cut, never refused)."""
+
     TYPE: ClassVar[str] = "error"
     message: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "message", printable(self.message))
 
 
 Message = HelloRequest | Hello | ModelRequest | ModelChunk | Error
@@ -180,7 +210,7 @@ def decode_message(data: bytes) -> Message:
     if missing := required - body.keys():
         raise ControlError(f"{kind}: missing {', '.join(sorted(missing))}")
     if extra := body.keys() - names:
-        raise ControlError(f"{kind}: unknown field {', '.join(sorted(map(str, extra)))}")
+        raise ControlError(f"{kind}: unknown field {', '.join(sorted(map(repr, extra)))}")
     for name, value in body.items():
         if not isinstance(value, _FIELD_TYPES[name]) or isinstance(value, bool):
             raise ControlError(f"{kind}.{name}: wrong type {type(value).__name__}")

@@ -12,6 +12,19 @@ peers connected to a bound socket (the sender's receiver count).
 The control endpoint is the packet endpoint's port plus one (``control_endpoint``), so one
 address names a sender.
 
+Size limits: every socket that reads from the network refuses a frame larger than its
+protocol allows, at the frame's header and before allocating it (libzmq's ``MAXMSGSIZE``):
+``MAX_PACKET_FRAME`` bytes on a receiver's packet socket (a packet is 39 bytes),
+``MAX_CONTROL_FRAME`` on both ends of the control channel (a control message is at most
+``protocol.control.MAX_MESSAGE_BYTES``; both limits leave room for CURVE's 33 bytes of
+per-message overhead). A peer that sends a larger frame, or only declares one in a frame
+header, is disconnected at that header; without the limits, a peer could make the other side
+allocate whatever a frame header declares. libzmq takes the oversized frame for a protocol
+error, after which the socket that *connected* does not connect to that address again
+(libzmq issue 4196): a bound socket (the sender's) just loses that peer, which is free to
+connect again; a receiver's control socket is opened anew after the timeout
+(``receiver.receiver``); a receiver's packet socket stays silent until it is opened anew.
+
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
 folder, and a client with an unknown key, or one that expects another server key, never
@@ -36,11 +49,13 @@ import zmq
 import zmq.auth.thread
 import zmq.utils.monitor
 
-from protocol.control import Message, decode_message, encode_message
+from protocol.control import MAX_MESSAGE_BYTES, Message, decode_message, encode_message
 from protocol.keys import CurveClient, CurveServer
 
 PACKET_HWM = 100
 CONTROL_HWM = 1000
+MAX_PACKET_FRAME = 1024
+MAX_CONTROL_FRAME = MAX_MESSAGE_BYTES + 64
 MAX_HOPS = 8
 WIRE_OVERHEAD = {"plain": 2, "curve": 35}
 _ENDPOINT = re.compile(r"tcp://(?P<host>[^:]+|\[[^\]]+\]):(?P<port>\d+)")
@@ -89,12 +104,14 @@ def free_loopback_endpoint() -> str:
 class _Socket:
     """One ZeroMQ socket with our options, CURVE set up, and clean closing."""
 
-    def __init__(self, kind: int, context: zmq.Context | None, hwm: int) -> None:
+    def __init__(self, kind: int, context: zmq.Context | None, hwm: int,
+                 max_frame: int = -1) -> None:
         self.context = context or zmq.Context.instance()
         self.socket = self.context.socket(kind)
         self.socket.linger = 0
         self.socket.sndhwm = hwm
         self.socket.rcvhwm = hwm
+        self.socket.maxmsgsize = max_frame  # -1: no limit (a socket that only sends)
         self._auth: zmq.auth.thread.ThreadAuthenticator | None = None
 
     def _serve(self, endpoint: str, curve: CurveServer | None) -> str:
@@ -157,7 +174,7 @@ class PacketSubscriber(_Socket):
 
     def __init__(self, endpoint: str, curve: CurveClient | None = None,
                  context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.SUB, context, PACKET_HWM)
+        super().__init__(zmq.SUB, context, PACKET_HWM, MAX_PACKET_FRAME)
         self.socket.subscribe(b"")
         self._connect(endpoint, curve)
 
@@ -173,7 +190,7 @@ class ControlServer(_Socket):
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None,
                  context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.ROUTER, context, CONTROL_HWM)
+        super().__init__(zmq.ROUTER, context, CONTROL_HWM, MAX_CONTROL_FRAME)
         self.endpoint = self._serve(endpoint, curve)
 
     def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
@@ -246,7 +263,7 @@ class ControlClient(_Socket):
 
     def __init__(self, endpoint: str, curve: CurveClient | None = None,
                  context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.DEALER, context, CONTROL_HWM)
+        super().__init__(zmq.DEALER, context, CONTROL_HWM, MAX_CONTROL_FRAME)
         self._connect(endpoint, curve)
 
     def request(self, message: Message, timeout_ms: int) -> Message | None:

@@ -69,6 +69,9 @@ included, duplicates not)::
 
     due(n) = min(o) + n P + margin,   margin = min(max(max(o) - min(o), P) + GUARD_S, depth P)
 
+and ``margin = depth P`` until the stream has ``MIN_JITTER_PACKETS`` arrivals (its first
+packets tell little of its jitter, and a sender warming up sends unevenly).
+
 ``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
 ``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
 same packets. The margin is at least one slot period, so a packet overtaken by its successor
@@ -139,6 +142,7 @@ HOLD_S = 0.2
 EASE_S = 0.5
 JUMP_S = 2.0
 JITTER_PACKETS = 64
+MIN_JITTER_PACKETS = 8
 GUARD_S = 0.005
 MAX_DEPTH = 1024
 MAX_RATE_HZ = 1000.0
@@ -324,9 +328,11 @@ class Playout:
     @property
     def margin_s(self) -> float:
         """How long after its earliest expected arrival a missing slot waits, s (module
-        docstring, "Playing on arrival"); one slot period and the guard before any packet."""
+        docstring, "Playing on arrival")."""
         period = 1.0 / self.rate_hz
-        spread = max(self._offsets) - min(self._offsets) if self._offsets else 0.0
+        if len(self._offsets) < MIN_JITTER_PACKETS:
+            return self.depth * period
+        spread = max(self._offsets) - min(self._offsets)
         return min(max(spread, period) + GUARD_S, self.depth * period)
 
     def due(self) -> float | None:

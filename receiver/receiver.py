@@ -5,7 +5,9 @@ Session
 1. Sockets. A SUB socket for packets at ``connect`` and a DEALER for control requests at
    ``protocol.transport.control_endpoint(connect)`` (port + 1), both under CURVE when a key
    folder is given (``protocol.keys.client_keys``). ZeroMQ connects in the background and
-   reconnects by itself: a sender may start after the receiver, stop, and come back.
+   reconnects by itself: a sender may start after the receiver, stop, and come back. The
+   packet socket is opened anew after ``REOPEN_S`` without a packet, since libzmq does not
+   reconnect one whose peer broke the protocol (a frame over its size limit).
 2. Hello. Asked again every ``HELLO_TIMEOUT_S`` until a sender answers; meanwhile the status
    says that the receiver waits, where, and for how long. ``idle_timeout_s`` ends the wait.
 3. Model. With ``model_path``, the file's sha256 must be the Hello's, or ``ReceiveError``.
@@ -13,8 +15,10 @@ Session
    file in chunks (``ModelRequest`` -> ``ModelChunk``, reassembled by
    ``protocol.control.ModelAssembler``), each chunk asked up to ``CHUNK_ATTEMPTS`` times;
    the whole is verified (sha256, then decoded) before it is cached and used. A sender that
-   stops answering mid-transfer sends the receiver back to step 2; a sender whose file
-   fails its own sha256 ``MODEL_ATTEMPTS`` times ends the session with ``ReceiveError``.
+   stops answering mid-transfer (a chunk request times out) sends the receiver back to step
+   2; a transfer whose whole fails the sha256, or in which a chunk was answered
+   ``CHUNK_ATTEMPTS`` times with something else (another chunk, an error), is a failed
+   attempt, and ``MODEL_ATTEMPTS`` of them end the session with ``ReceiveError``.
 4. Play (below), until ``stop`` is set, ``max_frames`` frames are out, or no packet (and
    no control reply) has come for ``idle_timeout_s``.
 
@@ -74,7 +78,8 @@ began, and its next packet starts a new one (this also bounds the slots held bac
 loop ends on ``stop`` or on the idle timeout, the packets already received are played first
 (ticks without waiting, a bounded number of them), so every packet received is in the output:
 on a link without loss, ``frames == received``. ``max_frames`` ends at once, after that many
-frames. The output size is the first Hello's camera size, or ``size``; a later Hello with
+frames. The output size is ``size``, or the first Hello's camera size (scaled down to at
+most ``MAX_SIZE`` on its longer side: a Hello may announce up to 16384); a later Hello with
 another camera is rendered at that size (its intrinsics scaled, ``sender_view``).
 
 Sender restart
@@ -142,6 +147,7 @@ MODEL_ATTEMPTS = 3
 RECHECK_TIMEOUT_S = 0.5
 RECHECK_EVERY_S = 2.0
 RESUME_GAP_S = 0.5
+REOPEN_S = 8.0
 MAX_GAP_S = 10.0
 QUEUE_PACKETS = 4096
 STATUS_EVERY_S = 1.0
@@ -241,10 +247,15 @@ class _End(Exception):
 
 
 class _PacketReader:
-    """The SUB socket's own thread: packets in, stamped with their arrival time."""
+    """The SUB socket's own thread: packets in, stamped with their arrival time. After
+    ``REOPEN_S`` without a packet the socket is opened again (``reopened``): libzmq does not
+    reconnect a socket whose peer broke the protocol (e.g. sent a frame over
+    ``protocol.transport.MAX_PACKET_FRAME``), and a fresh one costs nothing."""
 
-    def __init__(self, subscriber: PacketSubscriber) -> None:
-        self._sub = subscriber
+    def __init__(self, open_socket: Callable[[], PacketSubscriber]) -> None:
+        self._open = open_socket
+        self._sub = open_socket()
+        self.reopened = 0
         self._queue: deque[tuple[bytes, float]] = deque()
         self._closing = threading.Event()
         self.arrived = threading.Event()  # set on each packet queued
@@ -256,12 +267,18 @@ class _PacketReader:
         self._thread.start()
 
     def _run(self) -> None:
+        quiet_since = time.monotonic()
         try:
             while not self._closing.is_set():
                 data = self._sub.recv(_POLL_MS)
                 if data is None:
+                    if time.monotonic() - quiet_since > REOPEN_S:
+                        self._sub.close()
+                        self._sub = self._open()
+                        self.reopened += 1
+                        quiet_since = time.monotonic()
                     continue
-                now = time.monotonic()
+                now = quiet_since = time.monotonic()
                 self.last_arrival = now
                 if len(self._queue) >= QUEUE_PACKETS:
                     self.overflow += 1
@@ -391,7 +408,7 @@ class _Session:
     def run(self) -> dict[str, Any]:
         start = time.monotonic()
         with contextlib.ExitStack() as stack:
-            self.reader = _PacketReader(PacketSubscriber(self.connect, self.curve))
+            self.reader = _PacketReader(lambda: PacketSubscriber(self.connect, self.curve))
             stack.callback(self.reader.close)
             self.control = _Control(self.control_endpoint, self.curve)
             stack.callback(self.control.close)
@@ -491,14 +508,18 @@ class _Session:
                      + (f", cached as {path}" if path else ""))
             return model
         raise ReceiveError(f"the model announced by {self.connect} ({sha[:16]}...) failed "
-                           f"its sha256 {MODEL_ATTEMPTS} times")
+                           f"its sha256 {MODEL_ATTEMPTS} times (its chunks did not hash to "
+                           f"it, or were not the ones asked for)")
 
     def _fetch(self, hello: Hello) -> bytes | None:
-        """The model file's bytes; None when the sender stopped answering, b"" when the
-        whole does not hash to the announced sha256."""
+        """The model file's bytes; None when the sender stopped answering (a chunk timed
+        out), b"" when the whole does not hash to the announced sha256 or every answer for
+        a chunk was another chunk or an error (a failed attempt, bounded by
+        ``MODEL_ATTEMPTS``)."""
         sha, total = hello.model_sha256, hello.model_bytes
         assembler = ModelAssembler(sha, total)
         for index in assembler.missing():
+            timeouts = self.control.timeouts
             for _ in range(CHUNK_ATTEMPTS):
                 self._check_end()
                 chunk = self.control.ask(ModelRequest(sha, index), ModelChunk, CHUNK_TIMEOUT_S)
@@ -516,10 +537,11 @@ class _Session:
                          f"{total // 1024} KiB)")
                 break
             else:
+                gone = self.control.timeouts > timeouts
                 self.say(f"model {sha[:12]}: chunk {index} failed {CHUNK_ATTEMPTS} times "
-                         f"({self.control.last_error or 'no answer'}); asking the sender "
-                         f"again")
-                return None
+                         f"({self.control.last_error or 'no answer'}); "
+                         + ("asking the sender again" if gone else "fetching it again"))
+                return None if gone else b""
         try:
             return assembler.result()
         except ControlError as exc:
@@ -538,8 +560,10 @@ class _Session:
     def _adopt(self, hello: Hello, model: PersonModel) -> None:
         """Play this Hello with this model: a renderer if the model is new, a new playout
         and clock; the packets queued meanwhile are played or ignored (module docstring)."""
-        if self.size is None:
-            self.size = (hello.camera.width, hello.camera.height)
+        if self.size is None:  # the sender's camera, at most MAX_SIZE on its longer side
+            cam = hello.camera
+            scale = min(1.0, MAX_SIZE / max(cam.width, cam.height))
+            self.size = (max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
         if self.scene is not None and self.scene.model is not model:
             self.scene.release()
             self.scene = None

@@ -32,11 +32,15 @@ Control requests (``protocol.control``) are answered on a second thread, at the 
 endpoint (the bind port plus one): a HelloRequest gets the Hello; ModelRequest(sha256, index)
 gets chunk ``index`` of the model file, split once, from the bytes the model was loaded from
 (``protocol.control.model_chunks``); a malformed request, an unknown sha256, or an index out of
-range gets an ``Error`` reply. A thread of its own because a receiver fetches the model one
-chunk per round trip: answered between frames, every chunk would wait for a frame's tracking
-and pacing, one frame period each, and a Hello would wait behind the tracker. Its work
-(a lookup and a send) is small beside the frame loop's. Each thread uses only its own
-sockets.
+range gets an ``Error`` reply (counted: ``control.errors``). Two kinds get no reply and are not
+counted: a request with broken framing (no empty delimiter, more than ``MAX_HOPS`` routing
+frames: dropped by ``ControlServer.recv``), and a frame over
+``protocol.transport.MAX_CONTROL_FRAME``, which ends that peer's connection at the frame's
+header (libzmq's own limit; the peer may connect again). A thread of its own because a
+receiver fetches the model one chunk per round trip: answered between frames, every chunk
+would wait for a frame's tracking and pacing, one frame period each, and a Hello would wait
+behind the tracker. Its work (a lookup and a send) is small beside the frame loop's. Each
+thread uses only its own sockets.
 
 Receiver count: TCP connections open to the packet socket (``protocol.transport.PeerCounter``):
 a relay counts as one, a peer still in its handshake counts too.
@@ -68,8 +72,9 @@ import numpy as np
 import zmq
 
 from models.modelfile import ModelFileError, load_model
-from protocol.control import (ControlError, Error, Hello, HelloRequest, Message, ModelChunk,
-                              ModelRequest, decode_message, model_chunks)
+from protocol.control import (MAX_RATE_HZ, MIN_RATE_HZ, ControlError, Error, Hello,
+                              HelloRequest, Message, ModelChunk, ModelRequest, decode_message,
+                              model_chunks)
 from protocol.keys import server_keys
 from protocol.log import LogError, LogWriter
 from protocol.packet import PACKET_BYTES
@@ -238,7 +243,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             (``sender.capture.open_source``; files are sent in real time).
         bind: the packet endpoint ``tcp://HOST:PORT``; control is on PORT + 1.
         record: a packet log to write (replaced if it exists), or None.
-        rate_hz: the target rate, in (0, 1000]; a slower file sets the stream's rate.
+        rate_hz: the target rate, in [1, 1000] (``protocol.control.MIN_RATE_HZ``,
+            ``MAX_RATE_HZ``: what a Hello may announce); a slower file sets the stream's rate.
         curve_dir: a key folder (``facewire keys generate``) to encrypt and admit only
             authorised receivers, or None for plain TCP.
         status: called about once per second from this thread with ``seconds``, ``frames``,
@@ -263,9 +269,10 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         LogError: the log cannot be written (named).
         CaptureError: no such camera, an unreadable or empty video (named).
     """
-    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float))
-                                         and np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
-        raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
+    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float)) and
+                                         MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
+        raise ValueError(f"rate_hz: expected a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
+                         f"got {rate_hz!r}")
     control_at = control_endpoint(bind)
     stop = stop if stop is not None else threading.Event()
     report = status if status is not None else (lambda _: None)

@@ -506,24 +506,28 @@ def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline
     while playout.ready:  # the countdown costs nothing: slot 0 plays at once
         states.append(playout.pop())
     assert [s.seq for s in states] == [None] * DEPTH + [0]
-    # steady arrivals: no jitter yet, the margin is one period and the guard
+    assert playout.margin_s == pytest.approx(DEPTH * period)  # too few packets to judge
+    for s in range(1, 10):  # steady arrivals, each played on arrival
+        playout.push(packets[s], s * period)
+        assert playout.ready and playout.pop().seq == s
+    # no jitter: the margin is one period and the guard
     assert playout.margin_s == pytest.approx(period + 0.005)
-    assert playout.due() == pytest.approx(period + period + 0.005)
-    # slot 2 overtakes slot 1 by a few ms: slot 1 is waited for, then both play
-    playout.push(packets[2], 2 * period)
+    assert playout.due() == pytest.approx(10 * period + period + 0.005)
+    # slot 11 overtakes slot 10 by a few ms: slot 10 is waited for, then both play
+    playout.push(packets[11], 11 * period)
     assert not playout.ready and playout.ahead == 2
-    playout.push(packets[1], 2 * period + 0.004)
+    playout.push(packets[10], 11 * period + 0.004)
     assert playout.ready
-    assert [playout.pop().seq, playout.pop().seq] == [1, 2]
+    assert [playout.pop().seq, playout.pop().seq] == [10, 11]
     assert playout.stats["late"] == 0
-    # slot 3 is lost: nothing is ready until its deadline; slot 4 plays after it
-    playout.push(packets[4], 4 * period)
+    # slot 12 is lost: nothing is ready until its deadline; slot 13 plays after it
+    playout.push(packets[13], 13 * period)
     assert not playout.ready
     due = playout.due()
-    assert 3 * period < due < 4 * period + 0.01  # the jitter so far is 4 ms
+    assert 12 * period < due < 13 * period + 0.01  # the jitter so far is 4 ms
     state = playout.pop()  # the caller pops at the deadline
-    assert state.seq == 3 and state.status == "held"
-    assert playout.ready and playout.pop().seq == 4
+    assert state.seq == 12 and state.status == "held"
+    assert playout.ready and playout.pop().seq == 13
     assert playout.stats["concealed"] == 1
 
 

@@ -14,24 +14,23 @@ import os
 import shutil
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
 import pytest
-import zmq
 
-from conftest import free_endpoint
-from models.modelfile import ModelFileError, load_model
-from protocol.control import (Error, Hello, HelloRequest, ModelRequest,
-                              decode_message, model_chunks)
-from protocol.keys import CurveServer, generate_keys, server_keys
+from logsender import LogSender
+from logsender import free_port_pair as _free_port_pair
+from logsender import hello_for as _hello_for
+from logsender import ready as _ready
+from models.modelfile import ModelFileError
+from protocol.keys import generate_keys, server_keys
 from protocol.log import read_log
-from protocol.packet import decode, encode
-from protocol.transport import ControlServer, PacketPublisher, TransportError
+from protocol.transport import TransportError
 from receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
-from receiver.receiver import LIVE_KEYS, ReceiveError, receive
+from receiver.receiver import LIVE_KEYS, MAX_SIZE, ReceiveError, receive
 from sender.pipeline import encode_video
 
 SIZE = (160, 120)
@@ -43,132 +42,6 @@ def log(person_model: Path, shared_data: Path, tmp_path_factory: pytest.TempPath
     path = tmp_path_factory.mktemp("receiver") / "lp_d0.fwlog"
     encode_video(person_model, shared_data / "video" / "lp_d0.mp4", path)
     return read_log(path)
-
-
-def _free_port_pair() -> int:
-    """A port P with P and P + 1 free on 127.0.0.1, below the ephemeral range
-    (``conftest.free_endpoint``)."""
-    return int(free_endpoint().rsplit(":", 1)[1])
-
-
-class LogSender(threading.Thread):
-    """A sender on ``tcp://127.0.0.1:port`` (and port + 1) made of the real sockets.
-
-    It answers Hello and model requests (counting them) and, once ``go`` is set (at once
-    when None), publishes ``count`` packets at the Hello's rate: the log's packets in order,
-    cycling, numbered ``first_seq``, ``first_seq + 1``, ...; after every ``junk_every``-th
-    packet it also publishes three corrupt messages, and every ``drop_every``-th packet is
-    numbered and timed but not sent (lost). ``faulty`` lists the control requests (1 for
-    the first) answered wrongly: garbage bytes, then a chunk other than the one asked for.
-    ``stop()`` closes the sockets.
-    """
-
-    def __init__(self, port: int, hello: Hello, model: bytes, packets: np.ndarray,
-                 count: int, go: threading.Event | None = None, first_seq: int = 0,
-                 junk_every: int = 0, drop_every: int = 0, faulty: tuple[int, ...] = (),
-                 curve: CurveServer | None = None) -> None:
-        super().__init__(daemon=True)
-        self.port, self.hello, self.count, self.go = port, hello, count, go
-        self.chunks = {c.index: c for c in model_chunks(model, hello.model_sha256)}
-        self.frames = [decode(p.tobytes()) for p in packets]
-        self.first_seq = first_seq
-        self.junk_every, self.drop_every, self.faulty = junk_every, drop_every, faulty
-        self.dropped = 0
-        self.curve = curve
-        self.requests: Counter[str] = Counter()
-        self.sent = 0
-        self.junk = 0
-        self.bound = threading.Event()
-        self.done = threading.Event()
-        self._halt = threading.Event()
-        self.start()
-        assert self.bound.wait(10), "the test sender could not bind"
-
-    def run(self) -> None:
-        endpoint = f"tcp://127.0.0.1:{self.port}"
-        contexts = [zmq.Context(), zmq.Context()]  # one CURVE authenticator per context
-        for _ in range(50):  # the port of a sender that just closed may take a moment
-            try:
-                pub = PacketPublisher(endpoint, self.curve, context=contexts[0])
-                break
-            except TransportError:
-                time.sleep(0.1)
-        ctl = ControlServer(f"tcp://127.0.0.1:{self.port + 1}", self.curve,
-                            context=contexts[1])
-        self.bound.set()
-        period = 1.0 / self.hello.rate_hz
-        rng = np.random.default_rng(3)
-        next_t = None
-        try:
-            while not self._halt.is_set():
-                now = time.monotonic()
-                if next_t is None and (self.go is None or self.go.is_set()):
-                    next_t = now
-                if next_t is not None and self.sent < self.count and now >= next_t:
-                    frame = self.frames[self.sent % len(self.frames)]
-                    packet = encode(dataclasses.replace(
-                        frame, seq=(self.first_seq + self.sent) % 65536))
-                    if self.drop_every and (self.sent + 1) % self.drop_every == 0:
-                        self.dropped += 1
-                    else:
-                        pub.send(packet)
-                    self.sent += 1
-                    next_t += period
-                    if self.junk_every and self.sent % self.junk_every == 0:
-                        bad = bytearray(packet)
-                        bad[5] ^= 0x10
-                        for junk in (rng.bytes(39), b"abc", bytes(bad)):
-                            pub.send(junk)
-                            self.junk += 1
-                    if self.sent == self.count:
-                        self.done.set()
-                wait = 10 if next_t is None or self.sent == self.count else \
-                    max(0, round((next_t - time.monotonic()) * 1000))
-                request = ctl.recv(wait)
-                if request is not None:
-                    self._answer(ctl, *request)
-        finally:
-            pub.close()
-            ctl.close()
-            for context in contexts:
-                context.term()
-
-    def _answer(self, ctl: ControlServer, peer: tuple[bytes, ...], raw: bytes) -> None:
-        message = decode_message(raw)
-        self.requests[message.TYPE] += 1
-        n = self.requests.total()
-        if n in self.faulty:
-            if self.faulty.index(n) % 2 == 0:
-                ctl.socket.send_multipart([*peer, b"", b"\xc1 not msgpack"])
-            else:
-                ctl.reply(peer, self.chunks[len(self.chunks) - 1])
-        elif isinstance(message, HelloRequest):
-            ctl.reply(peer, self.hello)
-        elif isinstance(message, ModelRequest) and message.sha256 == self.hello.model_sha256 \
-                and message.index in self.chunks:
-            ctl.reply(peer, self.chunks[message.index])
-        else:
-            ctl.reply(peer, Error("unknown request"))
-
-    def stop(self) -> None:
-        self._halt.set()
-        self.join(10)
-
-
-def _hello_for(model_path: Path, hello: Hello) -> Hello:
-    data = model_path.read_bytes()
-    return dataclasses.replace(hello, model_sha256=hashlib.sha256(data).hexdigest(),
-                               model_bytes=len(data),
-                               regions=tuple(r.name for r in load_model(model_path).regions))
-
-
-def _ready(go: threading.Event, lines: list[str]):
-    """A status callback that records the lines and sets ``go`` once the loop plays."""
-    def status(line: str) -> None:
-        lines.append(line)
-        if "waiting for packets" in line:
-            go.set()
-    return status
 
 
 def _video_frames(path: Path) -> list[np.ndarray]:
@@ -480,3 +353,24 @@ def test_bad_arguments_are_refused_before_connecting(tmp_path: Path) -> None:
         receive("tcp://127.0.0.1:5555", view=5)
     with pytest.raises(TransportError):
         receive("udp://nowhere", idle_timeout_s=1)
+
+
+def test_an_oversized_sender_camera_is_rendered_at_most_max_size(log, person_model: Path,
+                                                                   tmp_path: Path) -> None:
+    """A Hello may announce a 16384-pixel camera; without --size the output is scaled down
+    to MAX_SIZE on its longer side, keeping the aspect (8192 x 1024 -> 4096 x 512)."""
+    cam = log.hello.camera
+    wide = dataclasses.replace(cam, fx=cam.fx * 16, fy=cam.fy * 2, cx=cam.cx * 16,
+                               cy=cam.cy * 2, width=8192, height=1024)
+    hello = _hello_for(person_model, dataclasses.replace(log.hello, camera=wide))
+    port = _free_port_pair()
+    sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=10)
+    try:
+        summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model,
+                          frames_dir=tmp_path / "frames", max_frames=2, idle_timeout_s=20)
+    finally:
+        sender.stop()
+    assert (summary["width"], summary["height"]) == (MAX_SIZE, MAX_SIZE // 8)
+    frames = sorted((tmp_path / "frames").glob("*.png"))
+    assert len(frames) == 2
+    assert cv2.imread(str(frames[0])).shape[:2] == (MAX_SIZE // 8, MAX_SIZE)
