@@ -67,22 +67,23 @@ extended number, ``P = 1 / rate_hz`` and ``o_i = a_i - e_i P`` the offset of eac
 ``JITTER_PACKETS`` packets of the stream (arrival ``a_i``, extended number ``e_i``; late ones
 included, duplicates not)::
 
-    due(n) = min(o) + n P + margin,   margin = min(max(max(o) - min(o), P) + GUARD_S, depth P)
+    due(n) = min(o) + n P + margin,   margin = min(P + max(o) - min(o) + GUARD_S, depth P)
 
 and ``margin = depth P`` until the stream has ``MIN_JITTER_PACKETS`` arrivals (its first
 packets tell little of its jitter, and a sender warming up sends unevenly).
 
 ``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
 ``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
-same packets. The margin is at least one slot period, so a packet overtaken by its successor
-is not given up before that successor arrives, and at most the depth, as on the tick clock.
-A lost packet thus delays the slots behind it by about one period, and a packet on time is
-never delayed.
+same packets. The margin is one slot period more than the jitter, so a packet overtaken by
+its successor (which itself may come as late as the jitter) is not given up before it
+arrives, and at most the depth, as on the tick clock. A lost packet thus delays the slots
+behind it by about one period and the jitter, and a packet on time is never delayed.
 
-Skip (``stats["skipped"]``): when the newest buffered packet is ``2 depth`` or more slots
-ahead of the playout point ``n``, the latency has grown by ``depth`` slots or more; the
-playout point moves forward so that the newest is ``depth`` slots ahead again (``target =
-newest - depth``), giving up missing slots before received ones:
+Skip (``stats["skipped"]``; only with ``skip``, the default): when the newest buffered
+packet is ``2 depth`` or more slots ahead of the playout point ``n``, the latency has grown
+by ``depth`` slots or more; the playout point moves forward so that the newest is ``depth``
+slots ahead again (``target = newest - depth``), giving up missing slots before received
+ones:
 
 - slot ``n`` missing (a forward jump in ``seq``: the sender skipped numbers): jump over the
   missing run, to ``min(target, first buffered slot)``;
@@ -246,6 +247,8 @@ class Playout:
         ease_s: how long the ease to neutral takes, s, >= 0 (0 snaps to neutral).
         rest_q: (8,) the Q of each slot on the neutral face (the model's ``Region.rest`` in
             packet order, 0 beyond its regions); zeros when None.
+        skip: apply the skip rule (module docstring); without it every slot is played, however
+            far behind (a receiver writing a file rather than showing a live picture).
 
     Raises:
         ValueError: an argument out of range (naming it).
@@ -254,7 +257,8 @@ class Playout:
     """
 
     def __init__(self, rate_hz: float, depth: int = DEFAULT_DEPTH, hold_s: float = HOLD_S,
-                 ease_s: float = EASE_S, rest_q: np.ndarray | None = None) -> None:
+                 ease_s: float = EASE_S, rest_q: np.ndarray | None = None,
+                 skip: bool = True) -> None:
         if not (isinstance(rate_hz, numbers.Real) and 0 < rate_hz <= MAX_RATE_HZ):
             raise ValueError(f"rate_hz: expected a number in (0, {MAX_RATE_HZ}], got {rate_hz!r}")
         if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) \
@@ -267,6 +271,7 @@ class Playout:
         self.depth = int(depth)
         self.hold_s = float(hold_s)
         self.ease_s = float(ease_s)
+        self.skip = bool(skip)
         self.window = max(4 * self.depth, math.ceil(JUMP_S * self.rate_hz))
         rest = np.zeros(N_REGIONS, np.float32) if rest_q is None else \
             np.asarray(rest_q, np.float32)
@@ -333,7 +338,7 @@ class Playout:
         if len(self._offsets) < MIN_JITTER_PACKETS:
             return self.depth * period
         spread = max(self._offsets) - min(self._offsets)
-        return min(max(spread, period) + GUARD_S, self.depth * period)
+        return min(period + spread + GUARD_S, self.depth * period)
 
     def due(self) -> float | None:
         """The time, on the arrival clock, after which the next slot is concealed if its
@@ -401,7 +406,7 @@ class Playout:
             self._playing = True
             self._next = min(self._buffer)
             self._ref = self._next
-        if self._buffer and self._newest - self._next >= 2 * self.depth:
+        if self.skip and self._buffer and self._newest - self._next >= 2 * self.depth:
             self._catch_up()
         slot = self._next
         self._next += 1

@@ -51,10 +51,11 @@ the deadline passes. A renderer slower than the stream:
 - with a live ``view``, every packet that has arrived is pushed, and the playout's skip rule
   gives up the slots in excess (``skipped``, ``discarded``), so the picture stays at most a
   few slots late;
-- without one (a file, or nothing), every slot is rendered: packets stay in the reader's
-  queue while the playout holds ``2 depth`` slots or more ahead (so its skip rule does not
-  fire), the latency grows as far as it must (bounded by the queue) and the loop catches up
-  when the stream pauses or ends.
+- without one (a file, or nothing), every slot is rendered: the playout's skip rule is off,
+  packets stay in the reader's queue while the playout holds half its window ahead (so a
+  packet is never far enough ahead to look like a restarted stream), the latency grows as
+  far as it must (bounded by the queue) and the loop catches up when the stream pauses or
+  ends.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view
@@ -572,7 +573,7 @@ class _Session:
         self.scene.hello_camera = hello.camera
         self._retire_playout()
         self.hello = hello
-        self.playout = Playout(hello.rate_hz, rest_q=rest_q(model))
+        self.playout = Playout(hello.rate_hz, rest_q=rest_q(model), skip=self.view is not None)
         self.played, self.restarts_seen, self.stream_played = 0, 0, False
         self.pending.clear()
         now = time.monotonic()
@@ -632,9 +633,9 @@ class _Session:
 
     def _feed(self) -> None:
         """Move the queued packets into the playout, in arrival order (without a view only
-        while it holds fewer than ``2 depth`` slots ahead: module docstring), and notice a
+        while it holds less than half its window ahead: module docstring), and notice a
         restarted stream."""
-        limit = None if self.view is not None else 2 * self.playout.depth
+        limit = None if self.view is not None else self.playout.window // 2
         while limit is None or self.playout.ahead < limit:
             item = self.reader.take()
             if item is None:

@@ -524,7 +524,8 @@ def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline
     playout.push(packets[13], 13 * period)
     assert not playout.ready
     due = playout.due()
-    assert 12 * period < due < 13 * period + 0.01  # the jitter so far is 4 ms
+    # the jitter so far: slot 10 came one period and 4 ms after its earliest time
+    assert due == pytest.approx(12 * period + period + (period + 0.004) + 0.005)
     state = playout.pop()  # the caller pops at the deadline
     assert state.seq == 12 and state.status == "held"
     assert playout.ready and playout.pop().seq == 13
@@ -539,7 +540,27 @@ def test_the_margin_follows_the_jitter_up_to_the_depth() -> None:
         playout.push(encode(make_frame(s, rng)), s * period + (0.05 if s % 2 else 0.0))
         while playout.ready:
             playout.pop()
-    assert playout.margin_s == pytest.approx(0.05 + 0.005)
+    assert playout.margin_s == pytest.approx(period + 0.05 + 0.005)
     for s in range(20, 40):  # jitter beyond the depth: capped
         playout.push(encode(make_frame(s, rng)), s * period + (0.3 if s % 2 else 0.0))
     assert playout.margin_s == pytest.approx(DEPTH * period)
+
+
+def test_without_skip_every_slot_plays_however_far_behind() -> None:
+    """A file-writing receiver that fell behind: packets pile up past a lost slot, and
+    every slot is still played (with ``skip`` the skip rule gives up the lost one and
+    discards the ones before the target)."""
+    rng = np.random.default_rng(9)
+    packets = {s: encode(make_frame(s, rng)) for s in range(20) if s != 3}
+    for skip, expected in ((False, list(range(20))), (True, None)):
+        playout = Playout(RATE, depth=DEPTH, skip=skip)
+        for s, data in packets.items():
+            playout.push(data, 0.0)
+        seqs = [state.seq for state in (playout.pop() for _ in range(DEPTH + 20))
+                if state.seq is not None]
+        if expected is not None:
+            assert seqs == expected
+            assert playout.stats["skipped"] == 0 and playout.stats["discarded"] == 0
+            assert playout.stats["concealed"] == 1
+        else:
+            assert playout.stats["skipped"] > 0 and playout.stats["discarded"] > 0
