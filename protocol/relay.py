@@ -21,6 +21,10 @@ Keys: ``curve_in`` is a client key folder (the relay's pair, and the sender's pu
 key folder (the relay's pair, and the receivers it admits in ``authorized/``) for the
 downstream side. The relay decrypts and re-encrypts, so it must be trusted with the stream.
 
+Every socket refuses frames over the transport's limits (``protocol.transport``: a packet
+socket ``MAX_PACKET_FRAME``, a control socket ``MAX_CONTROL_FRAME``), so a peer cannot make the
+relay buffer what a frame header declares.
+
 Stopping (``stop`` set, or Ctrl-C): each proxy is asked for its statistics and then to
 terminate over its inproc control socket (``STATISTICS``, ``TERMINATE``), the threads are
 joined and the sockets closed.
@@ -39,7 +43,8 @@ import zmq
 import zmq.auth.thread
 
 from protocol.keys import CurveClient, CurveServer, client_keys, server_keys
-from protocol.transport import CONTROL_HWM, PACKET_HWM, TransportError, control_endpoint
+from protocol.transport import (CONTROL_HWM, MAX_CONTROL_FRAME, MAX_PACKET_FRAME, PACKET_HWM,
+                                TransportError, control_endpoint)
 
 WAIT_S = 0.1
 STATISTICS_TIMEOUT_MS = 2000
@@ -75,8 +80,9 @@ class _Proxy:
         return stats
 
 
-def _socket(context: zmq.Context, kind: int, hwm: int) -> zmq.Socket:
+def _socket(context: zmq.Context, kind: int, hwm: int, max_frame: int) -> zmq.Socket:
     socket = context.socket(kind)
+    socket.maxmsgsize = max_frame
     socket.linger = 0
     socket.sndhwm = hwm
     socket.rcvhwm = hwm
@@ -142,9 +148,10 @@ def relay(inp: str, out: str, stop: threading.Event | None = None,
             auth.start()
             stack.callback(auth.stop)
             auth.configure_curve(domain="*", location=str(server.authorized))
-        sockets = [_socket(context, kind, hwm) for kind, hwm in (
-            (zmq.XSUB, PACKET_HWM), (zmq.XPUB, PACKET_HWM), (zmq.ROUTER, CONTROL_HWM),
-            (zmq.DEALER, CONTROL_HWM))]
+        sockets = [_socket(context, kind, hwm, limit) for kind, hwm, limit in (
+            (zmq.XSUB, PACKET_HWM, MAX_PACKET_FRAME), (zmq.XPUB, PACKET_HWM, MAX_PACKET_FRAME),
+            (zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME),
+            (zmq.DEALER, CONTROL_HWM, MAX_CONTROL_FRAME))]
         for socket in sockets:
             stack.callback(socket.close, linger=0)
         xsub, xpub, router, dealer = sockets

@@ -429,10 +429,14 @@ class Playout:
     @staticmethod
     def _decode(data: object, arrival_s: float) -> tuple[_Packet | None, bytes]:
         """The decoded packet and its bytes; (None, b"") when it is not a valid packet."""
-        if not isinstance(data, (bytes, bytearray, memoryview)) \
-                or memoryview(data).nbytes != PACKET_BYTES:
+        if not isinstance(data, (bytes, bytearray, memoryview)):
             return None, b""
-        raw = bytes(data)
+        try:
+            raw = bytes(data)  # a copy: the caller may reuse its buffer
+        except ValueError:  # a released memoryview
+            return None, b""
+        if len(raw) != PACKET_BYTES:
+            return None, b""
         try:
             frame = decode(raw)
         except PacketError:

@@ -281,15 +281,15 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
     with ExitStack() as stack:
         src = stack.enter_context(open_source(str(source), rate_hz))
         rate = float(min(rate_hz, src.rate_hz))
-        pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
-        hello = pipeline.hello()
-        chunks = model_chunks(data, hello.model_sha256)
-        contexts = [zmq.Context(), zmq.Context()]
+        contexts = [zmq.Context(), zmq.Context()]  # bound first: a port in use fails at once
         for context in contexts:
             stack.callback(context.term)
         publisher = stack.enter_context(PacketPublisher(bind, curve, contexts[0]))
         server = stack.enter_context(ControlServer(control_at, curve, contexts[1]))
         peers = stack.enter_context(PeerCounter(publisher))
+        pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
+        hello = pipeline.hello()
+        chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None
         responder = _Responder(server, hello, chunks)
         responder.thread.start()

@@ -50,6 +50,39 @@ import numpy as np
 import pytest
 import zmq
 
+def test_the_relay_drops_a_sender_declaring_a_gigabyte_and_goes_on() -> None:
+    """The same frame header from the relay's upstream side: its packet socket drops that
+    connection at the header (``protocol.relay`` sets the transport's limits) and the relay
+    keeps running. (libzmq does not reconnect a connecting socket after such a protocol
+    error, so that upstream stays cut off until the relay restarts: only the hostile peer
+    loses.)"""
+    upstream, downstream = free_endpoint(), free_endpoint()
+    port = int(upstream.rsplit(":", 1)[1])
+    with socket.create_server(("127.0.0.1", port)) as server:
+        server.settimeout(10)
+        thread, stop, result = start(relay, inp=upstream, out=downstream)
+        try:
+            conn, _ = server.accept()
+            with conn:
+                conn.settimeout(10)
+                conn.sendall(_zmtp_greeting())
+                assert _read(conn, 64)[:1] == b"\xff"
+                conn.sendall(_zmtp_ready(b"PUB"))
+                header = _read(conn, 2)
+                assert _read(conn, header[1]).startswith(b"\x05READY")
+                conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
+                tick = time.monotonic()
+                with contextlib.suppress(ConnectionResetError):
+                    while conn.recv(4096):
+                        pass
+                assert time.monotonic() - tick < 5
+            assert thread.is_alive()
+        finally:
+            stop.set()
+            thread.join(10)
+    assert "error" not in result, result
+
+
 if __name__ == "__main__":  # run as a script: find tests/conftest.py as pytest does
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -57,6 +90,7 @@ from conftest import free_endpoint, start
 from protocol.control import Camera, Error, Hello, HelloRequest, decode_message
 from protocol.log import LogWriter, read_log
 from protocol.packet import PacketError, decode, decode_frames
+from protocol.relay import relay
 from protocol.transport import ControlServer, PacketSubscriber, control_endpoint
 from receiver.playout import STATUSES, Playout
 from receiver.receiver import receive
