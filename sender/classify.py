@@ -341,7 +341,7 @@ class RegionClassifiers:
         diff -= self._values[:, :, None, :]
         np.abs(diff, out=diff)
         diff *= self._weights[:, :, None, :]
-        return diff.sum(axis=-1) + self._absent[:, :, None]
+        return np.add.reduce(diff, axis=-1) + self._absent[:, :, None]
 
     def classify(self, samples: np.ndarray) -> FrameClassification:
         """Q, winning offset and score of every region (module docstring).
@@ -351,7 +351,7 @@ class RegionClassifiers:
                 per region, regions in ``self.regions`` order.
         """
         phi = self.scores(samples)  # (R, kmax, m)
-        best = phi.min(axis=1)  # (R, m)
+        best = np.minimum.reduce(phi, axis=1)  # (R, m)
         offset = best.argmin(axis=1)
         rows = self._rows
         phis = phi[rows, :, offset]  # (R, kmax): the winning sample's scores
@@ -406,7 +406,7 @@ def _coefficients(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     steps = np.rint(flat * np.float32(QUANTUM_STEPS))  # integers: sample * 64
     coeffs = steps @ _ELIGIBLE_MATRIX
     wide = steps.astype(np.float64)
-    total = wide.sum(axis=1)
+    total = np.add.reduce(wide, axis=1)
     energy = (np.einsum("ij,ij->i", wide, wide) - total * total / N_COEFFS) \
         / QUANTUM_STEPS**2
     return coeffs, energy

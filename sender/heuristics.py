@@ -66,6 +66,9 @@ FRAME_S = 1.0 / 30.0
 PARTNER = np.array([NONRIGID.tolist().index(MIRROR[i]) for i in NONRIGID], dtype=np.int64)
 PARTNER.setflags(write=False)
 REFLECT = np.array([-1.0, 1.0, 1.0], dtype=np.float32)
+_FACE_PRESENT, _HELD, _MIRRORED, _REACQUIRED, _TRACKING_LOST = (
+    int(f) for f in (Flag.FACE_PRESENT, Flag.HELD, Flag.MIRRORED, Flag.REACQUIRED,
+                     Flag.TRACKING_LOST))
 
 
 @dataclass(frozen=True)
@@ -104,13 +107,13 @@ class FilterOutput:
     @property
     def flags(self) -> Flag:
         """The packet flags this frame earns (FACE_PRESENT included)."""
-        f = Flag(0)
-        for on, bit in ((self.face_present, Flag.FACE_PRESENT), (self.held, Flag.HELD),
-                        (self.mirrored, Flag.MIRRORED), (self.reacquired, Flag.REACQUIRED),
-                        (self.tracking_lost, Flag.TRACKING_LOST)):
+        bits = 0
+        for on, bit in ((self.face_present, _FACE_PRESENT), (self.held, _HELD),
+                        (self.mirrored, _MIRRORED), (self.reacquired, _REACQUIRED),
+                        (self.tracking_lost, _TRACKING_LOST)):
             if on:
-                f |= bit
-        return f
+                bits |= bit
+        return Flag(bits)
 
 
 class ResidualFilter:
@@ -179,7 +182,7 @@ class ResidualFilter:
         if residuals is None:
             return self._lose(keep)
         measured, ok = self._check(residuals, valid)
-        extreme = ok & (np.linalg.norm(measured, axis=1) > self.extreme_mm)
+        extreme = ok & (_lengths(measured) > self.extreme_mm)
         ok &= ~extreme
         reacquired = self._lost
         if not self._started or reacquired:
@@ -192,19 +195,24 @@ class ResidualFilter:
         else:
             accept, held = self._jump_test(measured, ok, dt)
         value = self._value
-        value[accept] = measured[accept]
+        np.copyto(value, measured, where=accept[:, None])
         missing = ~(accept | held)
         partner_ok = accept[PARTNER] & missing
-        value[partner_ok] = measured[PARTNER][partner_ok] * REFLECT
+        mirrored = int(np.count_nonzero(partner_ok))
+        if mirrored:
+            value[partner_ok] = measured[PARTNER][partner_ok] * REFLECT
         decay = missing & ~partner_ok
-        value[decay] *= keep
+        decayed = int(np.count_nonzero(decay))
+        if decayed:
+            value[decay] *= keep
         self._started, self._lost = True, False
         output = self._blend(value, dt)
+        n_held = int(np.count_nonzero(held))
         return FilterOutput(
-            residuals=output, face_present=True, held=bool(held.any() or decay.any()),
-            mirrored=bool(partner_ok.any()), reacquired=reacquired, tracking_lost=False,
-            counts=Counts(int(accept.sum()), int(held.sum()), int(partner_ok.sum()),
-                          int(decay.sum()), int(extreme.sum())))
+            residuals=output, face_present=True, held=bool(n_held or decayed),
+            mirrored=bool(mirrored), reacquired=reacquired, tracking_lost=False,
+            counts=Counts(int(np.count_nonzero(accept)), n_held, mirrored, decayed,
+                          int(np.count_nonzero(extreme))))
 
     def _check(self, residuals: np.ndarray, valid: np.ndarray | None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -242,9 +250,13 @@ class ResidualFilter:
         (``_held_for``); after that it is neither accepted nor held: missing.
         """
         limit = self.jump_mm * max(1.0, dt / FRAME_S)
-        near = ok & (np.linalg.norm(measured - self._value, axis=1) <= limit)
+        near = ok & (_lengths(measured - self._value) <= limit)
         jumped = ok & ~near
-        agrees = (self._agree > 0) & (np.linalg.norm(measured - self._pending, axis=1) <= limit)
+        if not jumped.any():  # the common case: no run starts, every run ends
+            self._agree[:] = 0
+            self._held_for[:] = 0
+            return near, jumped
+        agrees = (self._agree > 0) & (_lengths(measured - self._pending) <= limit)
         self._agree = np.where(jumped, np.where(agrees, self._agree + 1, 1), 0)
         self._pending[jumped] = measured[jumped]
         released = jumped & (self._agree >= self.release_frames)
@@ -272,8 +284,13 @@ class ResidualFilter:
         if self._blend_left > 0:
             self._blend_left = max(0.0, self._blend_left - dt)
             w = np.float32(1.0 - self._blend_left / self.reacquire_s)
-            output = (1 - w) * self._blend_from + w * value
+            output = ((1 - w) * self._blend_from + w * value).astype(np.float32, copy=False)
         else:
             output = value.copy()
-        self._output = output.astype(np.float32)
-        return self._output.copy()
+        self._output = output
+        return output.copy()
+
+
+def _lengths(d: np.ndarray) -> np.ndarray:
+    """(9,) Euclidean lengths of (9, 3) rows, in their dtype (as ``np.linalg.norm(d, axis=1)``)."""
+    return np.sqrt(np.add.reduce(d * d, axis=1))

@@ -70,6 +70,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.linalg.lapack import dgesv as _dgesv
 
 from models.fit import Pose
 from models.landmarks import N_LANDMARKS, RIGID
@@ -154,6 +155,8 @@ class PoseSolver:
         self._acquire_model = np.ascontiguousarray(model[self._acquire])
         self._k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
                             [0.0, 0.0, 1.0]])
+        self._focal = np.array([[camera.fx], [-camera.fy]])  # u = cx + fx a, v = cy - fy b
+        self._centre = np.array([[camera.cx], [camera.cy]])
 
     def solve(self, points: np.ndarray, start: Pose | None = None,
               shape: np.ndarray | None = None) -> Pose | None:
@@ -181,69 +184,72 @@ class PoseSolver:
             start = self._acquire_pose(p, None if shape is None else shape[self._acquire])
             if start is None:
                 return None
-        obs = p[self._used]
         eye_px = float(np.hypot(*(p[36] - p[45])))
         if eye_px <= 0:
             return None
         knee = HUBER * eye_px
         r, t = start.rotation.copy(), start.translation.copy()
-        fx, fy, cx, cy = self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy
-        k = len(obs)
-        jac = np.empty((2 * k, 6))
-        w2 = np.empty(2 * k)
+        # (3, K) model points and (2, K) observations: coordinates as rows, so that every
+        # step below is one vectorised operation over all points
+        model_t = np.ascontiguousarray(model.T)
+        obs = np.ascontiguousarray(p[self._used].T)
+        k = obs.shape[1]
+        # rows 0-5: the Jacobian d(u, v)/d(w, t), transposed (columns: u of every point,
+        # then v); row 6: the residuals. One product gives the normal matrix and the gradient.
+        system = np.zeros((7, 2 * k))
+        jac = system[:6]
+        rows = system.reshape(7, 2, k)  # [row, u or v, point]
+        w2 = np.empty((2, k))
+        focal, centre = self._focal, self._centre
         for iteration in range(MAX_ITERATIONS):
-            rx = model @ r.T  # (K, 3) rotated model points
-            x = rx + t
-            d = -x[:, 2]
-            if d.min() <= 0:
+            rx = r @ model_t  # (3, K) rotated model points
+            x = rx + t[:, None]
+            if np.maximum.reduce(x[2]) >= 0:  # a point at or behind the camera (d = -Z <= 0)
                 return None
-            inv = 1.0 / d
-            a, b = x[:, 0] * inv, x[:, 1] * inv
-            res_u = cx + fx * a - obs[:, 0]
-            res_v = cy - fy * b - obs[:, 1]
+            inv = -1.0 / x[2]  # 1 / d
+            ab = x[:2] * inv  # (a, b) = (X, Y) / d
+            np.multiply(focal, ab, out=rows[6])  # (fx a, -fy b)
+            rows[6] += centre
+            rows[6] -= obs  # (u, v) - observed
             if iteration < REWEIGHT_ITERATIONS:  # Huber weights, then frozen (quadratic steps)
-                norm = np.sqrt(res_u * res_u + res_v * res_v)
-                w = self._weights * np.minimum(1.0, knee / np.maximum(norm, 1e-12))
-                w2[:k] = w
-                w2[k:] = w
-            # rows: d(u, v)/d(w, t) with X = exp([w]) R L + t, dX = w x RL + dt
-            su, sv = fx * inv, -fy * inv
-            ry, rz, rxx = rx[:, 1], rx[:, 2], rx[:, 0]
-            jac[:k, 0] = su * ry * a
-            jac[:k, 1] = su * (rz - rxx * a)
-            jac[:k, 2] = -su * ry
-            jac[:k, 3] = su
-            jac[:k, 4] = 0.0
-            jac[:k, 5] = su * a
-            jac[k:, 0] = sv * (ry * b - rz)
-            jac[k:, 1] = -sv * rxx * b
-            jac[k:, 2] = sv * rxx
-            jac[k:, 3] = 0.0
-            jac[k:, 4] = sv
-            jac[k:, 5] = sv * b
-            jw = jac * w2[:, None]
-            normal = jw.T @ jac
-            grad = jw.T @ np.concatenate([res_u, res_v])
-            try:
-                step = -np.linalg.solve(normal, grad)
-            except np.linalg.LinAlgError:
+                norm = np.sqrt(np.add.reduce(rows[6] * rows[6], axis=0))
+                w2[:] = self._weights * np.minimum(1.0, knee / np.maximum(norm, 1e-12))
+            # d(u, v)/d(w, t) with X = exp([w]) R L + t, dX = w x RL + dt:
+            # du = su (dX + a dZ), dv = sv (dY + b dZ), (su, sv) = (fx, -fy) / d
+            rxx, ry, rz = rx
+            s_uv = focal * inv  # (su, sv)
+            su, sv = s_uv
+            sab = s_uv * ab  # (su a, sv b)
+            np.multiply(sab, ry, out=rows[0])
+            rows[0, 1] -= sv * rz
+            np.multiply(sab, -rxx, out=rows[1])
+            rows[1, 0] += su * rz
+            np.multiply(su, -ry, out=rows[2, 0])
+            np.multiply(sv, rxx, out=rows[2, 1])
+            rows[3, 0] = su
+            rows[4, 1] = sv
+            rows[5] = sab
+            normal_grad = (jac * w2.reshape(-1)) @ system.T  # (6, 7): [J^T W J | J^T W res]
+            _, _, step, info = _dgesv(normal_grad[:, :6], normal_grad[:, 6])
+            if info != 0:  # singular normal matrix
                 return None
-            r = rotation_matrix(step[:3]) @ r
-            t = t + step[3:]
-            if (iteration >= REWEIGHT_ITERATIONS - 1 and np.abs(step[:3]).max() < STEP_RAD
-                    and np.abs(step[3:]).max() < STEP_MM):
+            r = rotation_matrix(-step[:3]) @ r
+            t = t - step[3:]
+            wx, wy, wz, dx, dy, dz = step.tolist()
+            if (iteration >= REWEIGHT_ITERATIONS - 1 and max(abs(wx), abs(wy), abs(wz)) < STEP_RAD
+                    and max(abs(dx), abs(dy), abs(dz)) < STEP_MM):
                 break
         if not (np.isfinite(r).all() and np.isfinite(t).all()):
             return None
-        pose = Pose(rotation=r, translation=t)
-        x = model @ r.T + t
-        if (-x[:, 2]).min() <= 0:
+        x = r @ model_t + t[:, None]
+        if np.maximum.reduce(x[2]) >= 0:
             return None
-        proj = np.column_stack([cx + fx * x[:, 0] / -x[:, 2], cy - fy * x[:, 1] / -x[:, 2]])
-        error = np.hypot(*(proj[self._rigid] - obs[self._rigid]).T)
+        rigid = x[:, self._rigid]
+        proj = focal * (rigid[:2] / -rigid[2]) + centre
+        error = np.sqrt(np.add.reduce((proj - obs[:, self._rigid]) ** 2, axis=0))
         if np.sort(error)[len(error) // 2] > MAX_POSE_ERROR * eye_px:  # median (9 points)
             return None
-        return pose
+        return Pose(rotation=r, translation=t)
 
     def _acquire_pose(self, p: np.ndarray, model: np.ndarray | None) -> Pose | None:
         """SQPnP on the strongly weighted points, in the GL frame; None on failure."""
@@ -292,7 +298,7 @@ class PoseFilter:
     def reset(self) -> None:
         """Forget the stream: the next pose is taken as it is."""
         self._pose: Pose | None = None
-        self._speed = np.zeros(2)  # filtered rotation (rad/s) and translation (mm/s) speeds
+        self._speed = [0.0, 0.0]  # filtered rotation (rad/s) and translation (mm/s) speeds
 
     def step(self, raw: Pose, dt: float) -> Pose:
         """Filter one raw pose, ``dt`` seconds after the previous one (> 0)."""
@@ -300,7 +306,7 @@ class PoseFilter:
             raise ValueError(f"dt: expected a positive number of seconds, got {dt!r}")
         if self._pose is None:
             self._pose = Pose(rotation=raw.rotation.copy(), translation=raw.translation.copy())
-            self._speed[:] = 0.0
+            self._speed = [0.0, 0.0]
             return self._pose
         prev = self._pose
         delta_r = rotation_vector(prev.rotation.T @ raw.rotation)  # model-frame increment
@@ -308,7 +314,7 @@ class PoseFilter:
         out = []
         for k, (delta, c) in enumerate(((delta_r, self.rotation_constants),
                                         (delta_t, self.translation_constants))):
-            speed = float(np.linalg.norm(delta)) / dt
+            speed = math.sqrt(float(delta @ delta)) / dt
             self._speed[k] += _alpha(c.f_speed, dt) * (speed - self._speed[k])
             out.append(_alpha(c.f_min + c.beta * self._speed[k], dt) * delta)
         self._pose = Pose(rotation=prev.rotation @ rotation_matrix(out[0]),

@@ -21,7 +21,8 @@ from models.head import generic_head
 from models.mesh import Mesh, Tag
 from models.raster import Camera as ViewCamera
 from models.raster import MeshRenderer, orbit_pose
-from models.regions import OFFSETS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec
+from models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
+                            template_samples)
 from models.rig import Rig
 from models.texture import UVSurface, uv_surface
 from protocol.control import Camera
@@ -353,6 +354,33 @@ def test_bad_surface_points_are_refused(rig: Rig, triangles: np.ndarray, bary: n
                                         ) -> None:
     with pytest.raises(ValueError, match="bary|triangles"):
         SurfacePoints(generic_head(), rig, triangles, bary)
+
+
+def test_sampler_reads_each_shared_point_once_and_matches_the_full_grids(rig: Rig) -> None:
+    # The five offset grids are one grid moved by whole template cells: the sampler projects
+    # and reads each distinct point once. Its cells must equal those of every grid point
+    # projected, read and averaged on its own.
+    mesh = generic_head()
+    names = tuple(r.name for r in REGIONS)
+    sampler = AppearanceSampler(mesh, rig, INTRINSICS, names)
+    s = TEMPLATE_SIZE * SUPERSAMPLE
+    distinct = (s + 2 * SUPERSAMPLE) ** 2  # the centre grid and a one-cell rim
+    assert sampler.points.shape == (len(names) * distinct,)
+    rng = np.random.default_rng(21)
+    grey = cv2.GaussianBlur(rng.integers(0, 256, (HEIGHT, WIDTH), np.uint8), (5, 5), 1.5)
+    residuals = rig.from_tangent(EXPRESSION_UV)
+    rotation, translation = orbit_pose(-12.0, 6.0, 620.0, (0.0, 0.0, 40.0))
+    samples = sampler.sample(grey, rotation, translation, residuals)
+
+    grids = [template_samples(spec(name)) for name in names]
+    full = SurfacePoints(mesh, rig, np.stack([t for t, _ in grids]),
+                         np.stack([b for _, b in grids]))
+    x, y = full.project(residuals, rotation, translation, INTRINSICS)
+    values = bilinear(grey, x, y).reshape(len(names), 5, TEMPLATE_SIZE, SUPERSAMPLE,
+                                          TEMPLATE_SIZE, SUPERSAMPLE)
+    expected = values.sum(axis=(3, 5)) / SUPERSAMPLE**2  # integer sums: exact
+    np.testing.assert_array_equal(samples, expected)
+    assert samples.std() > 5.0  # the frame's texture was read, not a flat border
 
 
 def test_sampler_refuses_an_unknown_region_and_samples_none(rig: Rig) -> None:
