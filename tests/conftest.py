@@ -97,6 +97,15 @@ def grey_video(tmp_path: Path) -> Callable[..., Path]:
     return make
 
 
+@pytest.fixture()
+def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An empty working folder (the current one) and an empty model cache in ``tmp_path``."""
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    monkeypatch.setenv("FACEWIRE_CACHE", str(tmp_path / "cache"))
+    return tmp_path
+
+
 free_endpoint = free_loopback_endpoint
 
 

@@ -15,8 +15,8 @@ import pytest
 
 from models import modelfile
 from models.mesh import Mesh
-from models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel, Region,
-                              load_model, load_model_bytes, model_sha256, model_summary,
+from models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel,
+                              Region, load_model, load_model_bytes, model_sha256, model_summary,
                               save_model)
 
 

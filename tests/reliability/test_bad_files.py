@@ -295,15 +295,6 @@ def session_log(path: Path, sha256: str, size: int, n: int = 30) -> Path:
     return path
 
 
-@pytest.fixture()
-def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """An empty working folder (the current one) and an empty model cache in ``tmp_path``."""
-    (tmp_path / "cwd").mkdir()
-    monkeypatch.chdir(tmp_path / "cwd")
-    monkeypatch.setenv("FACEWIRE_CACHE", str(tmp_path / "cache"))
-    return tmp_path
-
-
 # ---- bad models -------------------------------------------------------------------------------
 
 def model_commands(model: Path, log: Path, out: Path, port: int) -> dict[str, list[str]]:

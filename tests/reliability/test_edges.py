@@ -45,15 +45,6 @@ from test_bad_files import refusal, run_cli, snapshot
 STEP_PX = 40  # most a tracked head's image position moves between frames at 30 Hz
 
 
-@pytest.fixture()
-def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """An empty working folder (the current one) and an empty model cache in ``tmp_path``."""
-    (tmp_path / "cwd").mkdir()
-    monkeypatch.chdir(tmp_path / "cwd")
-    monkeypatch.setenv("FACEWIRE_CACHE", str(tmp_path / "cache"))
-    return tmp_path
-
-
 def empty_video(path: Path, codec: str) -> Path:
     """A video file with its header and no frame (as an interrupted recording leaves)."""
     with av.open(str(path), "w") as container:

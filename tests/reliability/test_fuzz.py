@@ -50,39 +50,6 @@ import numpy as np
 import pytest
 import zmq
 
-def test_the_relay_drops_a_sender_declaring_a_gigabyte_and_goes_on() -> None:
-    """The same frame header from the relay's upstream side: its packet socket drops that
-    connection at the header (``protocol.relay`` sets the transport's limits) and the relay
-    keeps running. (libzmq does not reconnect a connecting socket after such a protocol
-    error, so that upstream stays cut off until the relay restarts: only the hostile peer
-    loses.)"""
-    upstream, downstream = free_endpoint(), free_endpoint()
-    port = int(upstream.rsplit(":", 1)[1])
-    with socket.create_server(("127.0.0.1", port)) as server:
-        server.settimeout(10)
-        thread, stop, result = start(relay, inp=upstream, out=downstream)
-        try:
-            conn, _ = server.accept()
-            with conn:
-                conn.settimeout(10)
-                conn.sendall(_zmtp_greeting())
-                assert _read(conn, 64)[:1] == b"\xff"
-                conn.sendall(_zmtp_ready(b"PUB"))
-                header = _read(conn, 2)
-                assert _read(conn, header[1]).startswith(b"\x05READY")
-                conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
-                tick = time.monotonic()
-                with contextlib.suppress(ConnectionResetError):
-                    while conn.recv(4096):
-                        pass
-                assert time.monotonic() - tick < 5
-            assert thread.is_alive()
-        finally:
-            stop.set()
-            thread.join(10)
-    assert "error" not in result, result
-
-
 if __name__ == "__main__":  # run as a script: find tests/conftest.py as pytest does
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -688,6 +655,18 @@ def _read(conn: socket.socket, n: int) -> bytes:
     return data
 
 
+def _accept_as_pub(server: socket.socket) -> socket.socket:
+    """The next connection to ``server``, after a ZMTP handshake posing as a PUB socket."""
+    conn, _ = server.accept()
+    conn.settimeout(10)
+    conn.sendall(_zmtp_greeting())
+    assert _read(conn, 64)[:1] == b"\xff"
+    conn.sendall(_zmtp_ready(b"PUB"))
+    header = _read(conn, 2)
+    assert _read(conn, header[1]).startswith(b"\x05READY")
+    return conn
+
+
 def test_a_frame_declaring_a_gigabyte_ends_the_connection_at_its_header() -> None:
     """A raw TCP peer posing as a sender (a ZMTP handshake as a PUB) sends one packet, then
     a frame header declaring 1 GiB. The receiver's packet socket takes the packet and drops
@@ -698,14 +677,8 @@ def test_a_frame_declaring_a_gigabyte_ends_the_connection_at_its_header() -> Non
     with socket.create_server(("127.0.0.1", port)) as server:
         server.settimeout(10)
         with PacketSubscriber(endpoint) as sub:
-            conn, _ = server.accept()
+            conn = _accept_as_pub(server)
             with conn:
-                conn.settimeout(10)
-                conn.sendall(_zmtp_greeting())
-                assert _read(conn, 64)[:1] == b"\xff"
-                conn.sendall(_zmtp_ready(b"PUB"))
-                header = _read(conn, 2)
-                assert _read(conn, header[1]).startswith(b"\x05READY")
                 conn.sendall(b"\x00\x03abc")  # a short message: a corrupt packet
                 assert sub.recv(5000) == b"abc"
                 conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
@@ -714,6 +687,33 @@ def test_a_frame_declaring_a_gigabyte_ends_the_connection_at_its_header() -> Non
                     while conn.recv(4096):  # the subscription, then the end
                         pass
                 assert time.monotonic() - tick < 5
+
+
+def test_the_relay_drops_a_sender_declaring_a_gigabyte_and_goes_on() -> None:
+    """The same frame header from the relay's upstream side: its packet socket drops that
+    connection at the header (``protocol.relay`` sets the transport's limits) and the relay
+    keeps running. (libzmq does not reconnect a connecting socket after such a protocol
+    error, so that upstream stays cut off until the relay restarts: only the hostile peer
+    loses.)"""
+    upstream, downstream = free_endpoint(), free_endpoint()
+    port = int(upstream.rsplit(":", 1)[1])
+    with socket.create_server(("127.0.0.1", port)) as server:
+        server.settimeout(10)
+        thread, stop, result = start(relay, inp=upstream, out=downstream)
+        try:
+            conn = _accept_as_pub(server)
+            with conn:
+                conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
+                tick = time.monotonic()
+                with contextlib.suppress(ConnectionResetError):
+                    while conn.recv(4096):
+                        pass
+                assert time.monotonic() - tick < 5
+            assert thread.is_alive()
+        finally:
+            stop.set()
+            thread.join(10)
+    assert "error" not in result, result
 
 
 if __name__ == "__main__":
