@@ -285,7 +285,9 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
-        CaptureError: the source is missing or unreadable, or holds no frame (names it).
+        CaptureError: the source is missing or unreadable, or holds no frame (names it); a
+            frame that cannot be decoded ends the encoding, and the message says how many
+            packets the log keeps from before it.
     """
     start = time.perf_counter()
     model = load_model(model_path)
@@ -296,20 +298,15 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     hello = pipeline.hello()
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
               "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0}
-    with src, LogWriter(out_log, hello) as log:
-        for frame in progress(iter(src), "encoding", src.frames or None):
-            out = pipeline.process(frame.image, frame.time)
-            log.write(out.packet, frame.time)
-            flags = out.frame.flags
-            counts["frames"] += 1
-            counts["packets"] += 1
-            counts["face_frames"] += out.points is not None
-            counts["clamped"] += bool(flags & Flag.CLAMPED)
-            counts["clamped_values"] += out.clamped
-            counts["held"] += bool(flags & Flag.HELD)
-            counts["mirrored"] += bool(flags & Flag.MIRRORED)
-            counts["tracking_lost"] += bool(flags & Flag.TRACKING_LOST)
-            counts["grazing"] += out.grazing
+    try:
+        with src, LogWriter(out_log, hello) as log:
+            _encode_frames(src, pipeline, log, counts, progress)
+    except CaptureError as exc:  # a frame that cannot be decoded: keep what came before it
+        if counts["frames"] == 0:
+            Path(out_log).unlink(missing_ok=True)
+            raise
+        raise CaptureError(f"{exc}; the {counts['frames']} packets encoded before it are in "
+                           f"{out_log}") from None
     if counts["frames"] == 0:
         Path(out_log).unlink(missing_ok=True)
         raise CaptureError(f"{source}: no frames to encode")
@@ -323,3 +320,21 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         "model_sha256": hello.model_sha256,
         "log": str(out_log),
     }
+
+
+def _encode_frames(src: Any, pipeline: SenderPipeline, log: LogWriter, counts: dict[str, int],
+                   progress: Progress) -> None:
+    """Run the pipeline on every frame of ``src`` into ``log``, adding to ``counts``."""
+    for frame in progress(iter(src), "encoding", src.frames or None):
+        out = pipeline.process(frame.image, frame.time)
+        log.write(out.packet, frame.time)
+        flags = out.frame.flags
+        counts["frames"] += 1
+        counts["packets"] += 1
+        counts["face_frames"] += out.points is not None
+        counts["clamped"] += bool(flags & Flag.CLAMPED)
+        counts["clamped_values"] += out.clamped
+        counts["held"] += bool(flags & Flag.HELD)
+        counts["mirrored"] += bool(flags & Flag.MIRRORED)
+        counts["tracking_lost"] += bool(flags & Flag.TRACKING_LOST)
+        counts["grazing"] += out.grazing

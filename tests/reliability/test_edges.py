@@ -115,7 +115,12 @@ def test_a_corrupt_video_stops_with_one_line_naming_it(shared_data: Path,
     code = main(["encode", "--model", str(generic_model), "--source", str(video), "-o",
                  str(work / "f.fwlog")])
     line = refusal(code, capfd.readouterr().err, str(video))
-    assert re.search(r"cannot decode it after \d+ frames", line), line
+    decoded = re.search(r"cannot decode it after (\d+) frames", line)
+    assert decoded, line
+    # what was encoded before the bad frame is kept, and the message says where
+    kept = re.search(r"the (\d+) packets encoded before it are in (\S+)$", line)
+    assert kept and kept[2] == str(work / "f.fwlog"), line
+    assert len(read_log(work / "f.fwlog").packets) == int(kept[1]) > 0
 
 
 # ---- a face that leaves and comes back ---------------------------------------------------------
