@@ -9,8 +9,9 @@ Threads. Capture, processing and output do not stall each other:
   in real time, below), run ``sender.pipeline.SenderPipeline``, publish the 39-byte packet
   on the PUB socket (``protocol.transport.PacketPublisher``; ZeroMQ's own I/O thread sends
   it, and a slow receiver's queue drops rather than blocks) and, with a record path, append
-  it to a packet log (``protocol.log``; each record stamped with the Unix time it was
-  published);
+  it to a packet log (``protocol.log``; each record stamped with the time it was published:
+  the Unix time at the start plus the monotonic clock since, so that a wall-clock change
+  during a recording cannot make the log's times step back or jump);
 - the control thread answers receivers' requests (below).
 
 The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
@@ -332,6 +333,7 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
     start = cpu = None
     window = (0.0, 0)  # (start of the status period, frames up to its first)
     face = False
+    epoch = time.time() - time.monotonic()  # log times: Unix, but never stepping back
     stopped = "end"
     try:
         for image, t in _frames(src, rate_hz, loop, stop):
@@ -341,7 +343,7 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             out = pipeline.process(image, t)
             publisher.send(out.packet)
             if log is not None:
-                log.write(out.packet, time.time())
+                log.write(out.packet, epoch + time.monotonic())
             now = time.monotonic()
             if start is None:
                 start, cpu, window = now, time.process_time(), (now, 1)
