@@ -125,12 +125,16 @@ class TrackResult:
         detected: the full-frame detector ran on this frame (to acquire a face, or to look
             for a larger one).
         verified: the detector ran on the tracked face's neighbourhood on this frame.
+        acquired: the points are of a face the detector found on this frame rather than the
+            one followed from the previous frame: the first face, a face found again after
+            the tracked one was lost (possibly another person), or a switch to a larger face.
     """
 
     points: np.ndarray | None
     box: Box | None
     detected: bool
     verified: bool
+    acquired: bool = False
 
 
 def box_from_points(points: np.ndarray) -> Box:
@@ -325,7 +329,8 @@ class LandmarkTracker:
             if larger is not None:
                 box = larger
                 points = self._follow(gray, box)
-        return TrackResult(points=points, box=box, detected=detected, verified=verified)
+        return TrackResult(points=points, box=box, detected=detected, verified=verified,
+                           acquired=larger is not None if detected else False)
 
     def _follow(self, gray: np.ndarray, box: Box) -> np.ndarray:
         """Predict the (68, 2) float32 points in ``box`` and hold the face for the next frame."""
@@ -352,7 +357,8 @@ class LandmarkTracker:
             return TrackResult(points=None, box=None, detected=True, verified=verified)
         box = max(faces, key=_side)
         points = self._follow(gray, box)
-        return TrackResult(points=points, box=box, detected=True, verified=verified)
+        return TrackResult(points=points, box=box, detected=True, verified=verified,
+                           acquired=True)
 
     def _find_larger(self, gray: np.ndarray, box: Box) -> Box | None:
         """The largest other face at least SWITCH_RATIO times the tracked one's side, or None.

@@ -46,7 +46,9 @@ Each frame, for each point, in this order:
 
 The first frame of a stream, when it has a face, is taken as measured (no jump test, no
 blend; its missing points start at neutral). A stream that starts without a face is lost
-from neutral, and its first face frame is REACQUIRED as in 4.
+from neutral, and its first face frame is REACQUIRED as in 4. So is the next frame after
+``restart`` (the tracker acquired another face from one frame to the next: no frame without
+a face in between, but not the same face).
 """
 
 from __future__ import annotations
@@ -161,6 +163,10 @@ class ResidualFilter:
         self._lost = False
         self._blend_from = np.zeros((N_POINTS, 3), np.float32)
         self._blend_left = 0.0  # seconds of blend still to run
+
+    def restart(self) -> None:
+        """The face changed: the next frame with a face is REACQUIRED (module docstring)."""
+        self._lost = self._started
 
     def step(self, residuals: np.ndarray | None, valid: np.ndarray | None,
              dt: float) -> FilterOutput:

@@ -26,6 +26,10 @@ face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the p
 the last sent pose (the protocol's default frontal pose at 600 mm before any) and the last
 Q values (0 before any). When the tracker saw a face but the pose was rejected,
 ``FACE_PRESENT`` is still set (the flag follows the tracker) together with ``TRACKING_LOST``.
+A face the tracker acquired on a frame that followed another one (a switch to a larger face,
+or the tracked face lost and another found in the same frame: ``TrackResult.acquired``) is a
+new face: the pose is fitted from scratch, the pose filter restarts and the packet is
+``REACQUIRED`` (``ResidualFilter.restart``), as after a loss.
 
 Hello: the model's sha256 and size, the rate, the camera, the quantiser table, and the
 model's region names (``PersonModel.regions``, in packet order, the first 8). A model without
@@ -189,6 +193,10 @@ class SenderPipeline:
         points = tracked.points
         t1 = clock()
         pose = None
+        if tracked.acquired and self._raw is not None:  # another face than the last frame's
+            self._raw = self._expression = None
+            self.pose_filter.reset()
+            self.residual_filter.restart()
         if points is not None:
             raw, lifted = pose_and_lift(self.solver, self.lifter, self.rig, points, self._raw,
                                         self._expression)

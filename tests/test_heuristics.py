@@ -230,3 +230,22 @@ def test_stream_starting_without_a_face_reacquires_from_neutral() -> None:
     first = f.step(r, ALL, DT)
     assert first.reacquired
     np.testing.assert_allclose(first.residuals, r * (DT / 0.3), rtol=1e-4, atol=1e-6)
+
+
+def test_restart_makes_the_next_face_frame_reacquired_and_blended() -> None:
+    """Another face from one frame to the next: no lost frame, but the next face frame is
+    REACQUIRED and blends from the last output as after a loss."""
+    f = ResidualFilter(reacquire_s=0.3)
+    before = _smile(9.0)
+    for _ in range(3):
+        f.step(before, ALL, DT)
+    f.restart()
+    after = _smile(-6.0)
+    first = f.step(after, ALL, DT)
+    assert first.reacquired and not first.tracking_lost
+    np.testing.assert_allclose(first.residuals, before + (after - before) * (DT / 0.3),
+                               rtol=1e-4, atol=1e-5)
+    assert not f.step(after, ALL, DT).reacquired
+    fresh = ResidualFilter()
+    fresh.restart()  # before any face: nothing to restart from
+    assert not fresh.step(after, ALL, DT).reacquired

@@ -114,6 +114,8 @@ def test_video_tracks_cheaply_and_agrees_with_fresh_detection(
     detected = [r.detected for r in results]
     verified = [r.verified for r in results]
     assert detected[0]
+    # one face, acquired on the first frame and followed after: never acquired again
+    assert [r.acquired for r in results] == [True] + [False] * (len(results) - 1)
     # full-frame detection: acquisition plus the periodic search for a larger face
     assert sum(detected) <= 1 + len(results) // 30
     # the cheap neighbourhood check runs every few frames, not on most
@@ -125,13 +127,20 @@ def test_tracks_the_largest_face(tracker: LandmarkTracker, hog, shared_data: Pat
     # the back; once he faces the camera the tracker must move to him within its search
     # period (30 frames).
     tracker.reset()
+    moves = 0
     for i, frame in enumerate(_frames(shared_data / "video" / "openface_multi_face.avi", 76)):
+        last = tracker._box
         r = tracker.track(frame)
+        # a box that is not the last one's moved on says so: a face acquired, not followed
+        if i and r.box is not None and last is not None and _iou(r.box, last) < 0.3:
+            assert r.acquired, f"frame {i}: moved to another face without saying so"
+            moves += 1
         if i in (45, 60, 75):
             faces = hog(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
             assert len(faces) >= 2, f"frame {i}"
             largest = max(faces, key=lambda f: f.area())
             assert r.box is not None and _iou(r.box, _box(largest)) > 0.5, f"frame {i}"
+    assert moves >= 1  # the move to the man in front
 
 
 def test_acquires_the_largest_of_two_faces(tracker: LandmarkTracker, shared_data: Path) -> None:

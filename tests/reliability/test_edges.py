@@ -157,7 +157,11 @@ def test_a_face_that_leaves_and_comes_back(shared_data: Path, generic_model: Pat
     returns = np.flatnonzero(tracked[1:] & ~tracked[:-1]) + 1
     assert len(returns) >= 2
     assert np.all(flags[returns] & Flag.REACQUIRED)
-    assert not np.any(flags[~np.isin(np.arange(165), returns)] & Flag.REACQUIRED)
+    # besides, only where the tracker lost its face and found one in the same frame, or
+    # switched to a larger one (``TrackResult.acquired``): rare, and never while lost
+    again = np.flatnonzero(flags & Flag.REACQUIRED)
+    others = np.setdiff1d(again, returns)
+    assert len(others) <= 2 and np.all(tracked[others]), (returns, again)
 
 
 # ---- several faces ---------------------------------------------------------------------------
@@ -182,6 +186,9 @@ def test_several_faces_one_is_followed(shared_data: Path, generic_model: Path,
     assert len(jumps) <= 1, (jumps, step[jumps - 1])
     for k in jumps:
         assert depth[k] < depth[k - 1] / 1.2, (k, depth[k - 1], depth[k])
+    # a move to another face is flagged as a face found again, and only such a move
+    reacquired = np.flatnonzero(frames["flags"] & Flag.REACQUIRED)
+    assert set(jumps) <= set(reacquired), (jumps, reacquired)
     # the face held at the end is the front man's (left of centre, lower half)
     assert 300 < u[-1] < 500 and 150 < v[-1] < 330, (u[-1], v[-1])
 
