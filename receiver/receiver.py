@@ -249,14 +249,13 @@ class _End(Exception):
 
 class _PacketReader:
     """The SUB socket's own thread: packets in, stamped with their arrival time. After
-    ``REOPEN_S`` without a packet the socket is opened again (``reopened``): libzmq does not
+    ``REOPEN_S`` without a packet the socket is opened again: libzmq does not
     reconnect a socket whose peer broke the protocol (e.g. sent a frame over
     ``protocol.transport.MAX_PACKET_FRAME``), and a fresh one costs nothing."""
 
     def __init__(self, open_socket: Callable[[], PacketSubscriber]) -> None:
         self._open = open_socket
         self._sub = open_socket()
-        self.reopened = 0
         self._queue: deque[tuple[bytes, float]] = deque()
         self._closing = threading.Event()
         self.arrived = threading.Event()  # set on each packet queued
@@ -276,7 +275,6 @@ class _PacketReader:
                     if time.monotonic() - quiet_since > REOPEN_S:
                         self._sub.close()
                         self._sub = self._open()
-                        self.reopened += 1
                         quiet_since = time.monotonic()
                     continue
                 now = quiet_since = time.monotonic()

@@ -60,6 +60,7 @@ from protocol.packet import PacketError, decode, decode_frames
 from protocol.relay import relay
 from protocol.transport import ControlServer, PacketSubscriber, control_endpoint
 from receiver.playout import STATUSES, Playout
+from receiver import receiver as receiver_module
 from receiver.receiver import receive
 
 # -- budget ----------------------------------------------------------------------------------
@@ -687,6 +688,32 @@ def test_a_frame_declaring_a_gigabyte_ends_the_connection_at_its_header() -> Non
                     while conn.recv(4096):  # the subscription, then the end
                         pass
                 assert time.monotonic() - tick < 5
+
+
+def test_a_receiver_cut_off_by_a_bad_frame_connects_again(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """libzmq does not reconnect a connecting socket after a protocol error; a real
+    ``receive`` opens its packet socket anew after ``REOPEN_S`` without packets (1 s here)
+    and connects again by itself."""
+    monkeypatch.setattr(receiver_module, "REOPEN_S", 1.0)
+    endpoint = free_endpoint()
+    port = int(endpoint.rsplit(":", 1)[1])
+    with socket.create_server(("127.0.0.1", port)) as server:
+        server.settimeout(10)
+        thread, stop, result = start(receive, connect=endpoint, cache_dir=tmp_path / "cache")
+        try:
+            conn = _accept_as_pub(server)
+            with conn:
+                conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
+                with contextlib.suppress(ConnectionResetError):
+                    while conn.recv(4096):
+                        pass
+            again = _accept_as_pub(server)  # a new socket, a new handshake
+            again.close()
+        finally:
+            stop.set()
+            thread.join(10)
+    assert result.get("ended") == "stop", result
 
 
 def test_the_relay_drops_a_sender_declaring_a_gigabyte_and_goes_on() -> None:
