@@ -161,10 +161,10 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
     tracking, packets, hello = _time_sender(model, source, frames, info, progress)
     rig = Rig(model.mesh)
     with _one_blas_thread():
-        receiver = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[0],
-                                  hello.rate_hz)
-        receiver_hd = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[1],
-                                     hello.rate_hz)
+        receiver, images = _time_receiver(model, rig, packets, hello.camera,
+                                          RECEIVER_SIZES[0], keep=ENCODE_FRAMES)
+        receiver_hd, _ = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[1])
+    encode_ms = _time_encode(images, hello.rate_hz)
     n = len(model.mesh.vertices)
     pinned, threads = _time_morph_pinned(rig)
     default = _time_morph(rig)
@@ -180,6 +180,7 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         "source": str(source),
         **tracking,
         **receiver,
+        "encode_ms": encode_ms,
         "receiver_fps_1280x720": receiver_hd["receiver_fps"],
         "render_ms_1280x720": receiver_hd["render_ms"],
         "vertices": n,
@@ -340,10 +341,11 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
 
 
 def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
-                   size: tuple[int, int], rate_hz: float) -> dict[str, Any]:
+                   size: tuple[int, int], keep: int = 0
+                   ) -> tuple[dict[str, Any], list[np.ndarray]]:
     """The receiver's per-frame work on the sender's packets (module docstring): decode,
-    morph, render and read back at ``size``, then the encoding of the first
-    ``ENCODE_FRAMES`` frames rendered; medians in ms."""
+    morph, render and read back at ``size``, medians in ms; and the first ``keep`` frames
+    rendered, (H, W, 3) uint8 RGB."""
     width, height = size
     decode, render, total = [], [], []
     images: list[np.ndarray] = []
@@ -357,23 +359,30 @@ def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
             t2 = time.perf_counter()
             image = renderer.render(vertices, frame.q, view)
             t3 = time.perf_counter()
-            if len(images) < ENCODE_FRAMES:
+            if len(images) < keep:
                 images.append(image)
             if k >= RECEIVER_WARMUP:
                 decode.append((t1 - t0) * 1000)
                 render.append((t3 - t2) * 1000)
                 total.append((t3 - t0) * 1000)
     receiver_ms = float(np.median(total)) if total else float("nan")
+    return {"decode_ms": _median(decode), "render_ms": _median(render),
+            "receiver_ms_median": round(receiver_ms, 4),
+            "receiver_fps": round(1000.0 / receiver_ms, 2) if total else 0.0,
+            "receiver_size": f"{width}x{height}"}, images
+
+
+def _time_encode(images: list[np.ndarray], rate_hz: float) -> float | None:
+    """Median ms the ``VideoWriter`` thread takes to encode one of ``images`` (K, H, W, 3
+    uint8 RGB), after ``RECEIVER_WARMUP``; None with too few frames."""
+    if not images:
+        return None
+    height, width = images[0].shape[:2]
     with tempfile.TemporaryDirectory(prefix="facewire-speed-") as tmp, \
             VideoWriter(Path(tmp) / "out.mp4", width, height, rate_hz) as writer:
         for image in images:
             writer.write(image)
-    encode = [t * 1000 for t in list(writer.consume_seconds)[RECEIVER_WARMUP:]]
-    return {"decode_ms": _median(decode), "render_ms": _median(render),
-            "encode_ms": _median(encode),
-            "receiver_ms_median": round(receiver_ms, 4),
-            "receiver_fps": round(1000.0 / receiver_ms, 2) if total else 0.0,
-            "receiver_size": f"{width}x{height}"}
+    return _median([t * 1000 for t in list(writer.consume_seconds)[RECEIVER_WARMUP:]])
 
 
 def _median(values: list[float]) -> float | None:

@@ -6,8 +6,10 @@ skip with a reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (set by CI), w
 
 from __future__ import annotations
 
+import io
 import os
 import threading
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -104,6 +106,27 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.chdir(tmp_path / "cwd")
     monkeypatch.setenv("FACEWIRE_CACHE", str(tmp_path / "cache"))
     return tmp_path
+
+
+def zip_members(path: Path) -> dict[str, bytes]:
+    """Every member of the zip file at ``path``, by name."""
+    with zipfile.ZipFile(path) as archive:
+        return {name: archive.read(name) for name in archive.namelist()}
+
+
+def write_zip(path: Path, members: dict[str, bytes]) -> Path:
+    """A zip file at ``path`` holding ``members`` (deflated), in their order."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return path
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    """``array`` as the bytes of a ``.npy`` file."""
+    out = io.BytesIO()
+    np.save(out, array, allow_pickle=False)
+    return out.getvalue()
 
 
 free_endpoint = free_loopback_endpoint

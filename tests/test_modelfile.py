@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import npy_bytes, write_zip, zip_members
 from models import modelfile
 from models.mesh import Mesh
 from models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel,
@@ -75,22 +76,10 @@ def _refused(path: Path, *fragments: str) -> str:
     return message
 
 
-def _members(path: Path) -> dict[str, bytes]:
-    with zipfile.ZipFile(path) as archive:
-        return {name: archive.read(name) for name in archive.namelist()}
-
-
-def _write_zip(path: Path, members: dict[str, bytes]) -> Path:
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, data in members.items():
-            archive.writestr(name, data)
-    return path
-
-
 def _edit(path: Path, out: Path, replace: dict[str, bytes | None] | None = None,
           manifest: dict | None = None) -> Path:
     """Copy the model at ``path`` with members replaced (None: removed) and/or a new manifest."""
-    members = _members(path)
+    members = zip_members(path)
     for name, data in (replace or {}).items():
         if data is None:
             members.pop(name, None)
@@ -98,22 +87,16 @@ def _edit(path: Path, out: Path, replace: dict[str, bytes | None] | None = None,
             members[name] = data
     if manifest is not None:
         members["model.json"] = json.dumps(manifest).encode()
-    return _write_zip(out, members)
+    return write_zip(out, members)
 
 
 def _no_areas(path: Path) -> dict[str, None]:
     """``_edit`` replacements that remove the further areas' members."""
-    return {name: None for name in _members(path) if "/area_" in name}
+    return {name: None for name in zip_members(path) if "/area_" in name}
 
 
 def _manifest(path: Path) -> dict:
-    return json.loads(_members(path)["model.json"])
-
-
-def _npy(array: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    np.save(out, array)
-    return out.getvalue()
+    return json.loads(zip_members(path)["model.json"])
 
 
 def _entry_data_offset(data: bytes, name: str) -> int:
@@ -165,7 +148,7 @@ def test_round_trip_keeps_everything(saved: Path) -> None:
 
 def test_texture_is_stored_as_rgb_png(saved: Path) -> None:
     import cv2
-    png = _members(saved)["textures/neutral.png"]
+    png = zip_members(saved)["textures/neutral.png"]
     bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(bgr[..., ::-1], _model().texture)
 
@@ -309,7 +292,7 @@ def test_trailing_or_prefixed_data_is_refused(saved: Path, tmp_path: Path) -> No
 
 def _bomb(path: Path, source: Path, member: str, inflated: int) -> bytes:
     """The model at ``source`` with ``member`` replaced by ``inflated`` zero bytes, deflated."""
-    members = _members(source)
+    members = zip_members(source)
     with zipfile.ZipFile(path, "w") as archive:
         for name, data in members.items():
             if name != member:
@@ -359,12 +342,12 @@ def test_path_traversal_names_are_refused_and_nothing_is_written(
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
-    members = _members(saved)
+    members = zip_members(saved)
     manifest = json.loads(members["model.json"])
     manifest["members"][evil] = {"dtype": "float32", "shape": [1]}
     members["model.json"] = json.dumps(manifest).encode()
-    members[evil] = _npy(np.zeros(1, np.float32))
-    path = _write_zip(tmp_path / "evil.fwm", members)
+    members[evil] = npy_bytes(np.zeros(1, np.float32))
+    path = write_zip(tmp_path / "evil.fwm", members)
     before = sorted(tmp_path.rglob("*")), sorted(tmp_path.parent.iterdir())
     message = _refused(path, "unsafe name")
     assert repr(evil) in message
@@ -372,11 +355,11 @@ def test_path_traversal_names_are_refused_and_nothing_is_written(
 
 
 def test_unknown_and_duplicate_members_are_refused(saved: Path, tmp_path: Path) -> None:
-    members = _members(saved)
-    _refused(_write_zip(tmp_path / "extra.fwm", {**members, "notes.txt": b"hi"}),
+    members = zip_members(saved)
+    _refused(write_zip(tmp_path / "extra.fwm", {**members, "notes.txt": b"hi"}),
              "'notes.txt'", "not a member")
     orphan = {**members, "regions/cheeks/mask.png": members["regions/forehead/mask.png"]}
-    _refused(_write_zip(tmp_path / "orphan.fwm", orphan), "regions/cheeks/mask.png")
+    _refused(write_zip(tmp_path / "orphan.fwm", orphan), "regions/cheeks/mask.png")
     path = tmp_path / "twice.fwm"
     with pytest.warns(UserWarning, match="Duplicate name"):
         with zipfile.ZipFile(path, "w") as archive:
@@ -442,34 +425,34 @@ def test_member_not_listed_in_the_manifest_is_refused(saved: Path, tmp_path: Pat
 
 def test_wrong_dtype_is_refused(saved: Path, tmp_path: Path) -> None:
     vertices = load_model(saved).mesh.vertices.astype(np.float64)
-    path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": _npy(vertices)})
+    path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": npy_bytes(vertices)})
     _refused(path, "arrays/vertices.npy: expected dtype float32, got float64")
     manifest = _manifest(saved)
     manifest["members"]["arrays/vertices.npy"]["dtype"] = "float64"
-    path = _edit(saved, tmp_path / "b.fwm", {"arrays/vertices.npy": _npy(vertices)}, manifest)
+    path = _edit(saved, tmp_path / "b.fwm", {"arrays/vertices.npy": npy_bytes(vertices)}, manifest)
     _refused(path, "arrays/vertices.npy: expected dtype float32, got 'float64'")
     swapped = load_model(saved).mesh.vertices.astype(">f4")
-    path = _edit(saved, tmp_path / "c.fwm", {"arrays/vertices.npy": _npy(swapped)})
+    path = _edit(saved, tmp_path / "c.fwm", {"arrays/vertices.npy": npy_bytes(swapped)})
     _refused(path, "arrays/vertices.npy: expected dtype float32, got >f4")
 
 
 def test_wrong_shape_is_refused(saved: Path, tmp_path: Path) -> None:
     wide = np.zeros((144, 4), np.float32)
-    path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": _npy(wide)})
+    path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": npy_bytes(wide)})
     _refused(path, "arrays/vertices.npy: expected shape (144, 3)")
     manifest = _manifest(saved)
     manifest["members"]["arrays/vertices.npy"]["shape"] = [144, 4]
-    path = _edit(saved, tmp_path / "b.fwm", {"arrays/vertices.npy": _npy(wide)}, manifest)
+    path = _edit(saved, tmp_path / "b.fwm", {"arrays/vertices.npy": npy_bytes(wide)}, manifest)
     _refused(path, "arrays/vertices.npy: expected shape (N, 3)")
     manifest = _manifest(saved)
     manifest["members"]["arrays/uv.npy"]["shape"] = [100, 2]
-    path = _edit(saved, tmp_path / "c.fwm", {"arrays/uv.npy": _npy(np.zeros((100, 2),
+    path = _edit(saved, tmp_path / "c.fwm", {"arrays/uv.npy": npy_bytes(np.zeros((100, 2),
                                                                           np.float32))}, manifest)
     _refused(path, "mesh: uv: expected shape (144, 2)")
 
 
 def test_npy_data_shorter_than_its_header_says_is_refused(saved: Path, tmp_path: Path) -> None:
-    data = _npy(np.zeros((144, 3), np.float32))[:-4]
+    data = npy_bytes(np.zeros((144, 3), np.float32))[:-4]
     _refused(_edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": data}),
              "arrays/vertices.npy", "bytes, expected")
 
@@ -478,7 +461,7 @@ def test_non_finite_vertices_are_refused(saved: Path, tmp_path: Path) -> None:
     for bad in (np.nan, np.inf):
         vertices = load_model(saved).mesh.vertices.copy()
         vertices[7, 1] = bad
-        path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": _npy(vertices)})
+        path = _edit(saved, tmp_path / "a.fwm", {"arrays/vertices.npy": npy_bytes(vertices)})
         _refused(path, "vertices", "NaN or infinity")
 
 
@@ -488,7 +471,7 @@ def test_index_outside_the_mesh_is_refused(saved: Path, tmp_path: Path) -> None:
                          ("phantoms", mesh.phantoms)):
         bad = array.copy()
         bad.flat[3] = 144
-        path = _edit(saved, tmp_path / f"{field}.fwm", {f"arrays/{field}.npy": _npy(bad)})
+        path = _edit(saved, tmp_path / f"{field}.fwm", {f"arrays/{field}.npy": npy_bytes(bad)})
         _refused(path, field, "vertex index outside [0, 144)")
 
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import start
 from logsender import LogSender
 from logsender import free_port_pair as _free_port_pair
 from logsender import hello_for as _hello_for
@@ -222,11 +223,9 @@ def test_a_restarted_sender_with_a_new_model_is_followed(log, person_model: Path
     first = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=30,
                       go=go, first_seq=1000)
     out = tmp_path / "restart.mp4"
-    result: dict = {}
-    thread = threading.Thread(target=lambda: result.update(receive(
-        f"tcp://127.0.0.1:{port}", out=out, cache_dir=tmp_path / "cache", size=SIZE,
-        status=_ready(go, lines), idle_timeout_s=1.5)))
-    thread.start()
+    thread, _, result = start(receive, connect=f"tcp://127.0.0.1:{port}", out=out,
+                              cache_dir=tmp_path / "cache", size=SIZE,
+                              status=_ready(go, lines), idle_timeout_s=1.5)
     try:
         assert first.done.wait(20)
         time.sleep(0.3)
@@ -261,13 +260,11 @@ def test_a_restarted_sender_with_the_same_model_resumes(log, person_model: Path,
     go, lines = threading.Event(), []
     data = person_model.read_bytes()
     first = LogSender(port, log.hello, data, log.packets, count=30, go=go, first_seq=500)
-    result: dict = {}
     shown: list[tuple[tuple[int, ...], dict]] = []
-    thread = threading.Thread(target=lambda: result.update(receive(
-        f"tcp://127.0.0.1:{port}", model_path=person_model, size=SIZE,
-        view=lambda rgb, stats: shown.append((rgb.shape, stats)),
-        status=_ready(go, lines), idle_timeout_s=1.5)))
-    thread.start()
+    thread, _, result = start(receive, connect=f"tcp://127.0.0.1:{port}",
+                              model_path=person_model, size=SIZE,
+                              view=lambda rgb, stats: shown.append((rgb.shape, stats)),
+                              status=_ready(go, lines), idle_timeout_s=1.5)
     try:
         assert first.done.wait(20)
         time.sleep(0.3)

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import free_endpoint
+from conftest import free_endpoint, npy_bytes, write_zip, zip_members
 from facewire.cli import main
 from models import modelfile
 from models.head import generic_head
@@ -101,32 +101,15 @@ def base_model() -> PersonModel:
                        info=ModelInfo(name="base"), regions=(region,))
 
 
-def members(path: Path) -> dict[str, bytes]:
-    with zipfile.ZipFile(path) as archive:
-        return {name: archive.read(name) for name in archive.namelist()}
-
-
-def write_zip(path: Path, content: dict[str, bytes]) -> None:
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, data in content.items():
-            archive.writestr(name, data)
-
-
-def npy(array: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    np.save(out, array, allow_pickle=False)
-    return out.getvalue()
-
-
 def with_array(good: Path, bad: Path, field: str, change: Callable[[np.ndarray], None]
                ) -> None:
     """A copy of ``good`` whose ``arrays/FIELD.npy`` (or ``regions/..``) went through
     ``change``."""
-    content = members(good)
+    content = zip_members(good)
     name = field if "/" in field else f"arrays/{field}.npy"
     array = np.load(io.BytesIO(content[name]))
     change(array)
-    content[name] = npy(array)
+    content[name] = npy_bytes(array)
     write_zip(bad, content)
 
 
@@ -139,7 +122,7 @@ def local_header(data: bytes, name: str) -> int:
 def renamed(good: Path, bad: Path, evil: str) -> None:
     """A copy with one member's name replaced, byte for byte, by ``evil`` (in its local
     header and in the zip directory), as a hostile writer would store it."""
-    content = members(good)
+    content = zip_members(good)
     placeholder = "x" * len(evil)
     content[placeholder] = b"payload"
     write_zip(bad, content)
@@ -175,7 +158,7 @@ def bomb(good: Path, bad: Path, member: str, inflated: int, declare: int | None 
          ) -> None:
     """A copy whose ``member`` is ``inflated`` zero bytes, deflated (about 1000:1); with
     ``declare``, it claims to inflate to that many bytes only."""
-    content = members(good)
+    content = zip_members(good)
     content[member] = bytes(inflated)
     write_zip(bad, content)
     if declare is not None:
@@ -185,7 +168,7 @@ def bomb(good: Path, bad: Path, member: str, inflated: int, declare: int | None 
 def image_bomb(good: Path, bad: Path, k: int = 6) -> None:
     """A copy whose region holds ``k`` flat 4096 x 4096 layers: each a few kB of PNG, 48 MiB
     decoded, 300 MiB in all."""
-    content = {n: d for n, d in members(good).items() if not n.startswith("regions/mouth/")}
+    content = {n: d for n, d in zip_members(good).items() if not n.startswith("regions/mouth/")}
     manifest = json.loads(content["model.json"])
     manifest["members"] = {n: e for n, e in manifest["members"].items()
                            if not n.startswith("regions/mouth/")}
@@ -196,7 +179,7 @@ def image_bomb(good: Path, bad: Path, k: int = 6) -> None:
         manifest["members"][f"regions/mouth/layer_{j:02d}.png"] = {
             "dtype": "uint8", "shape": [side, side, 3]}
     content["regions/mouth/mask.png"] = png(np.full((side, side), 255, np.uint8))
-    content["regions/mouth/templates.npy"] = npy(np.zeros((k, 16, 16), np.float32))
+    content["regions/mouth/templates.npy"] = npy_bytes(np.zeros((k, 16, 16), np.float32))
     manifest["members"]["regions/mouth/mask.png"] = {"dtype": "uint8", "shape": [side, side]}
     manifest["members"]["regions/mouth/templates.npy"] = {"dtype": "float32",
                                                           "shape": [k, 16, 16]}
@@ -216,7 +199,7 @@ def sparse(path: Path, size: int) -> None:
 
 
 def manifest_edit(good: Path, bad: Path, old: str, new: str) -> None:
-    content = members(good)
+    content = zip_members(good)
     text = content["model.json"].decode()
     assert old in text
     content["model.json"] = text.replace(old, new, 1).encode()
