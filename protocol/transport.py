@@ -28,9 +28,10 @@ connect again; a receiver's control socket is opened anew after the timeout
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
 folder, and a client with an unknown key, or one that expects another server key, never
-completes the handshake and so receives nothing. Each bound CURVE socket starts its own
-authenticator and libzmq allows one per context, so two CURVE servers in one process (the
-sender's packet and control sockets) need a ``zmq.Context`` each.
+completes the handshake and so receives nothing. libzmq allows one authenticator per context
+(it binds the fixed address ``inproc://zeromq.zap.01``, and a closed socket releases it only
+later, on libzmq's reaper thread), so each bound CURVE socket runs in a ``zmq.Context`` of its
+own, made and ended with it; every other socket shares the process's context.
 
 Bytes on the wire per packet (ZMTP 3): a 2-byte frame header; under CURVE each message is a
 MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags byte), so
@@ -104,9 +105,10 @@ def free_loopback_endpoint() -> str:
 class _Socket:
     """One ZeroMQ socket with our options, CURVE set up, and clean closing."""
 
-    def __init__(self, kind: int, context: zmq.Context | None, hwm: int,
-                 max_frame: int = -1) -> None:
-        self.context = context or zmq.Context.instance()
+    def __init__(self, kind: int, hwm: int, max_frame: int = -1,
+                 own_context: bool = False) -> None:
+        self._own_context = own_context
+        self.context = zmq.Context() if own_context else zmq.Context.instance()
         self.socket = self.context.socket(kind)
         self.socket.linger = 0
         self.socket.sndhwm = hwm
@@ -145,6 +147,8 @@ class _Socket:
         if self._auth is not None:
             self._auth.stop()
             self._auth = None
+        if self._own_context and not self.context.closed:
+            self.context.term()
 
     def __enter__(self):  # noqa: ANN204 (returns the subclass)
         return self
@@ -156,9 +160,8 @@ class _Socket:
 class PacketPublisher(_Socket):
     """The sender's packet socket (PUB, bound)."""
 
-    def __init__(self, endpoint: str, curve: CurveServer | None = None,
-                 context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.PUB, context, PACKET_HWM)
+    def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
+        super().__init__(zmq.PUB, PACKET_HWM, own_context=curve is not None)
         self.endpoint = self._serve(endpoint, curve)
 
     def send(self, packet: bytes) -> None:
@@ -172,9 +175,8 @@ class PacketPublisher(_Socket):
 class PacketSubscriber(_Socket):
     """A receiver's packet socket (SUB, connected, subscribed to everything)."""
 
-    def __init__(self, endpoint: str, curve: CurveClient | None = None,
-                 context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.SUB, context, PACKET_HWM, MAX_PACKET_FRAME)
+    def __init__(self, endpoint: str, curve: CurveClient | None = None) -> None:
+        super().__init__(zmq.SUB, PACKET_HWM, MAX_PACKET_FRAME)
         self.socket.subscribe(b"")
         self._connect(endpoint, curve)
 
@@ -188,9 +190,8 @@ class PacketSubscriber(_Socket):
 class ControlServer(_Socket):
     """The sender's control socket (ROUTER, bound): requests in, one reply each."""
 
-    def __init__(self, endpoint: str, curve: CurveServer | None = None,
-                 context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.ROUTER, context, CONTROL_HWM, MAX_CONTROL_FRAME)
+    def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
+        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME, own_context=curve is not None)
         self.endpoint = self._serve(endpoint, curve)
 
     def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
@@ -261,9 +262,8 @@ class PeerCounter:
 class ControlClient(_Socket):
     """A receiver's control socket (DEALER, connected)."""
 
-    def __init__(self, endpoint: str, curve: CurveClient | None = None,
-                 context: zmq.Context | None = None) -> None:
-        super().__init__(zmq.DEALER, context, CONTROL_HWM, MAX_CONTROL_FRAME)
+    def __init__(self, endpoint: str, curve: CurveClient | None = None) -> None:
+        super().__init__(zmq.DEALER, CONTROL_HWM, MAX_CONTROL_FRAME)
         self._connect(endpoint, curve)
 
     def request(self, message: Message, timeout_ms: int) -> Message | None:

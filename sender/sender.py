@@ -47,8 +47,8 @@ Receiver count: TCP connections open to the packet socket (``protocol.transport.
 a relay counts as one, a peer still in its handshake counts too.
 
 Encryption: with a key folder, both sockets are CURVE servers admitting only the receivers
-in ``DIR/authorized`` (``protocol.keys``); each socket has its own ZeroMQ context, since each
-runs an authenticator and libzmq allows one per context. Without keys, binding to anything
+in ``DIR/authorized`` (``protocol.keys``), each with its own authenticator (and so its own
+ZeroMQ context: ``protocol.transport``). Without keys, binding to anything
 but loopback sends the face stream in the clear: ``unencrypted_warning`` says so.
 
 Stopping: the source ends (a file, unless ``loop``), ``stop`` is set, or Ctrl-C
@@ -70,7 +70,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zmq
 
 from models.modelfile import ModelFileError, load_model
 from protocol.control import (MAX_RATE_HZ, MIN_RATE_HZ, ControlError, Error, Hello,
@@ -282,11 +281,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
     with ExitStack() as stack:
         src = stack.enter_context(open_source(str(source), rate_hz))
         rate = float(min(rate_hz, src.rate_hz))
-        contexts = [zmq.Context(), zmq.Context()]  # bound first: a port in use fails at once
-        for context in contexts:
-            stack.callback(context.term)
-        publisher = stack.enter_context(PacketPublisher(bind, curve, contexts[0]))
-        server = stack.enter_context(ControlServer(control_at, curve, contexts[1]))
+        publisher = stack.enter_context(PacketPublisher(bind, curve))  # bound first: a port
+        server = stack.enter_context(ControlServer(control_at, curve))  # in use fails at once
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
         hello = pipeline.hello()

@@ -19,7 +19,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import zmq
 
 from conftest import free_endpoint
 from models.modelfile import load_model
@@ -82,15 +81,13 @@ class LogSender(threading.Thread):
 
     def run(self) -> None:
         endpoint = f"tcp://127.0.0.1:{self.port}"
-        contexts = [zmq.Context(), zmq.Context()]  # one CURVE authenticator per context
         for _ in range(50):  # the port of a sender that just closed may take a moment
             try:
-                pub = PacketPublisher(endpoint, self.curve, context=contexts[0])
+                pub = PacketPublisher(endpoint, self.curve)
                 break
             except TransportError:
                 time.sleep(0.1)
-        ctl = ControlServer(f"tcp://127.0.0.1:{self.port + 1}", self.curve,
-                            context=contexts[1])
+        ctl = ControlServer(f"tcp://127.0.0.1:{self.port + 1}", self.curve)
         self.bound.set()
         period = 1.0 / self.hello.rate_hz
         rng = np.random.default_rng(3)
@@ -126,8 +123,6 @@ class LogSender(threading.Thread):
         finally:
             pub.close()
             ctl.close()
-            for context in contexts:
-                context.term()
 
     def _answer(self, ctl: ControlServer, peer: tuple[bytes, ...], raw: bytes) -> None:
         message = decode_message(raw)

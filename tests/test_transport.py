@@ -118,6 +118,17 @@ def test_curve_control_channel(keys: Path) -> None:
         assert stranger.request(HelloRequest(), 500) is None
 
 
+def test_curve_servers_open_together_and_close_and_reopen_at_once(keys: Path) -> None:
+    """Each CURVE server has its authenticator: a packet and a control server live side by side
+    (as in a sender), and a server opened right after one closed does not find the closed one's
+    authenticator address still taken (libzmq releases it later, on its reaper thread)."""
+    curve = server_keys(keys / "sender")
+    for _ in range(30):
+        with PacketPublisher(ANY_PORT, curve) as pub, ControlServer(ANY_PORT, curve) as server:
+            assert pub.context is not server.context
+    assert pub.context.closed and server.context.closed
+
+
 def test_keys_refuse_overwrite_and_missing(tmp_path: Path) -> None:
     generate_keys(tmp_path / "k")
     with pytest.raises(KeyFileError, match="already exists"):

@@ -137,7 +137,7 @@ class FakeSender(threading.Thread):
         pub = context.socket(zmq.XPUB)
         pub.linger, pub.sndhwm = 0, 0
         pub.bind(self.endpoint)
-        server = ControlServer(control_endpoint(self.endpoint), context=context)
+        server = ControlServer(control_endpoint(self.endpoint))
         self.bound.set()
         pending: list[tuple[float, tuple[bytes, ...], bytes]] = []
         subscribed = False

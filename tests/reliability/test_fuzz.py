@@ -576,7 +576,7 @@ class _WireSender(threading.Thread):
         pub = context.socket(zmq.XPUB)
         pub.linger, pub.sndhwm = 0, 0  # no limit: nothing is dropped on this side
         pub.bind(self.endpoint)
-        server = ControlServer(control_endpoint(self.endpoint), context=context)
+        server = ControlServer(control_endpoint(self.endpoint))
         self.bound.set()
         try:
             while not self.halt.is_set():
