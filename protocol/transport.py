@@ -28,10 +28,13 @@ connect again; a receiver's control socket is opened anew after the timeout
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
 folder, and a client with an unknown key, or one that expects another server key, never
-completes the handshake and so receives nothing. libzmq allows one authenticator per context
-(it binds the fixed address ``inproc://zeromq.zap.01``, and a closed socket releases it only
-later, on libzmq's reaper thread), so each bound CURVE socket runs in a ``zmq.Context`` of its
-own, made and ended with it; every other socket shares the process's context.
+completes the handshake and so receives nothing.
+
+Contexts: each bound socket runs in a ``zmq.Context`` of its own, made with it and ended when it
+closes; connected sockets share the process's context. libzmq closes a socket later, on its
+reaper thread, and ending the context waits for that, so a closed server has released its port
+(a sender started again on the same address binds at once) and, under CURVE, its authenticator's
+fixed address ``inproc://zeromq.zap.01`` (libzmq allows one authenticator per context).
 
 Bytes on the wire per packet (ZMTP 3): a 2-byte frame header; under CURVE each message is a
 MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags byte), so
@@ -105,10 +108,9 @@ def free_loopback_endpoint() -> str:
 class _Socket:
     """One ZeroMQ socket with our options, CURVE set up, and clean closing."""
 
-    def __init__(self, kind: int, hwm: int, max_frame: int = -1,
-                 own_context: bool = False) -> None:
-        self._own_context = own_context
-        self.context = zmq.Context() if own_context else zmq.Context.instance()
+    def __init__(self, kind: int, hwm: int, max_frame: int = -1, bound: bool = False) -> None:
+        self._bound = bound
+        self.context = zmq.Context() if bound else zmq.Context.instance()
         self.socket = self.context.socket(kind)
         self.socket.linger = 0
         self.socket.sndhwm = hwm
@@ -147,8 +149,8 @@ class _Socket:
         if self._auth is not None:
             self._auth.stop()
             self._auth = None
-        if self._own_context and not self.context.closed:
-            self.context.term()
+        if self._bound and not self.context.closed:
+            self.context.destroy(linger=0)  # waits until libzmq has closed the socket
 
     def __enter__(self):  # noqa: ANN204 (returns the subclass)
         return self
@@ -161,7 +163,7 @@ class PacketPublisher(_Socket):
     """The sender's packet socket (PUB, bound)."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
-        super().__init__(zmq.PUB, PACKET_HWM, own_context=curve is not None)
+        super().__init__(zmq.PUB, PACKET_HWM, bound=True)
         self.endpoint = self._serve(endpoint, curve)
 
     def send(self, packet: bytes) -> None:
@@ -191,7 +193,7 @@ class ControlServer(_Socket):
     """The sender's control socket (ROUTER, bound): requests in, one reply each."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
-        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME, own_context=curve is not None)
+        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME, bound=True)
         self.endpoint = self._serve(endpoint, curve)
 
     def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
