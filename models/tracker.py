@@ -323,6 +323,7 @@ class LandmarkTracker:
                 box = found
                 points = self._follow(gray, box)
         detected = self._since_search >= self._search_every
+        larger = None
         if detected:
             self._since_search = 0
             larger = self._find_larger(gray, box)
@@ -330,7 +331,7 @@ class LandmarkTracker:
                 box = larger
                 points = self._follow(gray, box)
         return TrackResult(points=points, box=box, detected=detected, verified=verified,
-                           acquired=larger is not None if detected else False)
+                           acquired=larger is not None)
 
     def _follow(self, gray: np.ndarray, box: Box) -> np.ndarray:
         """Predict the (68, 2) float32 points in ``box`` and hold the face for the next frame."""

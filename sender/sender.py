@@ -281,8 +281,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
     with ExitStack() as stack:
         src = stack.enter_context(open_source(str(source), rate_hz))
         rate = float(min(rate_hz, src.rate_hz))
-        publisher = stack.enter_context(PacketPublisher(bind, curve))  # bound first: a port
-        server = stack.enter_context(ControlServer(control_at, curve))  # in use fails at once
+        # bound before the model's pipeline is set up: a port in use fails at once
+        publisher = stack.enter_context(PacketPublisher(bind, curve))
+        server = stack.enter_context(ControlServer(control_at, curve))
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
         hello = pipeline.hello()

@@ -26,7 +26,7 @@ from protocol.control import Error, Hello, HelloRequest, ModelRequest, decode_me
 from protocol.keys import CurveServer
 from protocol.log import PacketLog, read_log
 from protocol.packet import decode, encode
-from protocol.transport import ControlServer, PacketPublisher, TransportError
+from protocol.transport import ControlServer, PacketPublisher
 from sender.pipeline import encode_video
 
 
@@ -81,12 +81,7 @@ class LogSender(threading.Thread):
 
     def run(self) -> None:
         endpoint = f"tcp://127.0.0.1:{self.port}"
-        for _ in range(50):  # the port of a sender that just closed may take a moment
-            try:
-                pub = PacketPublisher(endpoint, self.curve)
-                break
-            except TransportError:
-                time.sleep(0.1)
+        pub = PacketPublisher(endpoint, self.curve)  # free as soon as a sender before closed
         ctl = ControlServer(f"tcp://127.0.0.1:{self.port + 1}", self.curve)
         self.bound.set()
         period = 1.0 / self.hello.rate_hz
