@@ -335,13 +335,24 @@ def _zmtp_client(port: int) -> socket.socket:
     """A raw TCP connection that has done a ZMTP 3.0 NULL handshake as a DEALER."""
     conn = socket.create_connection(("127.0.0.1", port), timeout=10)
     conn.sendall(b"\xff" + bytes(8) + b"\x7f\x03\x00" + b"NULL".ljust(20, b"\x00") + bytes(32))
-    assert conn.recv(64, socket.MSG_WAITALL)[:1] == b"\xff"
+    assert _read(conn, 64)[:1] == b"\xff"
     body = b"\x05READY\x0bSocket-Type" + struct.pack(">I", 6) + b"DEALER"
     conn.sendall(bytes([0x04, len(body)]) + body)
-    header = conn.recv(2, socket.MSG_WAITALL)
+    header = _read(conn, 2)
     assert header[:1] == b"\x04", header
-    assert conn.recv(header[1], socket.MSG_WAITALL).startswith(b"\x05READY")
+    assert _read(conn, header[1]).startswith(b"\x05READY")
     return conn
+
+
+def _read(conn: socket.socket, size: int) -> bytes:
+    """Exactly ``size`` bytes (a socket with a timeout may return fewer per ``recv``, even with
+    ``MSG_WAITALL``: libzmq sends its greeting in two parts)."""
+    data = b""
+    while len(data) < size:
+        part = conn.recv(size - len(data))
+        assert part, f"the connection closed after {len(data)} of {size} bytes"
+        data += part
+    return data
 
 
 def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
