@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report import report
-from protocol.log import read_log
-from protocol.packet import PACKET_BYTES
-from protocol.transport import WIRE_OVERHEAD
+from facewire.bench.report import report
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import PACKET_BYTES
+from facewire.protocol.transport import WIRE_OVERHEAD
 
 LIMIT_KBPS = 12.0
 NOMINAL_HZ = 30.0

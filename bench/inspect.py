@@ -12,9 +12,9 @@ import os
 
 import numpy as np
 
-from bench.report import report
-from protocol.log import read_log
-from protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
+from facewire.bench.report import report
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
 
 
 def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | None = None,

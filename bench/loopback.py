@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from protocol.log import read_log
-from protocol.transport import free_loopback_endpoint
-from receiver.receiver import receive
+from facewire.protocol.log import read_log
+from facewire.protocol.transport import free_loopback_endpoint
+from facewire.receiver.receiver import receive
 
 SETTLE_S = 1.0
 SAMPLE_S = 0.5

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from bench.reference import q_series
+from facewire.bench.reference import q_series
 
 FIG_WIDTH_IN = 10.0
 HEADER_IN = 0.8  # title and x axis labels

@@ -82,24 +82,24 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from bench.bandwidth import NOMINAL_HZ, kbps
-from bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
-from bench.qplot import plot_q
-from bench.reference import q_agreement, read_openface
-from bench.report import report
-from bench.speed import NoFaceError
-from models.landmarks import HELD_OUT, N_LANDMARKS, eye_aspect_ratio, nme
-from models.regions import REGION_NAMES
-from models.modelfile import load_model
-from models.progress import Progress, no_progress
-from models.rig import N_RESIDUALS, Rig
-from models.video import VideoError
-from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
-from receiver.render import FaceRenderer
-from receiver.views import sender_view
-from sender.capture import open_source
-from sender.enroll import region_cues, without_closed_eyes
-from sender.pipeline import SenderPipeline, sender_camera
+from facewire.bench.bandwidth import NOMINAL_HZ, kbps
+from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
+from facewire.bench.qplot import plot_q
+from facewire.bench.reference import q_agreement, read_openface
+from facewire.bench.report import report
+from facewire.bench.speed import NoFaceError
+from facewire.models.landmarks import HELD_OUT, N_LANDMARKS, eye_aspect_ratio, nme
+from facewire.models.regions import REGION_NAMES
+from facewire.models.modelfile import load_model
+from facewire.models.progress import Progress, no_progress
+from facewire.models.rig import N_RESIDUALS, Rig
+from facewire.models.video import VideoError
+from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
+from facewire.receiver.render import FaceRenderer
+from facewire.receiver.views import sender_view
+from facewire.sender.capture import open_source
+from facewire.sender.enroll import region_cues, without_closed_eyes
+from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance

@@ -78,18 +78,18 @@ from typing import Any
 
 import numpy as np
 
-from bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
-from bench.report import report
-from models.modelfile import load_model
-from models.progress import Progress, no_progress
-from models.rig import N_RESIDUALS, Rig
-from models.video import VideoError, read_frames, video_info
-from sender.capture import estimate_intrinsics
-from protocol.packet import decode as decode_packet
-from receiver.output import VideoWriter
-from receiver.render import FaceRenderer
-from receiver.views import sender_view
-from sender.pipeline import SenderPipeline
+from facewire.bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
+from facewire.bench.report import report
+from facewire.models.modelfile import load_model
+from facewire.models.progress import Progress, no_progress
+from facewire.models.rig import N_RESIDUALS, Rig
+from facewire.models.video import VideoError, read_frames, video_info
+from facewire.sender.capture import estimate_intrinsics
+from facewire.protocol.packet import decode as decode_packet
+from facewire.receiver.output import VideoWriter
+from facewire.receiver.render import FaceRenderer
+from facewire.receiver.views import sender_view
+from facewire.sender.pipeline import SenderPipeline
 
 
 MORPH_CALLS = 300

@@ -23,8 +23,8 @@ class CommandError(Exception):
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from receiver.replay import replay_log
+    from facewire.bench.report import report
+    from facewire.receiver.replay import replay_log
 
     s = replay_log(args.log, args.model, args.out, args.view, _size(args.size), args.side_by_side,
                    progress=_progress)
@@ -38,8 +38,8 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _send(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from sender.sender import send, unencrypted_warning
+    from facewire.bench.report import report
+    from facewire.sender.sender import send, unencrypted_warning
 
     warning = unencrypted_warning(args.bind, args.curve_dir)
     if warning is not None:
@@ -70,9 +70,9 @@ def _send(args: argparse.Namespace) -> int:
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
-    from bench.report import report
-    from receiver.liveview import LiveView
-    from receiver.receiver import receive
+    from facewire.bench.report import report
+    from facewire.receiver.liveview import LiveView
+    from facewire.receiver.receiver import receive
 
     with LiveView(args.view_port) if args.view else nullcontext() as live:
         view = None
@@ -121,8 +121,8 @@ def _size(text: str | None) -> tuple[int, int] | None:
 
 
 def _relay(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from protocol.relay import relay
+    from facewire.bench.report import report
+    from facewire.protocol.relay import relay
 
     print(f"facewire relay: {args.inp} -> {args.out} (control on the next ports); Ctrl-C "
           f"stops", file=sys.stderr)
@@ -153,7 +153,7 @@ class _StatusLine:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from bench.report import report
+    from facewire.bench.report import report
     from facewire.demo import demo
 
     r = demo(args.out, args.source, args.seconds, progress=_progress,
@@ -170,19 +170,19 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _inspect(args: argparse.Namespace) -> int:
-    from bench.inspect import inspect_log
+    from facewire.bench.inspect import inspect_log
 
     return inspect_log(args.log, csv_path=args.csv, as_json=args.json)
 
 
 def _bench_bandwidth(args: argparse.Namespace) -> int:
-    from bench.bandwidth import bandwidth
+    from facewire.bench.bandwidth import bandwidth
 
     return bandwidth(args.log, as_json=args.json, plot=args.plot)
 
 
 def _keys_generate(args: argparse.Namespace) -> int:
-    from protocol.keys import generate_keys
+    from facewire.protocol.keys import generate_keys
 
     public, secret = generate_keys(args.dir, name=args.name)
     print(f"public key:  {public}\nsecret key:  {secret}\n"
@@ -199,7 +199,7 @@ def _progress(items: Iterable[T], label: str, total: int | None) -> Iterator[T]:
 
 def _frames(text: str | None) -> slice:
     """The ``--frames A:B`` option as a slice; a bad range is a one-line error."""
-    from models.video import frame_range
+    from facewire.models.video import frame_range
 
     try:
         return frame_range(text)
@@ -208,9 +208,9 @@ def _frames(text: str | None) -> slice:
 
 
 def _model_build(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from models.build import build_model
-    from sender.enroll import enroll_regions
+    from facewire.bench.report import report
+    from facewire.models.build import build_model
+    from facewire.sender.enroll import enroll_regions
 
     frames = _frames(args.frames)
     result = build_model(args.video, args.output, frames, progress=_progress,
@@ -233,8 +233,8 @@ def _model_build(args: argparse.Namespace) -> int:
 
 
 def _model_info(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from models.modelfile import load_model, model_summary
+    from facewire.bench.report import report
+    from facewire.models.modelfile import load_model, model_summary
 
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,
@@ -252,8 +252,8 @@ def _model_info(args: argparse.Namespace) -> int:
 
 
 def _model_export(args: argparse.Namespace) -> int:
-    from models.gltf import write_glb
-    from models.modelfile import load_model
+    from facewire.models.gltf import write_glb
+    from facewire.models.modelfile import load_model
 
     model = load_model(args.model)
     mesh = model.mesh
@@ -265,15 +265,15 @@ def _model_export(args: argparse.Namespace) -> int:
 
 
 def _bench_speed(args: argparse.Namespace) -> int:
-    from bench.speed import speed
+    from facewire.bench.speed import speed
 
     return speed(args.model, args.source, as_json=args.json, progress=_progress,
                  loopback_s=args.loopback_seconds)
 
 
 def _encode(args: argparse.Namespace) -> int:
-    from bench.report import report
-    from sender.pipeline import encode_video
+    from facewire.bench.report import report
+    from facewire.sender.pipeline import encode_video
 
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
                      focal=args.focal, calib=args.calib, progress=_progress)
@@ -287,14 +287,14 @@ def _encode(args: argparse.Namespace) -> int:
 
 
 def _bench_quality(args: argparse.Namespace) -> int:
-    from bench.quality import quality
+    from facewire.bench.quality import quality
 
     return quality(args.model, args.source, frames=_frames(args.frames), as_json=args.json,
                    plot=args.plot, progress=_progress, reference=args.reference)
 
 
 def _check(_: argparse.Namespace) -> int:
-    from models.egl import check_egl
+    from facewire.models.egl import check_egl
 
     print(check_egl())
     return 0
@@ -448,28 +448,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """The failures a user can cause: reported as one line, no traceback."""
-    from models.build import BuildError
-    from models.egl import EGLUnavailable
-    from models.gltf import GltfError
-    from models.modelfile import ModelFileError
-    from models.video import VideoError
-    from protocol.control import ControlError
-    from protocol.keys import KeyFileError
-    from protocol.log import LogError
-    from protocol.packet import PacketError
-    from protocol.transport import TransportError
-    from receiver.output import OutputError
-    from receiver.replay import ReplayError
-    from models.raster import RenderError
-    from bench.reference import OpenFaceError
-    from models.regions import RegionError
-    from sender.capture import CaptureError
-    from sender.enroll import EnrollError
+    from facewire.models.build import BuildError
+    from facewire.models.egl import EGLUnavailable
+    from facewire.models.gltf import GltfError
+    from facewire.models.modelfile import ModelFileError
+    from facewire.models.video import VideoError
+    from facewire.protocol.control import ControlError
+    from facewire.protocol.keys import KeyFileError
+    from facewire.protocol.log import LogError
+    from facewire.protocol.packet import PacketError
+    from facewire.protocol.transport import TransportError
+    from facewire.receiver.output import OutputError
+    from facewire.receiver.replay import ReplayError
+    from facewire.models.raster import RenderError
+    from facewire.bench.reference import OpenFaceError
+    from facewire.models.regions import RegionError
+    from facewire.sender.capture import CaptureError
+    from facewire.sender.enroll import EnrollError
     from facewire.demo import DemoError
     from facewire.performer import PerformerError
-    from receiver.liveview import LiveViewError
-    from receiver.modelcache import ModelCacheError
-    from receiver.receiver import ReceiveError
+    from facewire.receiver.liveview import LiveViewError
+    from facewire.receiver.modelcache import ModelCacheError
+    from facewire.receiver.receiver import ReceiveError
 
     return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
             TransportError, BuildError, CaptureError, DemoError, EnrollError, GltfError,

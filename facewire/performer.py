@@ -66,16 +66,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.build import BuildError, BuildResult, build_model
-from models.fit import Pose
-from models.mesh import Mesh, Tag
-from models.modelfile import PersonModel
-from models.morph import VolumeMorph
-from models.progress import Progress, no_progress
-from models.raster import Camera, MeshRenderer
-from models.rig import Rig
-from models.video import VideoError
-from receiver.output import VideoWriter
+from facewire.models.build import BuildError, BuildResult, build_model
+from facewire.models.fit import Pose
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.modelfile import PersonModel
+from facewire.models.morph import VolumeMorph
+from facewire.models.progress import Progress, no_progress
+from facewire.models.raster import Camera, MeshRenderer
+from facewire.models.rig import Rig
+from facewire.models.video import VideoError
+from facewire.receiver.output import VideoWriter
 
 PORTRAIT = "grace_hopper.jpg"  # matplotlib's sample data: public domain (U.S. Navy photo)
 RATE_HZ = 30.0

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.modelfile import Area, Region
+from facewire.models.modelfile import Area, Region
 
 MIP_LEVELS = 4  # mip levels below full resolution: regions stay smooth down to 1/16 scale
 PAD = 1 << MIP_LEVELS  # transparent texels around each area's layers (at least)

@@ -106,9 +106,9 @@ import numpy as np
 import scipy.sparse
 from scipy.optimize import least_squares
 
-from models.landmarks import N_LANDMARKS, PHANTOM_NAMES, eye_aspect_ratio
-from models.mesh import Mesh, Tag
-from models.morph import VolumeMorph
+from facewire.models.landmarks import N_LANDMARKS, PHANTOM_NAMES, eye_aspect_ratio
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.morph import VolumeMorph
 
 MIN_FACE_FRAMES = 10
 POSE_POINTS = np.array([*range(17, 36), 36, 39, 42, 45])
@@ -248,7 +248,7 @@ def fit_person(
     if len(faces) < MIN_FACE_FRAMES:
         raise FitError(f"only {len(faces)} frames with a face; need at least {MIN_FACE_FRAMES}")
     if head is None:
-        from models.head import generic_head
+        from facewire.models.head import generic_head
 
         head = generic_head()
     report = progress or (lambda _: None)

@@ -101,8 +101,8 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.spatial import ConvexHull, cKDTree
 
-from models.landmarks import MIRROR, N_LANDMARKS, PHANTOM_NAMES
-from models.mesh import Mesh, Tag
+from facewire.models.landmarks import MIRROR, N_LANDMARKS, PHANTOM_NAMES
+from facewire.models.mesh import Mesh, Tag
 
 # ----------------------------------------------------------------------------------------
 # Small field tools (all work on float64 arrays; `q` holds points (N, 3) with x >= 0).

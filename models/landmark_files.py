@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.landmarks import N_LANDMARKS
+from facewire.models.landmarks import N_LANDMARKS
 
 MAX_PTS_BYTES = 64 * 1024
 MAX_CSV_BYTES = 1 << 30

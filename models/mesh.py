@@ -17,7 +17,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from models.landmarks import N_LANDMARKS, N_PHANTOMS
+from facewire.models.landmarks import N_LANDMARKS, N_PHANTOMS
 
 
 class Tag(IntEnum):

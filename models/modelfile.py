@@ -108,8 +108,8 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from models.atomic import write_atomically
-from models.mesh import Mesh, MeshError
+from facewire.models.atomic import write_atomically
+from facewire.models.mesh import Mesh, MeshError
 
 FORMAT = "facewire-model"
 FORMAT_VERSION = 3

@@ -80,9 +80,9 @@ from functools import cache
 
 import numpy as np
 
-from models.head import generic_head
-from models.mesh import Tag
-from models.modelfile import TEMPLATE_SIZE
+from facewire.models.head import generic_head
+from facewire.models.mesh import Tag
+from facewire.models.modelfile import TEMPLATE_SIZE
 
 SUPERSAMPLE = 2
 OFFSETS = np.array([(0, 0), (1, 1), (-1, 1), (1, -1), (-1, -1)], np.float64)  # cells (u, v)

@@ -133,9 +133,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.landmarks import FEATURES, NONRIGID, PHANTOM_NAMES, RIGID
-from models.mesh import Mesh, Tag
-from models.morph import VolumeMorph
+from facewire.models.landmarks import FEATURES, NONRIGID, PHANTOM_NAMES, RIGID
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.morph import VolumeMorph
 
 ANCHORS = 16  # at most this many anchors
 ANCHOR_CLEARANCE = 40.0  # mm from every face centre

@@ -78,7 +78,7 @@ import cv2
 import dlib
 import numpy as np
 
-from models.landmarks import N_LANDMARKS
+from facewire.models.landmarks import N_LANDMARKS
 
 PREDICTOR_FILE = "shape_predictor_68_face_landmarks.dat"
 

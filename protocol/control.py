@@ -40,7 +40,7 @@ from typing import Any, ClassVar
 
 import msgpack
 
-from protocol.packet import N_REGIONS, VERSION, quantiser_table
+from facewire.protocol.packet import N_REGIONS, VERSION, quantiser_table
 
 CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096

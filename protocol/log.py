@@ -37,8 +37,8 @@ from types import TracebackType
 
 import numpy as np
 
-from protocol.control import ControlError, Hello, decode_message, encode_message
-from protocol.packet import PACKET_BYTES, RESERVED_FLAGS, VERSION, decode_frames
+from facewire.protocol.control import ControlError, Hello, decode_message, encode_message
+from facewire.protocol.packet import PACKET_BYTES, RESERVED_FLAGS, VERSION, decode_frames
 
 MAGIC = b"\x89FWLOG\r\n"
 FORMAT_VERSION = 1

@@ -42,8 +42,8 @@ from typing import Any
 import zmq
 import zmq.auth.thread
 
-from protocol.keys import CurveClient, CurveServer, client_keys, server_keys
-from protocol.transport import (CONTROL_HWM, MAX_CONTROL_FRAME, MAX_PACKET_FRAME, PACKET_HWM,
+from facewire.protocol.keys import CurveClient, CurveServer, client_keys, server_keys
+from facewire.protocol.transport import (CONTROL_HWM, MAX_CONTROL_FRAME, MAX_PACKET_FRAME, PACKET_HWM,
                                 TransportError, control_endpoint)
 
 WAIT_S = 0.1

@@ -53,8 +53,8 @@ import zmq
 import zmq.auth.thread
 import zmq.utils.monitor
 
-from protocol.control import MAX_MESSAGE_BYTES, Message, decode_message, encode_message
-from protocol.keys import CurveClient, CurveServer
+from facewire.protocol.control import MAX_MESSAGE_BYTES, Message, decode_message, encode_message
+from facewire.protocol.keys import CurveClient, CurveServer
 
 PACKET_HWM = 100
 CONTROL_HWM = 1000

@@ -39,8 +39,8 @@ import re
 import stat
 from pathlib import Path
 
-from models.atomic import write_atomically
-from models.modelfile import MAX_FILE_BYTES, PersonModel, load_model_bytes
+from facewire.models.atomic import write_atomically
+from facewire.models.modelfile import MAX_FILE_BYTES, PersonModel, load_model_bytes
 
 ENV_FOLDER = "FACEWIRE_CACHE"
 SUFFIX = ".fwm"

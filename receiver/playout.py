@@ -135,7 +135,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, PACKET_BYTES, SEQ_MODULO, Flag, Frame,
+from facewire.protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, PACKET_BYTES, SEQ_MODULO, Flag, Frame,
                              PacketError, decode)
 
 DEFAULT_DEPTH = 3

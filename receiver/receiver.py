@@ -130,16 +130,16 @@ from typing import Any
 
 import numpy as np
 
-from models.modelfile import ModelFileError, PersonModel, load_model
-from protocol import control as ctl
-from protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
+from facewire.models.modelfile import ModelFileError, PersonModel, load_model
+from facewire.protocol import control as ctl
+from facewire.protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
                               ModelRequest)
-from protocol.keys import CurveClient, client_keys
-from protocol.transport import ControlClient, PacketSubscriber, control_endpoint
-from receiver.modelcache import ModelCache, ModelCacheError, verify_model
-from receiver.output import FrameFolderWriter, VideoWriter
-from receiver.playout import FrameState, Playout
-from receiver.scene import STATS_FRAMES, StateRenderer, rest_q
+from facewire.protocol.keys import CurveClient, client_keys
+from facewire.protocol.transport import ControlClient, PacketSubscriber, control_endpoint
+from facewire.receiver.modelcache import ModelCache, ModelCacheError, verify_model
+from facewire.receiver.output import FrameFolderWriter, VideoWriter
+from facewire.receiver.playout import FrameState, Playout
+from facewire.receiver.scene import STATS_FRAMES, StateRenderer, rest_q
 
 HELLO_TIMEOUT_S = 1.0
 CHUNK_TIMEOUT_S = 5.0

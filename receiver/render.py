@@ -75,10 +75,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
-from models.egl import create_context, in_context
-from models.modelfile import Area, PersonModel
-from models.raster import (
+from facewire.models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
+from facewire.models.egl import create_context, in_context
+from facewire.models.modelfile import Area, PersonModel
+from facewire.models.raster import (
     VERTEX_TEXTURED,
     Camera,
     ContextOwner,
@@ -86,7 +86,7 @@ from models.raster import (
     RenderError,
     check_output,
 )
-from protocol.packet import N_REGIONS
+from facewire.protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
 

@@ -31,13 +31,13 @@ from typing import Any
 
 import numpy as np
 
-from models.modelfile import load_model
-from models.progress import Progress, no_progress
-from models.video import read_frames
-from protocol.log import read_log
-from receiver.output import FrameFolderWriter, VideoWriter, side_by_side
-from receiver.playout import Playout, replay_states
-from receiver.scene import VIEWS, StateRenderer, rest_q
+from facewire.models.modelfile import load_model
+from facewire.models.progress import Progress, no_progress
+from facewire.models.video import read_frames
+from facewire.protocol.log import read_log
+from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
+from facewire.receiver.playout import Playout, replay_states
+from facewire.receiver.scene import VIEWS, StateRenderer, rest_q
 
 VIRTUAL_SIZE = (640, 480)
 

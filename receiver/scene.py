@@ -16,14 +16,14 @@ from typing import Self
 
 import numpy as np
 
-from models.modelfile import PersonModel
-from models.raster import RenderError
-from models.rig import Rig
-from protocol import control as ctl
-from protocol.packet import N_REGIONS
-from receiver.playout import FrameState
-from receiver.render import FaceRenderer
-from receiver.views import VIEW_KINDS, sender_view, virtual_view
+from facewire.models.modelfile import PersonModel
+from facewire.models.raster import RenderError
+from facewire.models.rig import Rig
+from facewire.protocol import control as ctl
+from facewire.protocol.packet import N_REGIONS
+from facewire.receiver.playout import FrameState
+from facewire.receiver.render import FaceRenderer
+from facewire.receiver.views import VIEW_KINDS, sender_view, virtual_view
 
 VIEWS = ("camera", *VIEW_KINDS)
 STATS_FRAMES = 108_000  # render times kept for the summaries' medians: an hour at 30 Hz

@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.landmarks import N_LANDMARKS, outer_eye_distance
-from models.mesh import Mesh
-from models.raster import Camera, RenderError, orbit_pose
-from protocol import control
-from receiver.playout import rotation_matrix as rodrigues
+from facewire.models.landmarks import N_LANDMARKS, outer_eye_distance
+from facewire.models.mesh import Mesh
+from facewire.models.raster import Camera, RenderError, orbit_pose
+from facewire.protocol import control
+from facewire.receiver.playout import rotation_matrix as rodrigues
 
 FOV_DEG = 25.0  # as models.build.PREVIEW_FOV_DEG
 FIELD_EYE_DISTANCES = 3.6  # as models.build.CROP_EYE_DISTANCES

@@ -28,10 +28,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from models.mesh import Mesh
-from models.regions import SUPERSAMPLE, TEMPLATE_SIZE, spec, template_samples
-from models.rig import Rig
-from protocol.control import Camera
+from facewire.models.mesh import Mesh
+from facewire.models.regions import SUPERSAMPLE, TEMPLATE_SIZE, spec, template_samples
+from facewire.models.rig import Rig
+from facewire.protocol.control import Camera
 
 N_OFFSETS = 5
 _REMAP_COLUMNS = 32766

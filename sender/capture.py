@@ -51,9 +51,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.fit import intrinsics_guess
-from models.video import VideoError, VideoFrame, read_frames, video_info
-from protocol.control import Camera, ControlError
+from facewire.models.fit import intrinsics_guess
+from facewire.models.video import VideoError, VideoFrame, read_frames, video_info
+from facewire.protocol.control import Camera, ControlError
 
 __all__ = ["CaptureError", "Source", "VideoFrame", "open_source", "estimate_intrinsics",
            "read_calibration", "scale_intrinsics", "Pacer", "RateLimiter", "IMAGE_SUFFIXES"]

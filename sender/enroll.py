@@ -65,17 +65,17 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from models.landmarks import eye_aspect_ratio, outer_eye_distance
-from models.mesh import Mesh
-from models.modelfile import Area, PersonModel, Region
-from models.progress import Progress, no_progress
-from models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
-from models.rig import Rig
-from models.texture import UVSurface, uv_surface
-from models.video import read_frames, video_info
-from protocol.control import Camera
-from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
-from sender.pipeline import SenderPipeline
+from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
+from facewire.models.mesh import Mesh
+from facewire.models.modelfile import Area, PersonModel, Region
+from facewire.models.progress import Progress, no_progress
+from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
+from facewire.models.rig import Rig
+from facewire.models.texture import UVSurface, uv_surface
+from facewire.models.video import read_frames, video_info
+from facewire.protocol.control import Camera
+from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from facewire.sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
 MIN_SPAN = {"forehead": 1.5, "brow_furrow": 1.0, "eyelid": 0.08, "eyeball": 0.1,

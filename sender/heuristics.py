@@ -58,8 +58,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.landmarks import MIRROR, NONRIGID
-from protocol.packet import Flag
+from facewire.models.landmarks import MIRROR, NONRIGID
+from facewire.protocol.packet import Flag
 
 N_POINTS = len(NONRIGID)
 FRAME_S = 1.0 / 30.0

@@ -47,11 +47,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.fit import Pose
-from models.landmarks import N_LANDMARKS, NONRIGID
-from models.rig import Rig
-from protocol.control import Camera
-from sender.pose import PoseSolver
+from facewire.models.fit import Pose
+from facewire.models.landmarks import N_LANDMARKS, NONRIGID
+from facewire.models.rig import Rig
+from facewire.protocol.control import Camera
+from facewire.sender.pose import PoseSolver
 
 GRAZING_COS = 0.25
 EXPRESSION_ROUNDS = 1

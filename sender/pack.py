@@ -24,10 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.fit import Pose
-from models.rig import Rig
-from protocol.packet import (N_REGIONS, SEQ_MODULO, Flag, Frame, decode, encode_frames)
-from sender.pose import rotation_matrix, rotation_vector
+from facewire.models.fit import Pose
+from facewire.models.rig import Rig
+from facewire.protocol.packet import (N_REGIONS, SEQ_MODULO, Flag, Frame, decode, encode_frames)
+from facewire.sender.pose import rotation_matrix, rotation_vector
 
 
 @dataclass(frozen=True)

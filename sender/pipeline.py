@@ -52,23 +52,23 @@ from typing import Any
 import cv2
 import numpy as np
 
-from models.fit import Pose
-from models.landmarks import N_LANDMARKS
-from models.modelfile import PersonModel, load_model, model_summary
-from models.progress import Progress, no_progress
-from models.rig import Rig
-from models.tracker import LandmarkTracker
-from protocol.control import Camera, Hello
-from protocol.log import LogWriter
-from protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame
-from sender.appearance import AppearanceSampler
-from sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
+from facewire.models.fit import Pose
+from facewire.models.landmarks import N_LANDMARKS
+from facewire.models.modelfile import PersonModel, load_model, model_summary
+from facewire.models.progress import Progress, no_progress
+from facewire.models.rig import Rig
+from facewire.models.tracker import LandmarkTracker
+from facewire.protocol.control import Camera, Hello
+from facewire.protocol.log import LogWriter
+from facewire.protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame
+from facewire.sender.appearance import AppearanceSampler
+from facewire.sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
                             scale_intrinsics)
-from sender.classify import RegionClassifiers
-from sender.heuristics import ResidualFilter
-from sender.lift import Lifter, pose_and_lift
-from sender.pack import pack
-from sender.pose import PoseFilter, PoseSolver
+from facewire.sender.classify import RegionClassifiers
+from facewire.sender.heuristics import ResidualFilter
+from facewire.sender.lift import Lifter, pose_and_lift
+from facewire.sender.pack import pack
+from facewire.sender.pose import PoseFilter, PoseSolver
 
 NOMINAL_HZ = 30.0  # the contract's payload_kbps is at 30 Hz
 

@@ -72,9 +72,9 @@ import cv2
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from models.fit import Pose
-from models.landmarks import N_LANDMARKS, RIGID
-from protocol.control import Camera
+from facewire.models.fit import Pose
+from facewire.models.landmarks import N_LANDMARKS, RIGID
+from facewire.protocol.control import Camera
 
 __all__ = ["Pose", "POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver", "PoseFilter",
            "rotation_vector", "rotation_matrix"]

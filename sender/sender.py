@@ -71,17 +71,17 @@ from typing import Any
 
 import numpy as np
 
-from models.modelfile import ModelFileError, load_model
-from protocol.control import (MAX_RATE_HZ, MIN_RATE_HZ, ControlError, Error, Hello,
+from facewire.models.modelfile import ModelFileError, load_model
+from facewire.protocol.control import (MAX_RATE_HZ, MIN_RATE_HZ, ControlError, Error, Hello,
                               HelloRequest, Message, ModelChunk, ModelRequest, decode_message,
                               model_chunks)
-from protocol.keys import server_keys
-from protocol.log import LogError, LogWriter
-from protocol.packet import PACKET_BYTES
-from protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
-from sender.capture import CaptureError, Pacer, Source, open_source
-from sender.framethread import FrameThread
-from sender.pipeline import SenderPipeline, sender_camera
+from facewire.protocol.keys import server_keys
+from facewire.protocol.log import LogError, LogWriter
+from facewire.protocol.packet import PACKET_BYTES
+from facewire.protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
+from facewire.sender.capture import CaptureError, Pacer, Source, open_source
+from facewire.sender.framethread import FrameThread
+from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
 STATUS_PERIOD_S = 1.0

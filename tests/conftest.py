@@ -18,7 +18,7 @@ import av
 import numpy as np
 import pytest
 
-from protocol.transport import free_loopback_endpoint
+from facewire.protocol.transport import free_loopback_endpoint
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -45,8 +45,8 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def rig():
     """The animation rig of the generic head (``models.rig.Rig``)."""
-    from models.head import generic_head
-    from models.rig import Rig
+    from facewire.models.head import generic_head
+    from facewire.models.rig import Rig
 
     return Rig(generic_head())
 
@@ -54,8 +54,8 @@ def rig():
 @pytest.fixture(scope="session")
 def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generic head with a flat grey texture, saved as a model file."""
-    from models.head import generic_head
-    from models.modelfile import Camera, ModelInfo, PersonModel, save_model
+    from facewire.models.head import generic_head
+    from facewire.models.modelfile import Camera, ModelInfo, PersonModel, save_model
 
     model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
                         camera=Camera(640.0, 640.0, 319.5, 239.5, 640, 480),
@@ -69,8 +69,8 @@ def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def person_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A full model (geometry, texture, appearance regions) built from lp_d0.mp4's 78 frames
     (gaze left and right, a smile, eyes closed), as ``facewire model build`` makes it."""
-    from models.build import build_model
-    from sender.enroll import enroll_regions
+    from facewire.models.build import build_model
+    from facewire.sender.enroll import enroll_regions
 
     path = tmp_path_factory.mktemp("person") / "lp_d0.fwm"
     build_model(shared_data / "video" / "lp_d0.mp4", path, appearance=enroll_regions)

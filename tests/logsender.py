@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from conftest import free_endpoint
-from models.modelfile import load_model
-from protocol.control import Error, Hello, HelloRequest, ModelRequest, decode_message, model_chunks
-from protocol.keys import CurveServer
-from protocol.log import PacketLog, read_log
-from protocol.packet import decode, encode
-from protocol.transport import ControlServer, PacketPublisher
-from sender.pipeline import encode_video
+from facewire.models.modelfile import load_model
+from facewire.protocol.control import Error, Hello, HelloRequest, ModelRequest, decode_message, model_chunks
+from facewire.protocol.keys import CurveServer
+from facewire.protocol.log import PacketLog, read_log
+from facewire.protocol.packet import decode, encode
+from facewire.protocol.transport import ControlServer, PacketPublisher
+from facewire.sender.pipeline import encode_video
 
 
 @functools.cache

@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 
 from conftest import EXPRESSION_UV, SYNTH_FX
-from models.head import generic_head
-from models.mesh import Mesh, Tag
-from models.raster import Camera as ViewCamera
-from models.raster import MeshRenderer, orbit_pose
-from models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
+from facewire.models.head import generic_head
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.raster import Camera as ViewCamera
+from facewire.models.raster import MeshRenderer, orbit_pose
+from facewire.models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
                             template_samples)
-from models.rig import Rig
-from models.texture import UVSurface, uv_surface
-from protocol.control import Camera
-from sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
-from sender.classify import RegionClassifiers
+from facewire.models.rig import Rig
+from facewire.models.texture import UVSurface, uv_surface
+from facewire.protocol.control import Camera
+from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from facewire.sender.classify import RegionClassifiers
 
 WIDTH, HEIGHT = 640, 480
 INTRINSICS = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT)

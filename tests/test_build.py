@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
-from models.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
-from models.gltf import read_glb
-from models.head import generic_head
-from models.modelfile import load_model
-from models.regions import REGION_NAMES, spec
-from sender.classify import RegionClassifiers
+from facewire.models.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
+from facewire.models.gltf import read_glb
+from facewire.models.head import generic_head
+from facewire.models.modelfile import load_model
+from facewire.models.regions import REGION_NAMES, spec
+from facewire.sender.classify import RegionClassifiers
 
 
 @pytest.fixture(scope="module")

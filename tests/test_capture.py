@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from models.fit import intrinsics_guess
-from sender.capture import (
+from facewire.models.fit import intrinsics_guess
+from facewire.sender.capture import (
     CaptureError,
     Pacer,
     RateLimiter,

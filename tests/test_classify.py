@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import pywt
 
-from sender.classify import (ETA, HAAR_MATRIX, SCALE_INDEX, RegionClassifiers,
+from facewire.sender.classify import (ETA, HAAR_MATRIX, SCALE_INDEX, RegionClassifiers,
                              TemplateClassifier, haar_pyramid)
 
 N = 16

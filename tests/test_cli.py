@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.control import Camera, Hello
-from protocol.log import LogWriter
-from protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, encode_frames
+from facewire.protocol.control import Camera, Hello
+from facewire.protocol.log import LogWriter
+from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, encode_frames
 
 FACEWIRE = str(Path(sys.executable).with_name("facewire"))
 CONTRACT = ["model", "send", "receive", "encode", "replay", "bench", "inspect", "relay", "demo",
@@ -84,7 +84,7 @@ def test_bench_bandwidth(log: Path, tmp_path: Path) -> None:
 
 
 def test_bench_bandwidth_exit_status_follows_the_limit(log: Path, monkeypatch) -> None:
-    import bench.bandwidth as bw
+    import facewire.bench.bandwidth as bw
 
     assert bw.bandwidth(log) == 0
     monkeypatch.setattr(bw, "LIMIT_KBPS", 9.0)  # a 39-byte packet is 9.36 kbit/s at 30 Hz

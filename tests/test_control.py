@@ -8,7 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from protocol.control import (
+from facewire.protocol.control import (
     CHUNK_BYTES, MAX_MESSAGE_BYTES, Camera, ControlError, Error, Hello, HelloRequest,
     ModelAssembler, ModelChunk, ModelRequest, decode_message, encode_message, model_chunks,
 )

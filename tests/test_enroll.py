@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.modelfile import load_model
-from models.regions import REGION_NAMES, ramp_mask, spec
-from sender.enroll import (EnrollError, _choose_states, _iris_position, enroll_regions,
+from facewire.models.modelfile import load_model
+from facewire.models.regions import REGION_NAMES, ramp_mask, spec
+from facewire.sender.enroll import (EnrollError, _choose_states, _iris_position, enroll_regions,
                            region_cues, without_closed_eyes)
 
 

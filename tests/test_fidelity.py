@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
-from models.video import read_frames
+from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
+from facewire.models.video import read_frames
 
 C1, C2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
 

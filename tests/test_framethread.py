@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from sender.capture import open_source
-from sender.framethread import AHEAD, FrameThread
+from facewire.sender.capture import open_source
+from facewire.sender.framethread import AHEAD, FrameThread
 
 
 def test_a_file_is_read_ahead_in_order_and_nothing_is_dropped(grey_video) -> None:

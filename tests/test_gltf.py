@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
-from models import gltf
-from models.gltf import GltfError, read_glb, write_glb
+from facewire.models import gltf
+from facewire.models.gltf import GltfError, read_glb, write_glb
 
 
 def _pack(doc: dict, binary: bytes) -> bytes:

@@ -7,10 +7,10 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from models.head import (EYE_BACK_UV, EYE_BACK_UV_RADIUS, EYE_RADIUS, EYE_UV, EYE_UV_RADIUS,
+from facewire.models.head import (EYE_BACK_UV, EYE_BACK_UV_RADIUS, EYE_RADIUS, EYE_UV, EYE_UV_RADIUS,
                          MOUTH_UV, SKIN_U_MAX, generic_head, mirror_map)
-from models.landmarks import FEATURES, MIRROR, PHANTOM_MIRROR, PHANTOM_NAMES
-from models.mesh import Mesh, Tag
+from facewire.models.landmarks import FEATURES, MIRROR, PHANTOM_MIRROR, PHANTOM_NAMES
+from facewire.models.mesh import Mesh, Tag
 
 SKIN_TAGS = (Tag.SKIN, Tag.SCALP, Tag.EAR, Tag.MOUTH_INTERIOR)
 
@@ -281,6 +281,6 @@ def test_tags(mesh: Mesh) -> None:
 
 def test_uv_layout_is_one_to_one(mesh: Mesh) -> None:
     """No texel holds two surface points: the texture projection refuses a stacked layout."""
-    from models.texture import uv_surface
+    from facewire.models.texture import uv_surface
 
     uv_surface(mesh, (512, 1024))  # raises TextureError on > 1 % overlapping texels

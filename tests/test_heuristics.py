@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.landmarks import NONRIGID
-from protocol.packet import Flag
-from sender.heuristics import PARTNER, ResidualFilter
+from facewire.models.landmarks import NONRIGID
+from facewire.protocol.packet import Flag
+from facewire.sender.heuristics import PARTNER, ResidualFilter
 
 DT = 1 / 30
 ALL = np.ones(9, bool)

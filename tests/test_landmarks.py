@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import landmarks as lm
-from models import mesh
-from models.landmark_files import LandmarkFileError, read_openface_csv, read_pts
+from facewire.models import landmarks as lm
+from facewire.models import mesh
+from facewire.models.landmark_files import LandmarkFileError, read_openface_csv, read_pts
 
 # ---------------------------------------------------------------------------------------------
 # scheme

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from models.fit import Pose, project
-from models.rig import Rig
-from protocol.control import Camera
-from sender.lift import GRAZING_COS, Lifter, pose_and_lift
-from sender.pose import PoseSolver, rotation_matrix, rotation_vector
+from facewire.models.fit import Pose, project
+from facewire.models.rig import Rig
+from facewire.protocol.control import Camera
+from facewire.sender.lift import GRAZING_COS, Lifter, pose_and_lift
+from facewire.sender.pose import PoseSolver, rotation_matrix, rotation_vector
 
 CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
 K = SYNTH_K

@@ -19,7 +19,7 @@ from pathlib import Path
 import av
 
 from conftest import free_endpoint
-from protocol.log import read_log
+from facewire.protocol.log import read_log
 
 WAIT_S = 120  # at most, for a process to end (a loaded 2-core machine is slow to start)
 IDLE_S = "15"  # s without packets that end a receiver (a loaded machine starts a sender slowly)

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import pytest
 
-from receiver.liveview import BOUNDARY, LiveView, LiveViewError
+from facewire.receiver.liveview import BOUNDARY, LiveView, LiveViewError
 
 W, H = 640, 480
 BITS = 16  # frame-number blocks in the top row, BLOCK x BLOCK px each

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.control import Camera, Hello
-from protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
-from protocol.packet import FRAME_DTYPE, Flag, encode_frames
+from facewire.protocol.control import Camera, Hello
+from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
+from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 HELLO = Hello("0f" * 32, 4096, 30.0, Camera(500.0, 500.0, 320.0, 240.0, 640, 480),
               ("forehead", "mouth"))
@@ -113,8 +113,8 @@ def test_killed_writer_leaves_a_readable_log(tmp_path: Path) -> None:
 import sys, time, numpy as np
 sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})
 from tests.test_log import HELLO
-from protocol.log import LogWriter
-from protocol.packet import Frame, encode
+from facewire.protocol.log import LogWriter
+from facewire.protocol.packet import Frame, encode
 w = LogWriter({str(path)!r}, HELLO)
 i = 0
 while True:

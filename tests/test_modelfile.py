@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from conftest import npy_bytes, write_zip, zip_members
-from models import modelfile
-from models.mesh import Mesh
-from models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel,
+from facewire.models import modelfile
+from facewire.models.mesh import Mesh
+from facewire.models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel,
                               Region, load_model, load_model_bytes, model_sha256, model_summary,
                               save_model)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.morph import VolumeMorph
+from facewire.models.morph import VolumeMorph
 
 U32 = 2.0**-24  # unit roundoff of float32
 MIRROR = np.diag([-1.0, 1.0, 1.0])  # x -> -x: the person's left <-> right
@@ -335,7 +335,7 @@ def test_expression_on_the_real_head_scan(shared_data):
     upper lip 1 mm up, the lower lip 4 mm down, the chin 6 mm down and 1 mm back, the brows
     2-3 mm up.
     """
-    from models.gltf import read_glb
+    from facewire.models.gltf import read_glb
 
     scan = read_glb(shared_data / "meshes/lee-perry-smith/LeePerrySmith.glb",
                     mm_per_unit=MM_PER_UNIT)

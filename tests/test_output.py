@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from models.video import read_frames, video_info
-from receiver.output import (FRAME_PATTERN, QUEUE_FRAMES, FrameFolderWriter, OutputError,
+from facewire.models.video import read_frames, video_info
+from facewire.receiver.output import (FRAME_PATTERN, QUEUE_FRAMES, FrameFolderWriter, OutputError,
                              VideoWriter, side_by_side)
 
 W, H, RATE = 160, 120, 30

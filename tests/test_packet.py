@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.packet import (
+from facewire.protocol.packet import (
     FRAME_DTYPE, PACKET_BYTES, QUANTISERS, Flag, Frame, PacketError, crc16, decode,
     decode_frames, encode, encode_frames,
 )

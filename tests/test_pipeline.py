@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.landmarks import eye_aspect_ratio
-from models.modelfile import ModelFileError
-from models.tracker import LandmarkTracker
-from models.video import frame_range, read_frames
-from protocol.control import decode_message, encode_message
-from protocol.log import read_log
-from protocol.packet import QUANTISERS, Flag
-from sender.capture import CaptureError, estimate_intrinsics
-from sender.pack import unpack_geometry
-from sender.pipeline import SenderPipeline, encode_video
-from sender.pose import rotation_vector
+from facewire.models.landmarks import eye_aspect_ratio
+from facewire.models.modelfile import ModelFileError
+from facewire.models.tracker import LandmarkTracker
+from facewire.models.video import frame_range, read_frames
+from facewire.protocol.control import decode_message, encode_message
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import QUANTISERS, Flag
+from facewire.sender.capture import CaptureError, estimate_intrinsics
+from facewire.sender.pack import unpack_geometry
+from facewire.sender.pipeline import SenderPipeline, encode_video
+from facewire.sender.pose import rotation_vector
 
 ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
 
@@ -60,7 +60,7 @@ def test_encode_real_video(generic_model: Path, video: Path, tmp_path: Path) -> 
 
 
 def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) -> None:
-    from models.modelfile import load_model
+    from facewire.models.modelfile import load_model
     model = load_model(generic_model)
     pipeline = SenderPipeline(model, estimate_intrinsics(512, 512), rate_hz=25.0)
     hello = decode_message(encode_message(pipeline.hello()))
@@ -94,7 +94,7 @@ def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) 
 
 
 def test_packets_carry_each_regions_q(person_model: Path, video: Path, tmp_path: Path) -> None:
-    from models.modelfile import load_model
+    from facewire.models.modelfile import load_model
     model = load_model(person_model)
     pipeline = SenderPipeline(model, estimate_intrinsics(512, 512), rate_hz=25.0)
     names = tuple(r.name for r in model.regions)

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.packet import (PACKET_BYTES, QUANTISERS, SEQ_MODULO, Flag, Frame, PacketError,
+from facewire.protocol.packet import (PACKET_BYTES, QUANTISERS, SEQ_MODULO, Flag, Frame, PacketError,
                              decode, encode)
-from receiver.playout import STATUSES, FrameState, Playout, replay_states, rotation_matrix
+from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_states, rotation_matrix
 
 RATE = 30.0
 DEPTH = 3

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from models.fit import Pose, project
-from models.landmarks import NONRIGID, RIGID
-from models.rig import FRONTAL_POINTS, Rig
-from protocol.control import Camera
-from sender.pose import (POSE_WEIGHTS, PoseFilter, PoseSolver, rotation_matrix,
+from facewire.models.fit import Pose, project
+from facewire.models.landmarks import NONRIGID, RIGID
+from facewire.models.rig import FRONTAL_POINTS, Rig
+from facewire.protocol.control import Camera
+from facewire.sender.pose import (POSE_WEIGHTS, PoseFilter, PoseSolver, rotation_matrix,
                          rotation_vector)
 
 CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess

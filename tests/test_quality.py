@@ -10,18 +10,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench.quality import (TARGET_NME_HELDOUT, format_quality, geometry_nme,
+from facewire.bench.quality import (TARGET_NME_HELDOUT, format_quality, geometry_nme,
                            project_landmarks, quality)
-from bench.speed import NoFaceError
-from bench.reference import OpenFaceError
-from models.build import build_model
-from models.regions import REGION_NAMES
-from sender.enroll import enroll_regions
-from models.landmarks import HELD_OUT, outer_eye_distance
-from models.modelfile import ModelFileError
-from models.raster import Camera as ViewCamera
-from models.rig import Rig
-from protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
+from facewire.bench.speed import NoFaceError
+from facewire.bench.reference import OpenFaceError
+from facewire.models.build import build_model
+from facewire.models.regions import REGION_NAMES
+from facewire.sender.enroll import enroll_regions
+from facewire.models.landmarks import HELD_OUT, outer_eye_distance
+from facewire.models.modelfile import ModelFileError
+from facewire.models.raster import Camera as ViewCamera
+from facewire.models.rig import Rig
+from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
 
 FX, FY, CX, CY, W, H = 640.0, 640.0, 319.5, 239.5, 640, 480
 # Quantisation half-steps of protocol.packet (its docstring): rotation-vector component

@@ -26,13 +26,13 @@ from logsender import LogSender
 from logsender import free_port_pair as _free_port_pair
 from logsender import hello_for as _hello_for
 from logsender import ready as _ready
-from models.modelfile import ModelFileError
-from protocol.keys import generate_keys, server_keys
-from protocol.log import read_log
-from protocol.transport import TransportError
-from receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
-from receiver.receiver import LIVE_KEYS, MAX_SIZE, ReceiveError, receive
-from sender.pipeline import encode_video
+from facewire.models.modelfile import ModelFileError
+from facewire.protocol.keys import generate_keys, server_keys
+from facewire.protocol.log import read_log
+from facewire.protocol.transport import TransportError
+from facewire.receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
+from facewire.receiver.receiver import LIVE_KEYS, MAX_SIZE, ReceiveError, receive
+from facewire.sender.pipeline import encode_video
 
 SIZE = (160, 120)
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.head import EYE_UV, EYE_UV_RADIUS, MOUTH_UV, MOUTH_UV_RADIUS, SKIN_U_MAX, generic_head
-from models.mesh import Mesh, Tag
-from models.regions import (OFFSETS, RAMP_TEXELS, REGION_NAMES, REGIONS, SUPERSAMPLE,
+from facewire.models.head import EYE_UV, EYE_UV_RADIUS, MOUTH_UV, MOUTH_UV_RADIUS, SKIN_U_MAX, generic_head
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.regions import (OFFSETS, RAMP_TEXELS, REGION_NAMES, REGIONS, SUPERSAMPLE,
                             TEMPLATE_SIZE, RegionError, RegionSpec, place, ramp_mask, spec,
                             template_samples, texel_rect)
 

@@ -7,14 +7,14 @@ import threading
 import time
 from pathlib import Path
 
-from protocol.control import (Camera, Hello, HelloRequest, ModelAssembler, ModelChunk,
+from facewire.protocol.control import (Camera, Hello, HelloRequest, ModelAssembler, ModelChunk,
                               ModelRequest, decode_message)
-from protocol.log import read_log
-from protocol.packet import Frame, decode, encode
-from protocol.relay import relay
-from protocol.transport import (ControlClient, ControlServer, PacketPublisher,
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import Frame, decode, encode
+from facewire.protocol.relay import relay
+from facewire.protocol.transport import (ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, control_endpoint)
-from sender.sender import send
+from facewire.sender.sender import send
 
 from conftest import free_endpoint, start
 

@@ -13,16 +13,16 @@ import cv2
 import numpy as np
 import pytest
 
-from models.draworder import draw_order
-from models.head import generic_head
-from models.mesh import Mesh
-from models.modelfile import Area, ModelInfo, PersonModel, Region
-from models.modelfile import Camera as ModelCamera
-from models.raster import Camera, MeshRenderer, RenderError, orbit_pose
-from models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
-from protocol.control import Camera as HelloCamera
-from receiver.render import FaceRenderer
-from receiver.views import head_centre, sender_view, virtual_view
+from facewire.models.draworder import draw_order
+from facewire.models.head import generic_head
+from facewire.models.mesh import Mesh
+from facewire.models.modelfile import Area, ModelInfo, PersonModel, Region
+from facewire.models.modelfile import Camera as ModelCamera
+from facewire.models.raster import Camera, MeshRenderer, RenderError, orbit_pose
+from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
+from facewire.protocol.control import Camera as HelloCamera
+from facewire.receiver.render import FaceRenderer
+from facewire.receiver.views import head_centre, sender_view, virtual_view
 
 MODEL_CAMERA = ModelCamera(640.0, 640.0, 319.5, 239.5, 640, 480)
 HEAD_TEXTURE = (512, 1024)  # rows, columns: a face some 3 times finer than the views below

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from models.head import EYE_RADIUS, generic_head, mirror_map
-from models.landmarks import FEATURES, MIRROR, NONRIGID, PHANTOM_NAMES
-from models.mesh import Mesh, Tag
-from models.rig import (
+from facewire.models.head import EYE_RADIUS, generic_head, mirror_map
+from facewire.models.landmarks import FEATURES, MIRROR, NONRIGID, PHANTOM_NAMES
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.rig import (
     ANCHOR_CLEARANCE,
     ANCHORS,
     MANDIBLE_PHANTOMS,

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from bench.speed import (LOOPBACK_KEYS, NoFaceError, _one_blas_thread, format_speed,
+from facewire.bench.speed import (LOOPBACK_KEYS, NoFaceError, _one_blas_thread, format_speed,
                          measure_speed, speed)
-from models.head import generic_head
-from models.modelfile import ModelFileError
-from models.video import VideoError, frame_range
+from facewire.models.head import generic_head
+from facewire.models.modelfile import ModelFileError
+from facewire.models.video import VideoError, frame_range
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ import dlib
 import numpy as np
 import pytest
 
-from models.landmark_files import read_pts
-from models.landmarks import nme
-from models.tracker import LandmarkTracker, TrackResult, box_from_points, predictor_path
+from facewire.models.landmark_files import read_pts
+from facewire.models.landmarks import nme
+from facewire.models.tracker import LandmarkTracker, TrackResult, box_from_points, predictor_path
 
 
 @pytest.fixture(scope="module")

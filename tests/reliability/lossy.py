@@ -47,8 +47,8 @@ from dataclasses import dataclass
 import numpy as np
 import zmq
 
-from protocol.packet import PacketError, decode
-from protocol.transport import control_endpoint
+from facewire.protocol.packet import PacketError, decode
+from facewire.protocol.transport import control_endpoint
 
 POLL_MS = 5
 

@@ -40,14 +40,14 @@ import pytest
 
 from conftest import free_endpoint, npy_bytes, write_zip, zip_members
 from facewire.cli import main
-from models import modelfile
-from models.head import generic_head
-from models.modelfile import Camera, ModelInfo, PersonModel, Region, save_model
-from protocol import log as fwlog
-from protocol.control import Camera as HelloCamera
-from protocol.control import Hello
-from protocol.log import LogWriter, read_log
-from protocol.packet import FRAME_DTYPE, Flag, encode_frames
+from facewire.models import modelfile
+from facewire.models.head import generic_head
+from facewire.models.modelfile import Camera, ModelInfo, PersonModel, Region, save_model
+from facewire.protocol import log as fwlog
+from facewire.protocol.control import Camera as HelloCamera
+from facewire.protocol.control import Hello
+from facewire.protocol.log import LogWriter, read_log
+from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 # The banner ``facewire send`` prints before ``send()`` has checked anything (facewire/cli.py).
 SEND_BANNER = "facewire send: publishing on"

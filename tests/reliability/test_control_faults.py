@@ -43,14 +43,14 @@ import pytest
 import zmq
 
 from conftest import free_endpoint, start
-from protocol.control import (CHUNK_BYTES, Camera, Error, Hello, HelloRequest, Message,
+from facewire.protocol.control import (CHUNK_BYTES, Camera, Error, Hello, HelloRequest, Message,
                               ModelChunk, ModelRequest, decode_message, encode_message,
                               model_chunks)
-from protocol.packet import Flag, Frame, decode, encode
-from protocol.transport import (MAX_CONTROL_FRAME, ControlServer, PacketSubscriber,
+from facewire.protocol.packet import Flag, Frame, decode, encode
+from facewire.protocol.transport import (MAX_CONTROL_FRAME, ControlServer, PacketSubscriber,
                                 control_endpoint)
-from receiver.receiver import CHUNK_ATTEMPTS, MODEL_ATTEMPTS, ReceiveError, receive
-from sender.sender import send
+from facewire.receiver.receiver import CHUNK_ATTEMPTS, MODEL_ATTEMPTS, ReceiveError, receive
+from facewire.sender.sender import send
 
 RATE_HZ = 30.0
 PACKETS = 30

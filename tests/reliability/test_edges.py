@@ -37,9 +37,9 @@ import pytest
 
 from conftest import free_endpoint, write_video
 from facewire.cli import main
-from models.video import read_frames
-from protocol.log import read_log
-from protocol.packet import Flag
+from facewire.models.video import read_frames
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import Flag
 from test_bad_files import refusal, run_cli, snapshot
 
 STEP_PX = 40  # most a tracked head's image position moves between frames at 30 Hz

@@ -54,14 +54,14 @@ if __name__ == "__main__":  # run as a script: find tests/conftest.py as pytest 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from conftest import free_endpoint, start
-from protocol.control import Camera, Error, Hello, HelloRequest, decode_message
-from protocol.log import LogWriter, read_log
-from protocol.packet import PacketError, decode, decode_frames
-from protocol.relay import relay
-from protocol.transport import ControlServer, PacketSubscriber, control_endpoint
-from receiver.playout import STATUSES, Playout
-from receiver import receiver as receiver_module
-from receiver.receiver import receive
+from facewire.protocol.control import Camera, Error, Hello, HelloRequest, decode_message
+from facewire.protocol.log import LogWriter, read_log
+from facewire.protocol.packet import PacketError, decode, decode_frames
+from facewire.protocol.relay import relay
+from facewire.protocol.transport import ControlServer, PacketSubscriber, control_endpoint
+from facewire.receiver.playout import STATUSES, Playout
+from facewire.receiver import receiver as receiver_module
+from facewire.receiver.receiver import receive
 
 # -- budget ----------------------------------------------------------------------------------
 

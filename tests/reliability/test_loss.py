@@ -49,11 +49,11 @@ from cliprocess import Facewire
 from conftest import free_endpoint
 from logsender import LogSender, encoded_log, free_port_pair
 from lossy import Faults, LossyRelay, Record
-from models.modelfile import load_model
-from protocol.control import Hello
-from protocol.packet import encode
-from receiver.playout import EASE_S, HOLD_S, replay_states
-from receiver.scene import StateRenderer
+from facewire.models.modelfile import load_model
+from facewire.protocol.control import Hello
+from facewire.protocol.packet import encode
+from facewire.receiver.playout import EASE_S, HOLD_S, replay_states
+from facewire.receiver.scene import StateRenderer
 
 SIZE = (160, 120)
 RATE_HZ = 30.0

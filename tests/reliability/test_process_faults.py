@@ -32,8 +32,8 @@ import numpy as np
 from cliprocess import Facewire
 from conftest import free_endpoint
 from lossy import LossyRelay
-from protocol.log import read_log
-from receiver.playout import EASE_S, HOLD_S
+from facewire.protocol.log import read_log
+from facewire.receiver.playout import EASE_S, HOLD_S
 
 PAUSE_S = 5.0
 IDLE_S = "60"  # s without packets that end a receiver: only a fallback, Ctrl-C ends them

@@ -32,8 +32,8 @@ import numpy as np
 import pytest
 
 from logsender import encoded_log
-from protocol.packet import FRAME_DTYPE, SEQ_MODULO, Flag, encode_frames
-from receiver.playout import DEFAULT_DEPTH, FrameState, Playout
+from facewire.protocol.packet import FRAME_DTYPE, SEQ_MODULO, Flag, encode_frames
+from facewire.receiver.playout import DEFAULT_DEPTH, FrameState, Playout
 
 RATE_HZ = 30.0
 HOUR = 108_000
