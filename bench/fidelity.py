@@ -76,7 +76,7 @@ import cv2
 import numpy as np
 
 from facewire.models.landmarks import N_LANDMARKS
-from facewire.models.video import read_frames
+from facewire.models.infra.video import read_frames
 
 MARGIN = 0.1
 FOREHEAD = 0.3

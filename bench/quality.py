@@ -91,14 +91,14 @@ from facewire.bench.speed import NoFaceError
 from facewire.models.landmarks import HELD_OUT, N_LANDMARKS, eye_aspect_ratio, nme
 from facewire.models.regions import REGION_NAMES
 from facewire.models.modelfile import load_model
-from facewire.models.progress import Progress, no_progress
+from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.rig import N_RESIDUALS, Rig
-from facewire.models.video import VideoError
+from facewire.models.infra.video import VideoError
 from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import sender_view
 from facewire.sender.capture import open_source
-from facewire.sender.enroll import region_cues, without_closed_eyes
+from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 

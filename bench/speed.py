@@ -81,9 +81,9 @@ import numpy as np
 from facewire.bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
 from facewire.bench.report import report
 from facewire.models.modelfile import load_model
-from facewire.models.progress import Progress, no_progress
+from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.rig import N_RESIDUALS, Rig
-from facewire.models.video import VideoError, read_frames, video_info
+from facewire.models.infra.video import VideoError, read_frames, video_info
 from facewire.sender.capture import estimate_intrinsics
 from facewire.protocol.packet import decode as decode_packet
 from facewire.receiver.output import VideoWriter

@@ -199,7 +199,7 @@ def _progress(items: Iterable[T], label: str, total: int | None) -> Iterator[T]:
 
 def _frames(text: str | None) -> slice:
     """The ``--frames A:B`` option as a slice; a bad range is a one-line error."""
-    from facewire.models.video import frame_range
+    from facewire.models.infra.video import frame_range
 
     try:
         return frame_range(text)
@@ -209,8 +209,8 @@ def _frames(text: str | None) -> slice:
 
 def _model_build(args: argparse.Namespace) -> int:
     from facewire.bench.report import report
-    from facewire.models.build import build_model
-    from facewire.sender.enroll import enroll_regions
+    from facewire.sender.enroll.build import build_model
+    from facewire.sender.enroll.layers import enroll_regions
 
     frames = _frames(args.frames)
     result = build_model(args.video, args.output, frames, progress=_progress,
@@ -294,7 +294,7 @@ def _bench_quality(args: argparse.Namespace) -> int:
 
 
 def _check(_: argparse.Namespace) -> int:
-    from facewire.models.egl import check_egl
+    from facewire.models.infra.egl import check_egl
 
     print(check_egl())
     return 0
@@ -448,11 +448,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """The failures a user can cause: reported as one line, no traceback."""
-    from facewire.models.build import BuildError
-    from facewire.models.egl import EGLUnavailable
+    from facewire.sender.enroll.build import BuildError
+    from facewire.models.infra.egl import EGLUnavailable
     from facewire.models.gltf import GltfError
     from facewire.models.modelfile import ModelFileError
-    from facewire.models.video import VideoError
+    from facewire.models.infra.video import VideoError
     from facewire.protocol.control import ControlError
     from facewire.protocol.keys import KeyFileError
     from facewire.protocol.log import LogError
@@ -460,11 +460,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from facewire.protocol.transport import TransportError
     from facewire.receiver.output import OutputError
     from facewire.receiver.replay import ReplayError
-    from facewire.models.raster import RenderError
+    from facewire.models.infra.raster import RenderError
     from facewire.bench.reference import OpenFaceError
     from facewire.models.regions import RegionError
     from facewire.sender.capture import CaptureError
-    from facewire.sender.enroll import EnrollError
+    from facewire.sender.enroll.layers import EnrollError
     from facewire.demo import DemoError
     from facewire.performer import PerformerError
     from facewire.receiver.liveview import LiveViewError

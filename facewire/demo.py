@@ -56,10 +56,10 @@ import cv2
 import numpy as np
 
 from facewire.performer import ENROLL_S, PerformanceResult, perform
-from facewire.models.build import BuildResult, build_model
+from facewire.sender.enroll.build import BuildResult, build_model
 from facewire.models.modelfile import PersonModel, load_model
-from facewire.models.progress import Progress, no_progress
-from facewire.models.video import read_frames, video_info
+from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.video import read_frames, video_info
 from facewire.protocol.control import ControlError, Hello, HelloRequest, decode_message
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import PACKET_BYTES
@@ -69,7 +69,7 @@ from facewire.receiver.output import VideoWriter, side_by_side
 from facewire.receiver.playout import Playout
 from facewire.receiver.scene import StateRenderer, rest_q
 from facewire.sender.capture import open_source
-from facewire.sender.enroll import enroll_regions
+from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 DEFAULT_OUT = "facewire-demo"
@@ -395,7 +395,7 @@ def _hello(client: ControlClient, model: PersonModel, sender: _Sender) -> Hello:
     while time.monotonic() < deadline:
         if sender.done.is_set():
             raise DemoError(f"the sender stopped before it said hello: {sender.error}") \
-                from facewire.sender.error
+                from sender.error
         reply = client.request(HelloRequest(), 500)
         if isinstance(reply, Hello):
             if reply.model_sha256 != model.sha256:

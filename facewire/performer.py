@@ -66,15 +66,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facewire.models.build import BuildError, BuildResult, build_model
-from facewire.models.fit import Pose
+from facewire.sender.enroll.build import BuildError, BuildResult, build_model
+from facewire.sender.enroll.fit import Pose
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import PersonModel
 from facewire.models.morph import VolumeMorph
-from facewire.models.progress import Progress, no_progress
-from facewire.models.raster import Camera, MeshRenderer
+from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.raster import Camera, MeshRenderer
 from facewire.models.rig import Rig
-from facewire.models.video import VideoError
+from facewire.models.infra.video import VideoError
 from facewire.receiver.output import VideoWriter
 
 PORTRAIT = "grace_hopper.jpg"  # matplotlib's sample data: public domain (U.S. Navy photo)

@@ -108,7 +108,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from facewire.models.atomic import write_atomically
+from facewire.models.infra.atomic import write_atomically
 from facewire.models.mesh import Mesh, MeshError
 
 FORMAT = "facewire-model"

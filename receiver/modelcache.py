@@ -39,7 +39,7 @@ import re
 import stat
 from pathlib import Path
 
-from facewire.models.atomic import write_atomically
+from facewire.models.infra.atomic import write_atomically
 from facewire.models.modelfile import MAX_FILE_BYTES, PersonModel, load_model_bytes
 
 ENV_FOLDER = "FACEWIRE_CACHE"

@@ -76,9 +76,9 @@ import cv2
 import numpy as np
 
 from facewire.models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
-from facewire.models.egl import create_context, in_context
+from facewire.models.infra.egl import create_context, in_context
 from facewire.models.modelfile import Area, PersonModel
-from facewire.models.raster import (
+from facewire.models.infra.raster import (
     VERTEX_TEXTURED,
     Camera,
     ContextOwner,

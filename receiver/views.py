@@ -26,7 +26,7 @@ import numpy as np
 
 from facewire.models.landmarks import N_LANDMARKS, outer_eye_distance
 from facewire.models.mesh import Mesh
-from facewire.models.raster import Camera, RenderError, orbit_pose
+from facewire.models.infra.raster import Camera, RenderError, orbit_pose
 from facewire.protocol import control
 from facewire.receiver.playout import rotation_matrix as rodrigues
 

@@ -51,8 +51,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facewire.models.fit import intrinsics_guess
-from facewire.models.video import VideoError, VideoFrame, read_frames, video_info
+from facewire.sender.enroll.fit import intrinsics_guess
+from facewire.models.infra.video import VideoError, VideoFrame, read_frames, video_info
 from facewire.protocol.control import Camera, ControlError
 
 __all__ = ["CaptureError", "Source", "VideoFrame", "open_source", "estimate_intrinsics",

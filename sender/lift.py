@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.models.fit import Pose
+from facewire.sender.enroll.fit import Pose
 from facewire.models.landmarks import N_LANDMARKS, NONRIGID
 from facewire.models.rig import Rig
 from facewire.protocol.control import Camera

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.models.fit import Pose
+from facewire.sender.enroll.fit import Pose
 from facewire.models.rig import Rig
 from facewire.protocol.packet import (N_REGIONS, SEQ_MODULO, Flag, Frame, decode, encode_frames)
 from facewire.sender.pose import rotation_matrix, rotation_vector

@@ -52,12 +52,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.models.fit import Pose
+from facewire.sender.enroll.fit import Pose
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
-from facewire.models.progress import Progress, no_progress
+from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.rig import Rig
-from facewire.models.tracker import LandmarkTracker
+from facewire.sender.tracker import LandmarkTracker
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame

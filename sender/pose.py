@@ -72,7 +72,7 @@ import cv2
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from facewire.models.fit import Pose
+from facewire.sender.enroll.fit import Pose
 from facewire.models.landmarks import N_LANDMARKS, RIGID
 from facewire.protocol.control import Camera
 

@@ -19,12 +19,12 @@ import pytest
 from conftest import EXPRESSION_UV, SYNTH_FX
 from facewire.models.head import generic_head
 from facewire.models.mesh import Mesh, Tag
-from facewire.models.raster import Camera as ViewCamera
-from facewire.models.raster import MeshRenderer, orbit_pose
+from facewire.models.infra.raster import Camera as ViewCamera
+from facewire.models.infra.raster import MeshRenderer, orbit_pose
 from facewire.models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
                             template_samples)
 from facewire.models.rig import Rig
-from facewire.models.texture import UVSurface, uv_surface
+from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.protocol.control import Camera
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.classify import RegionClassifiers

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
-from facewire.models.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
+from facewire.sender.enroll.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
 from facewire.models.gltf import read_glb
 from facewire.models.head import generic_head
 from facewire.models.modelfile import load_model

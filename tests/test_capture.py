@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.models.fit import intrinsics_guess
+from facewire.sender.enroll.fit import intrinsics_guess
 from facewire.sender.capture import (
     CaptureError,
     Pacer,

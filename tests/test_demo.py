@@ -22,7 +22,7 @@ from conftest import write_video
 from facewire.demo import DemoError, demo, plot_bandwidth
 from facewire.performer import (CHANNELS, ENROLL_S, LENGTH_S, RATE_HZ, SCRIPT, Cue, bump,
                                 close_eyes, script_values)
-from facewire.models.video import video_info
+from facewire.models.infra.video import video_info
 from facewire.protocol.log import read_log
 
 LIMIT_S = 120.0  # the issue: under 2 minutes on this machine

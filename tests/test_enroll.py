@@ -9,7 +9,7 @@ import pytest
 
 from facewire.models.modelfile import load_model
 from facewire.models.regions import REGION_NAMES, ramp_mask, spec
-from facewire.sender.enroll import (EnrollError, _choose_states, _iris_position, enroll_regions,
+from facewire.sender.enroll.layers import (EnrollError, _choose_states, _iris_position, enroll_regions,
                            region_cues, without_closed_eyes)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
-from facewire.models.video import read_frames
+from facewire.models.infra.video import read_frames
 
 C1, C2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facewire.models.fit import (
+from facewire.sender.enroll.fit import (
     FitError,
     Pose,
     fit_person,
@@ -15,7 +15,7 @@ from facewire.models.fit import (
 )
 from facewire.models.head import generic_head
 from facewire.models.mesh import Tag
-from facewire.models.raster import orbit_pose
+from facewire.models.infra.raster import orbit_pose
 
 W, H = 640, 480
 CAMERA = np.array([[640.0, 0.0, 319.5], [0.0, 640.0, 239.5], [0.0, 0.0, 1.0]])
@@ -192,8 +192,8 @@ def test_intrinsics_guess():
 
 
 def test_real_video(shared_data, head):
-    from facewire.models.tracker import LandmarkTracker
-    from facewire.models.video import read_frames, video_info
+    from facewire.sender.tracker import LandmarkTracker
+    from facewire.models.infra.video import read_frames, video_info
 
     path = shared_data / "video" / "openface_default.wmv"
     info = video_info(path)

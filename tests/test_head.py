@@ -281,6 +281,6 @@ def test_tags(mesh: Mesh) -> None:
 
 def test_uv_layout_is_one_to_one(mesh: Mesh) -> None:
     """No texel holds two surface points: the texture projection refuses a stacked layout."""
-    from facewire.models.texture import uv_surface
+    from facewire.sender.enroll.texture import uv_surface
 
     uv_surface(mesh, (512, 1024))  # raises TextureError on > 1 % overlapping texels

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from facewire.models.fit import Pose, project
+from facewire.sender.enroll.fit import Pose, project
 from facewire.models.rig import Rig
 from facewire.protocol.control import Camera
 from facewire.sender.lift import GRAZING_COS, Lifter, pose_and_lift

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.models.video import read_frames, video_info
+from facewire.models.infra.video import read_frames, video_info
 from facewire.receiver.output import (FRAME_PATTERN, QUEUE_FRAMES, FrameFolderWriter, OutputError,
                              VideoWriter, side_by_side)
 

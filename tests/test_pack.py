@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facewire.models.fit import Pose
+from facewire.sender.enroll.fit import Pose
 from facewire.models.rig import Rig
 from facewire.protocol.packet import PACKET_BYTES, QUANTISERS, Flag, PacketError
 from facewire.sender.pack import pack, unpack_geometry

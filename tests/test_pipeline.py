@@ -10,8 +10,8 @@ import pytest
 
 from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.modelfile import ModelFileError
-from facewire.models.tracker import LandmarkTracker
-from facewire.models.video import frame_range, read_frames
+from facewire.sender.tracker import LandmarkTracker
+from facewire.models.infra.video import frame_range, read_frames
 from facewire.protocol.control import decode_message, encode_message
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import QUANTISERS, Flag

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from facewire.models.fit import Pose, project
+from facewire.sender.enroll.fit import Pose, project
 from facewire.models.landmarks import NONRIGID, RIGID
 from facewire.models.rig import FRONTAL_POINTS, Rig
 from facewire.protocol.control import Camera

@@ -14,12 +14,12 @@ from facewire.bench.quality import (TARGET_NME_HELDOUT, format_quality, geometry
                            project_landmarks, quality)
 from facewire.bench.speed import NoFaceError
 from facewire.bench.reference import OpenFaceError
-from facewire.models.build import build_model
+from facewire.sender.enroll.build import build_model
 from facewire.models.regions import REGION_NAMES
-from facewire.sender.enroll import enroll_regions
+from facewire.sender.enroll.layers import enroll_regions
 from facewire.models.landmarks import HELD_OUT, outer_eye_distance
 from facewire.models.modelfile import ModelFileError
-from facewire.models.raster import Camera as ViewCamera
+from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.rig import Rig
 from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
 

@@ -12,7 +12,7 @@ from facewire.bench.speed import (LOOPBACK_KEYS, NoFaceError, _one_blas_thread, 
                          measure_speed, speed)
 from facewire.models.head import generic_head
 from facewire.models.modelfile import ModelFileError
-from facewire.models.video import VideoError, frame_range
+from facewire.models.infra.video import VideoError, frame_range
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import pytest
 
 from facewire.models.landmark_files import read_pts
 from facewire.models.landmarks import nme
-from facewire.models.tracker import LandmarkTracker, TrackResult, box_from_points, predictor_path
+from facewire.sender.tracker import LandmarkTracker, TrackResult, box_from_points, predictor_path
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import write_video
-from facewire.models.video import VideoError, VideoFrame, frame_range, read_frames, video_info
+from facewire.models.infra.video import VideoError, VideoFrame, frame_range, read_frames, video_info
 
 
 @pytest.fixture(scope="module")

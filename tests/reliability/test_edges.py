@@ -37,7 +37,7 @@ import pytest
 
 from conftest import free_endpoint, write_video
 from facewire.cli import main
-from facewire.models.video import read_frames
+from facewire.models.infra.video import read_frames
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import Flag
 from test_bad_files import refusal, run_cli, snapshot

@@ -68,11 +68,11 @@ import numpy as np
 from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
-from facewire.models.progress import Progress, no_progress
+from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
 from facewire.models.rig import Rig
-from facewire.models.texture import UVSurface, uv_surface
-from facewire.models.video import read_frames, video_info
+from facewire.sender.enroll.texture import UVSurface, uv_surface
+from facewire.models.infra.video import read_frames, video_info
 from facewire.protocol.control import Camera
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.pipeline import SenderPipeline

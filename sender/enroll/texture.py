@@ -79,9 +79,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facewire.models.egl import create_context, in_context
+from facewire.models.infra.egl import create_context, in_context
 from facewire.models.mesh import Mesh
-from facewire.models.raster import Camera
+from facewire.models.infra.raster import Camera
 
 DEFAULT_SIZE = (512, 1024)
 MAX_SIZE = 8192

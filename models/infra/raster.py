@@ -36,7 +36,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from facewire.models.egl import create_context, in_context
+from facewire.models.infra.egl import create_context, in_context
 
 
 class RenderError(ValueError):
