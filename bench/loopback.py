@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.log import read_log
 from facewire.protocol.transport import free_loopback_endpoint
 from facewire.receiver.receiver import receive
@@ -50,7 +51,7 @@ TARGET_LATENCY_MS = 25.0
 TARGET_GROWTH_MB = 10.0
 
 
-class LoopbackError(RuntimeError):
+class LoopbackError(FacewireError, RuntimeError):
     """The loopback run could not be made: the sender or the receiver failed (says which)."""
 
 

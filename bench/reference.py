@@ -52,8 +52,10 @@ from typing import Any
 
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
 
-class OpenFaceError(ValueError):
+
+class OpenFaceError(FacewireError, ValueError):
     """An OpenFace reference file is missing or malformed; the message names the file,
     the line and/or the column."""
 

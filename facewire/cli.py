@@ -1,8 +1,9 @@
 """``facewire``: the command-line contract of DESIGN.md, parsed and dispatched.
 
 Every subcommand of the contract is listed by ``facewire --help``. Errors a user can cause
-(a missing file, a corrupt log, a bad address) print one clear line to stderr and exit with
-status 2; a benchmark whose target is missed exits with status 1.
+(a ``FacewireError`` of any part, see ``protocol/errors.py``, or a file the system will not
+open) print one clear line to stderr, ``facewire: MESSAGE``, and exit with status 2; a
+benchmark whose target is missed exits with status 1.
 """
 
 from __future__ import annotations
@@ -12,14 +13,19 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from typing import Any, TypeVar
+from typing import Any, TypeAlias, TypeVar
+
+from facewire.protocol.errors import FacewireError
 
 EXIT_USAGE = 2
+# The failures a user can cause: reported as one line, no traceback.
+USER_ERRORS = (FacewireError, FileNotFoundError, PermissionError, IsADirectoryError)
 T = TypeVar("T")
+Commands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 
-class CommandError(Exception):
-    """A user-facing failure: printed as one line, no traceback."""
+class CommandError(FacewireError):
+    """A bad command-line argument (e.g. ``--size``, ``--frames``)."""
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -301,6 +307,7 @@ def _check(_: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``facewire`` parser: every command of the contract, each with its ``run``."""
     p = argparse.ArgumentParser(
         prog="facewire",
         description="Low-bandwidth face telepresence: a sender tracks a face and sends a "
@@ -308,24 +315,42 @@ def build_parser() -> argparse.ArgumentParser:
         "that person's head from it.",
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_model(sub)
+    _add_send_receive(sub)
+    _add_encode_replay(sub)
+    _add_bench(sub)
+    _add_tools(sub)
+    return p
 
+
+def _add_json(parser: argparse.ArgumentParser) -> None:
+    """The ``--json`` option of every command that reports."""
+    parser.add_argument("--json", action="store_true",
+                        help="print a JSON summary as the last line")
+
+
+def _add_model(sub: Commands) -> None:
+    """``model build``, ``model info`` and ``model export``."""
     model = sub.add_parser("model", help="build, inspect and export a person model (.fwm)")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
     m = msub.add_parser("build", help="build a person model from a short video of that person")
     m.add_argument("video", help="enrollment video of the person making faces")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
-    m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(m)
     m.set_defaults(run=_model_build)
     m = msub.add_parser("info", help="describe a model file")
     m.add_argument("model", help="model file (.fwm)")
-    m.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(m)
     m.set_defaults(run=_model_info)
     m = msub.add_parser("export", help="export a model to glTF 2.0 (.glb)")
     m.add_argument("model", help="model file (.fwm)")
     m.add_argument("-o", "--output", required=True, help="glTF binary to write (.glb)")
     m.set_defaults(run=_model_export)
 
+
+def _add_send_receive(sub: Commands) -> None:
+    """``send`` (camera host) and ``receive`` (render host)."""
     s = sub.add_parser("send", help="track a face and publish packets (camera host)")
     s.add_argument("--model", required=True, help="person model (.fwm)")
     s.add_argument("--source", required=True, help="camera:N or a video file")
@@ -336,7 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "encrypt, and admit only the receivers in DIR/authorized")
-    s.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(s)
     s.set_defaults(run=_send)
 
     r = sub.add_parser("receive", help="receive packets and render the face (render host)")
@@ -354,9 +379,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "packets (default: run until Ctrl-C)")
     r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "connect only to the sender whose key is in DIR/authorized")
-    r.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(r)
     r.set_defaults(run=_receive)
 
+
+def _add_encode_replay(sub: Commands) -> None:
+    """``encode`` (a video into a packet log) and ``replay`` (a packet log into a video)."""
     e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
     e.add_argument("--model", required=True, help="person model (.fwm)")
     e.add_argument("--source", required=True, help="video file or folder of images")
@@ -365,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--focal", type=float, help="camera focal length in pixels (default: "
                    "estimated from the image width)")
     e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
-    e.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(e)
     e.set_defaults(run=_encode)
 
     rp = sub.add_parser("replay", help="render a recorded packet log to a video",
@@ -382,15 +410,18 @@ def build_parser() -> argparse.ArgumentParser:
                     "640x480 for virtual views)")
     rp.add_argument("--side-by-side", metavar="SOURCE", help="the source video, shown left "
                     "of the rendering (input | reconstruction)")
-    rp.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(rp)
     rp.set_defaults(run=_replay)
 
+
+def _add_bench(sub: Commands) -> None:
+    """``bench bandwidth``, ``bench speed`` and ``bench quality``."""
     b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality")
     bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
     bb = bsub.add_parser("bandwidth", help="payload and wire bit rates of a packet log "
                          "(exit 1 at >= 12 kbit/s at 30 Hz)")
     bb.add_argument("--log", required=True, help="packet log (.fwlog)")
-    bb.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(bb)
     bb.add_argument("--plot", help="write a plot of bits per frame and kbit/s over time (.png)")
     bb.set_defaults(run=_bench_bandwidth)
     bs = bsub.add_parser("speed", help="per-stage timings of sender and receiver")
@@ -400,21 +431,24 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seconds of the live run of a real sender process and a receiver on "
                     "127.0.0.1 that measures the end-to-end latency and the memory growth "
                     "(default 30; 0 skips it)")
-    bs.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(bs)
     bs.set_defaults(run=_bench_speed)
     bq = bsub.add_parser("quality", help="geometry and appearance fidelity on a real video")
     bq.add_argument("--model", required=True, help="person model (.fwm)")
     bq.add_argument("--source", required=True, help="video file")
     bq.add_argument("--frames", help="frame range A:B to measure on")
     bq.add_argument("--reference", help="OpenFace CSV of the same video, for Q agreement")
-    bq.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(bq)
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
     bq.set_defaults(run=_bench_quality)
 
+
+def _add_tools(sub: Commands) -> None:
+    """``inspect``, ``relay``, ``demo``, ``keys generate`` and ``check``."""
     i = sub.add_parser("inspect", help="summarise a packet log; optionally dump it as CSV")
     i.add_argument("log", help="packet log (.fwlog)")
     i.add_argument("--csv", help="write every frame's decoded fields to this CSV")
-    i.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(i)
     i.set_defaults(run=_inspect)
 
     x = sub.add_parser("relay", help="fan packets from senders out to receivers (ZeroMQ proxy)")
@@ -422,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--out", required=True, help="address receivers connect to")
     x.add_argument("--curve-in", help="client key folder for the link to the sender")
     x.add_argument("--curve-out", help="server key folder for the receivers' side")
-    x.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(x)
     x.set_defaults(run=_relay)
 
     d = sub.add_parser("demo", help="the embedded default: build, perform, send, receive, render")
@@ -431,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="facewire-demo", help="output folder (default: "
                    "facewire-demo)")
     d.add_argument("--seconds", type=float, help="stream at most this many seconds")
-    d.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
+    _add_json(d)
     d.set_defaults(run=_demo)
 
     k = sub.add_parser("keys", help="CURVE key management")
@@ -443,46 +477,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa")
     c.set_defaults(run=_check)
-    return p
-
-
-def _user_errors() -> tuple[type[BaseException], ...]:
-    """The failures a user can cause: reported as one line, no traceback."""
-    from facewire.sender.enroll.build import BuildError
-    from facewire.models.infra.egl import EGLUnavailable
-    from facewire.models.gltf import GltfError
-    from facewire.models.modelfile import ModelFileError
-    from facewire.models.infra.video import VideoError
-    from facewire.protocol.control import ControlError
-    from facewire.protocol.keys import KeyFileError
-    from facewire.protocol.log import LogError
-    from facewire.protocol.packet import PacketError
-    from facewire.protocol.transport import TransportError
-    from facewire.receiver.output import OutputError
-    from facewire.receiver.replay import ReplayError
-    from facewire.models.infra.raster import RenderError
-    from facewire.bench.reference import OpenFaceError
-    from facewire.models.regions import RegionError
-    from facewire.sender.capture import CaptureError
-    from facewire.sender.enroll.layers import EnrollError
-    from facewire.demo import DemoError
-    from facewire.performer import PerformerError
-    from facewire.receiver.liveview import LiveViewError
-    from facewire.receiver.modelcache import ModelCacheError
-    from facewire.receiver.receiver import ReceiveError
-
-    return (CommandError, EGLUnavailable, ControlError, KeyFileError, LogError, PacketError,
-            TransportError, BuildError, CaptureError, DemoError, EnrollError, GltfError,
-            LiveViewError, ModelCacheError, ModelFileError, PerformerError, ReceiveError,
-            OpenFaceError, OutputError, RegionError, RenderError, ReplayError, VideoError,
-            FileNotFoundError, PermissionError, IsADirectoryError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except _user_errors() as exc:
+    except USER_ERRORS as exc:
         print(f"facewire: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

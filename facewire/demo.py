@@ -56,6 +56,7 @@ import cv2
 import numpy as np
 
 from facewire.performer import ENROLL_S, PerformanceResult, perform
+from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.build import BuildResult, build_model
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.infra.progress import Progress, no_progress
@@ -86,7 +87,7 @@ DEMO_CRF, DEMO_PRESET = 20, "veryfast"  # demo.mp4: the encoder shares 2 cores w
 Status = Callable[[str], None]
 
 
-class DemoError(ValueError):
+class DemoError(FacewireError, ValueError):
     """The demo cannot run as asked (a video too short, a link that failed); says why."""
 
 

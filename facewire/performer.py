@@ -66,6 +66,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.build import BuildError, BuildResult, build_model
 from facewire.sender.enroll.fit import Pose
 from facewire.models.mesh import Mesh, Tag
@@ -154,7 +155,7 @@ SCRIPT: tuple[Cue, ...] = (
 )
 
 
-class PerformerError(ValueError):
+class PerformerError(FacewireError, ValueError):
     """The portrait cannot be performed (no face in it); the message says why."""
 
 

@@ -47,6 +47,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
+
 MAX_FILE_BYTES = 512 * 1024 * 1024
 MM_PER_M = 1000.0
 
@@ -66,7 +68,7 @@ _LINEAR, _LINEAR_MIPMAP_LINEAR, _CLAMP_TO_EDGE = 9729, 9987, 33071
 _MAX_NODE_DEPTH = 64
 
 
-class GltfError(ValueError):
+class GltfError(FacewireError, ValueError):
     """A .glb file is malformed or uses what this reader does not support; names file and field."""
 
 

@@ -35,12 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from facewire.models.landmarks import N_LANDMARKS
+from facewire.protocol.errors import FacewireError
 
 MAX_PTS_BYTES = 64 * 1024
 MAX_CSV_BYTES = 1 << 30
 
 
-class LandmarkFileError(ValueError):
+class LandmarkFileError(FacewireError, ValueError):
     """A landmark file is missing, too large or malformed; the message names file and place."""
 
 

@@ -18,6 +18,7 @@ from enum import IntEnum
 import numpy as np
 
 from facewire.models.landmarks import N_LANDMARKS, N_PHANTOMS
+from facewire.protocol.errors import FacewireError
 
 
 class Tag(IntEnum):
@@ -31,7 +32,7 @@ class Tag(IntEnum):
     SCALP = 5
 
 
-class MeshError(ValueError):
+class MeshError(FacewireError, ValueError):
     """A mesh's arrays are inconsistent; the message names the field."""
 
 

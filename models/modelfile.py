@@ -110,6 +110,7 @@ import numpy as np
 
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.mesh import Mesh, MeshError
+from facewire.protocol.errors import FacewireError
 
 FORMAT = "facewire-model"
 FORMAT_VERSION = 3
@@ -143,11 +144,11 @@ _ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, Ru
                OverflowError)
 
 
-class ModelError(ValueError):
+class ModelError(FacewireError, ValueError):
     """A person model's content is invalid; the message names the field."""
 
 
-class ModelFileError(ValueError):
+class ModelFileError(FacewireError, ValueError):
     """A model file cannot be read or written; the message names the file and the field."""
 
 

@@ -83,6 +83,7 @@ import numpy as np
 from facewire.models.head import generic_head
 from facewire.models.mesh import Tag
 from facewire.models.modelfile import TEMPLATE_SIZE
+from facewire.protocol.errors import FacewireError
 
 SUPERSAMPLE = 2
 OFFSETS = np.array([(0, 0), (1, 1), (-1, 1), (1, -1), (-1, -1)], np.float64)  # cells (u, v)
@@ -92,7 +93,7 @@ EYE_LAYER_MARGIN_MM = 10.0
 _GRID = 33  # hits per side of a box when measuring its UV rectangle
 
 
-class RegionError(ValueError):
+class RegionError(FacewireError, ValueError):
     """A region cannot be placed on a mesh; the message names the region."""
 
 

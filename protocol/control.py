@@ -40,6 +40,7 @@ from typing import Any, ClassVar
 
 import msgpack
 
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import N_REGIONS, VERSION, quantiser_table
 
 CHUNK_BYTES = 256 * 1024
@@ -61,7 +62,7 @@ def printable(text: str, limit: int = MAX_TEXT_CHARS) -> str:
     return clean if len(clean) <= limit else clean[:limit - 3] + "..."
 
 
-class ControlError(ValueError):
+class ControlError(FacewireError, ValueError):
     """A control message is malformed, unknown or inconsistent (the message ``printable``)."""
 
     def __init__(self, message: str) -> None:

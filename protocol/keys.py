@@ -20,8 +20,10 @@ from pathlib import Path
 
 import zmq.auth
 
+from facewire.protocol.errors import FacewireError
 
-class KeyFileError(ValueError):
+
+class KeyFileError(FacewireError, ValueError):
     """A key folder is missing or malformed; the message names the file."""
 
 

@@ -38,6 +38,7 @@ from types import TracebackType
 import numpy as np
 
 from facewire.protocol.control import ControlError, Hello, decode_message, encode_message
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES, RESERVED_FLAGS, VERSION, decode_frames
 
 MAGIC = b"\x89FWLOG\r\n"
@@ -53,7 +54,7 @@ _FIRST_MASK = 0xF0 | (RESERVED_FLAGS >> 4)
 _FIRST_BYTE = VERSION << 4
 
 
-class LogError(ValueError):
+class LogError(FacewireError, ValueError):
     """A packet log cannot be read; the message names the file and the field."""
 
 

@@ -49,6 +49,8 @@ from enum import IntFlag
 
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
+
 VERSION = 1
 PACKET_BYTES = 39
 N_RESIDUAL_POINTS = 9
@@ -70,7 +72,7 @@ class Flag(IntFlag):
 RESERVED_FLAGS = 0xFF & ~int(sum(Flag))
 
 
-class PacketError(ValueError):
+class PacketError(FacewireError, ValueError):
     """A byte string is not a valid version-1 packet.
 
     Attributes:

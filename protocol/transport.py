@@ -54,6 +54,7 @@ import zmq.auth.thread
 import zmq.utils.monitor
 
 from facewire.protocol.control import MAX_MESSAGE_BYTES, Message, decode_message, encode_message
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, CurveServer
 
 PACKET_HWM = 100
@@ -65,7 +66,7 @@ WIRE_OVERHEAD = {"plain": 2, "curve": 35}
 _ENDPOINT = re.compile(r"tcp://(?P<host>[^:]+|\[[^\]]+\]):(?P<port>\d+)")
 
 
-class TransportError(RuntimeError):
+class TransportError(FacewireError, RuntimeError):
     """A socket could not be set up: bad address, port in use, keys rejected."""
 
 

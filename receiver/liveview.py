@@ -67,6 +67,8 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
+
 JPEG_QUALITY = 80
 BOUNDARY = "frame"
 CLOSE_WAIT_S = 5.0
@@ -77,7 +79,7 @@ HEADLINE = (("fps", "fps", 1, ""), ("kbps", "bitrate", 1, " kbit/s"),
             ("loss_pct", "loss", 1, " %"), ("latency_ms", "latency", 0, " ms"))
 
 
-class LiveViewError(OSError):
+class LiveViewError(FacewireError, OSError):
     """The live view cannot be served (port in use, host refused); the message says why."""
 
 

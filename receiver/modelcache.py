@@ -41,13 +41,14 @@ from pathlib import Path
 
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.modelfile import MAX_FILE_BYTES, PersonModel, load_model_bytes
+from facewire.protocol.errors import FacewireError
 
 ENV_FOLDER = "FACEWIRE_CACHE"
 SUFFIX = ".fwm"
 _HEX64 = re.compile(r"[0-9a-f]{64}", re.ASCII)
 
 
-class ModelCacheError(ValueError):
+class ModelCacheError(FacewireError, ValueError):
     """A cached model is refused, fetched bytes are not the announced model, or the cache
     cannot be written; the message names the file or the sha256."""
 

@@ -50,6 +50,8 @@ import av
 import cv2
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
+
 QUEUE_FRAMES = 8
 TIMED_FRAMES = 1000
 CRF = 18
@@ -59,7 +61,7 @@ FRAME_PATTERN = "frame_{:06d}.png"
 _STOP = None
 
 
-class OutputError(OSError):
+class OutputError(FacewireError, OSError):
     """A frame file or folder cannot be written; the message names it."""
 
 

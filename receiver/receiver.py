@@ -134,6 +134,7 @@ from facewire.models.modelfile import ModelFileError, PersonModel, load_model
 from facewire.protocol import control as ctl
 from facewire.protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
                               ModelRequest)
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, client_keys
 from facewire.protocol.transport import ControlClient, PacketSubscriber, control_endpoint
 from facewire.receiver.modelcache import ModelCache, ModelCacheError, verify_model
@@ -165,7 +166,7 @@ Status = Callable[[str], None]
 View = Callable[[np.ndarray, dict[str, Any]], None]
 
 
-class ReceiveError(ValueError):
+class ReceiveError(FacewireError, ValueError):
     """The receive cannot go on: a bad option, or a model that is not the sender's."""
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import read_frames
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.log import read_log
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
 from facewire.receiver.playout import Playout, replay_states
@@ -42,7 +43,7 @@ from facewire.receiver.scene import VIEWS, StateRenderer, rest_q
 VIRTUAL_SIZE = (640, 480)
 
 
-class ReplayError(ValueError):
+class ReplayError(FacewireError, ValueError):
     """The log and the model do not belong together, or an option is wrong."""
 
 

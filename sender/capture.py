@@ -51,6 +51,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.fit import intrinsics_guess
 from facewire.models.infra.video import VideoError, VideoFrame, read_frames, video_info
 from facewire.protocol.control import Camera, ControlError
@@ -66,7 +67,7 @@ Clock = Callable[[], float]
 Sleep = Callable[[float], None]
 
 
-class CaptureError(ValueError):
+class CaptureError(FacewireError, ValueError):
     """A source cannot be opened or read; the message names the source."""
 
 

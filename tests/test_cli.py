@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
+from conftest import write_video
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, encode_frames
@@ -134,3 +139,49 @@ def test_check_reports_egl() -> None:
     out = run("check")
     assert out.returncode == 0, out.stderr
     assert "EGL" in out.stdout
+
+
+def test_a_failed_loopback_run_is_one_line(generic_model: Path, shared_data: Path,
+                                           tmp_path: Path) -> None:
+    """``bench speed`` whose live run loses its sender process (killed, as by a crash or the
+    OOM killer): ``LoopbackError``, once missing from the CLI's list of user errors, is one
+    line on stderr and exit status 2, not a traceback."""
+    capture = cv2.VideoCapture(str(shared_data / "video" / "lp_d0.mp4"))
+    video = write_video(tmp_path / "short.mp4", [capture.read()[1] for _ in range(12)])
+    capture.release()
+    err_path = tmp_path / "stderr.txt"
+    with open(err_path, "w") as err:
+        bench = subprocess.Popen([FACEWIRE, "bench", "speed", "--model", str(generic_model),
+                                  "--source", str(video), "--loopback-seconds", "60"],
+                                 stdout=subprocess.DEVNULL, stderr=err)
+    try:
+        os.kill(child_process(bench, "send", timeout_s=300), signal.SIGKILL)
+        bench.wait(timeout=60)
+    finally:
+        if bench.poll() is None:
+            bench.kill()
+            bench.wait()
+    stderr = err_path.read_text()
+    assert bench.returncode == 2, stderr
+    assert "Traceback" not in stderr
+    reported = [line for line in stderr.splitlines() if line.startswith("facewire:")]
+    assert len(reported) == 1, stderr
+    assert reported[0].startswith("facewire: the sender exited (-9)"), stderr
+
+
+def child_process(parent: subprocess.Popen, word: str, timeout_s: float) -> int:
+    """The pid of ``parent``'s child process with ``word`` among its arguments, once it runs."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert parent.poll() is None, f"facewire exited ({parent.returncode}) first"
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+                argv = stat.with_name("cmdline").read_bytes().split(b"\0")
+            except (OSError, IndexError, ValueError):
+                continue  # the process ended while being read
+            if ppid == parent.pid and word.encode() in argv:
+                return int(stat.parent.name)
+        time.sleep(0.2)
+    raise AssertionError(f"no child process '{word}' of facewire within {timeout_s} s")
+

@@ -17,12 +17,14 @@ import functools
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from facewire.protocol.errors import FacewireError
+
 SYSTEM_PACKAGES = "libegl1 libgl1 libgl1-mesa-dri"
 
 _Method = TypeVar("_Method", bound=Callable[..., Any])
 
 
-class EGLUnavailable(RuntimeError):
+class EGLUnavailable(FacewireError, RuntimeError):
     """Headless OpenGL cannot be used on this machine; the message says how to fix it."""
 
 

@@ -37,9 +37,10 @@ from typing import Any, Self
 import numpy as np
 
 from facewire.models.infra.egl import create_context, in_context
+from facewire.protocol.errors import FacewireError
 
 
-class RenderError(ValueError):
+class RenderError(FacewireError, ValueError):
     """A render input has the wrong shape, dtype or value; the message names the field."""
 
 

@@ -15,8 +15,10 @@ from pathlib import Path
 import av
 import numpy as np
 
+from facewire.protocol.errors import FacewireError
 
-class VideoError(ValueError):
+
+class VideoError(FacewireError, ValueError):
     """A video cannot be opened or decoded; the message names the file."""
 
 

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from facewire.models.draworder import region_areas, triangle_groups
+from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.fit import Fit, FitError, fit_person, intrinsics_guess
 from facewire.models.head import generic_head
 from facewire.models.landmarks import outer_eye_distance
@@ -65,7 +66,7 @@ Appearance = Callable[[PersonModel, Path, slice, Progress],
                       tuple[tuple[Region, ...], dict[str, Any]]]
 
 
-class BuildError(ValueError):
+class BuildError(FacewireError, ValueError):
     """The video cannot give a model; the message names the video and says why."""
 
 

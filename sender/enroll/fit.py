@@ -109,6 +109,7 @@ from scipy.optimize import least_squares
 from facewire.models.landmarks import N_LANDMARKS, PHANTOM_NAMES, eye_aspect_ratio
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.morph import VolumeMorph
+from facewire.protocol.errors import FacewireError
 
 MIN_FACE_FRAMES = 10
 POSE_POINTS = np.array([*range(17, 36), 36, 39, 42, 45])
@@ -137,7 +138,7 @@ JAW_PHANTOMS = np.array([i for i, name in enumerate(PHANTOM_NAMES)
 _S = np.diag([1.0, -1.0, -1.0])
 
 
-class FitError(ValueError):
+class FitError(FacewireError, ValueError):
     """The frames do not allow a fit; the message says what is wrong."""
 
 

@@ -71,6 +71,7 @@ from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
 from facewire.models.rig import Rig
+from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.models.infra.video import read_frames, video_info
 from facewire.protocol.control import Camera
@@ -86,7 +87,7 @@ _EYEBALL_LEFT = REGION_NAMES.index("eyeball_left")
 _EYEBALL_RIGHT = REGION_NAMES.index("eyeball_right")
 
 
-class EnrollError(ValueError):
+class EnrollError(FacewireError, ValueError):
     """The video cannot give appearance states; the message says why."""
 
 

@@ -82,6 +82,7 @@ import numpy as np
 from facewire.models.infra.egl import create_context, in_context
 from facewire.models.mesh import Mesh
 from facewire.models.infra.raster import Camera
+from facewire.protocol.errors import FacewireError
 
 DEFAULT_SIZE = (512, 1024)
 MAX_SIZE = 8192
@@ -92,7 +93,7 @@ _GAIN_RANGE = (0.5, 2.0)  # the exposure gains we trust
 _EDGE_MARGIN_PX = 2.5  # a bilinear footprint (sqrt 2) plus the blended pixel at a rim
 
 
-class TextureError(ValueError):
+class TextureError(FacewireError, ValueError):
     """A texture input has the wrong shape, dtype or value; the message names the field."""
 
 
