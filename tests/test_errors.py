@@ -35,7 +35,8 @@ def error_classes() -> list[type[Exception]]:
     for name in package_modules():
         for _, cls in inspect.getmembers(importlib.import_module(name), inspect.isclass):
             if (cls.__module__ == name and issubclass(cls, Exception)
-                    and not issubclass(cls, Warning) and not cls.__name__.startswith("_")):
+                    and not issubclass(cls, Warning) and not cls.__name__.startswith("_")
+                    and cls is not FacewireError):
                 found.append(cls)
     return found
 
