@@ -1,6 +1,6 @@
 """``facewire bench quality``: how faithfully the packets carry the face's geometry.
 
-Geometry fidelity (DESIGN.md, "How we judge the result"). The real sender pipeline
+Geometry fidelity (docs/DESIGN.md §8, "How the benchmarks judge"). The real sender pipeline
 (``sender.pipeline.SenderPipeline``) encodes every frame of the video; the packets are then
 decoded with ``protocol.packet.decode_frames``, so the measurement goes through quantisation
 and sees only what a receiver sees. For frame f with decoded rotation vector ``w_f``
@@ -106,7 +106,6 @@ TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
 THUMBNAILS = 6
 EXAMPLES = 3  # example frames in the fidelity plot
-# The quality keys of the DESIGN.md contract that belong to later issues.
 
 
 class GeometryNME(NamedTuple):

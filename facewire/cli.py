@@ -1,4 +1,4 @@
-"""``facewire``: the command-line contract of DESIGN.md, parsed and dispatched.
+"""``facewire``: the command-line contract of docs/DESIGN.md §7, parsed and dispatched.
 
 Every subcommand of the contract is listed by ``facewire --help``. Errors a user can cause
 (a missing file, a corrupt log, a bad address) print one clear line to stderr and exit with

@@ -1,6 +1,6 @@
 """The receiver's two kinds of view: the sender's camera, and a free virtual camera.
 
-Poses follow DESIGN.md's GL camera (X_cam = R X + t; x right, y up, the camera looking along
+Poses follow the GL camera of docs/DESIGN.md §2 (X_cam = R X + t; x right, y up, looking along
 -z) and the packet's pose: ``rotation`` is a (3,) rotation vector (axis times angle, radians,
 as ``protocol.packet.Frame`` carries it) or a (3, 3) rotation matrix, model to camera.
 

@@ -1,6 +1,6 @@
 """Head pose from the tracked 68 points: weighted, robust Gauss-Newton, then a One-Euro filter.
 
-Frames as DESIGN.md: model space mm (x toward the person's left, y up, z out of the face);
+Frames as docs/DESIGN.md §2: model space mm (x toward the person's left, y up, z out of the face);
 GL camera frame (x right, y up, z toward the viewer, the camera looks along -z);
 ``X_cam = R X + t``, image point ``u = cx + fx X/d``, ``v = cy - fy Y/d``, ``d = -Z_cam``.
 

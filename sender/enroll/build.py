@@ -94,7 +94,7 @@ class BuildResult:
     appearance: dict[str, Any]
 
     def summary(self) -> dict[str, Any]:
-        """The ``--json`` object: DESIGN.md's model keys, then how the build went."""
+        """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
         return {**model_summary(self.model), "path": str(self.path),
                 "preview": str(self.preview), "frames": len(self.frames),
                 "face_frames": self.face_frames,
