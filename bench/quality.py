@@ -1,6 +1,6 @@
 """``facewire bench quality``: how faithfully the packets carry the face's geometry.
 
-Geometry fidelity (DESIGN.md, "How we judge the result"). The real sender pipeline
+Geometry fidelity (docs/DESIGN.md §8, "How the benchmarks judge"). The real sender pipeline
 (``sender.pipeline.SenderPipeline``) encodes every frame of the video; the packets are then
 decoded with ``protocol.packet.decode_frames``, so the measurement goes through quantisation
 and sees only what a receiver sees. For frame f with decoded rotation vector ``w_f``
@@ -52,9 +52,9 @@ and the mean, standard deviation, minimum and maximum of the decoded Q over the 
 frames; ``brightness_r``, the correlation of Q with the mean grey level of the face's
 landmark box (lighting should not move Q: near 0 on a clip whose light changes); and
 ``cue_r``, the correlation of Q with the landmark or image cue that ordered the region's
-states at enrollment (``sender.enroll.region_cues``: brow raise, brow convergence, minus
-the eye aspect ratio, the iris position across the eyeball sample on open-eyed frames, the
-inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
+states at enrollment (``sender.enroll.layers.region_cues``: brow raise, brow convergence,
+minus the eye aspect ratio, the iris position across the eyeball sample on open-eyed
+frames, the inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
 frames the model was not built from, ``cue_r`` says how well the appearance alone recovers
 the axis the states were laid along. With ``--reference OPENFACE.csv``, ``q_reference`` is
 the agreement of the decoded Q with OpenFace's action units on the same frames
@@ -106,7 +106,6 @@ TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
 THUMBNAILS = 6
 EXAMPLES = 3  # example frames in the fidelity plot
-# The quality keys of the DESIGN.md contract that belong to later issues.
 
 
 class GeometryNME(NamedTuple):

@@ -1,6 +1,6 @@
 """``facewire bench speed``: per-frame cost of the pipeline's stages, one core where possible.
 
-Every key of the DESIGN.md contract is measured; the end-to-end latency and the memory
+Every key of the contract (docs/DESIGN.md §7) is measured; the end-to-end latency and the memory
 growth come from a live run of a real sender and receiver over loopback
 (``bench.loopback``, ``loopback_s`` seconds; 0 leaves them out, listed under
 ``not_measured``, never estimated).

@@ -1,4 +1,4 @@
-"""``facewire``: the command-line contract of DESIGN.md, parsed and dispatched.
+"""``facewire``: the command-line contract of docs/DESIGN.md §7, parsed and dispatched.
 
 Every subcommand of the contract is listed by ``facewire --help``. Errors a user can cause
 (a ``FacewireError`` of any part, see ``protocol/errors.py``, or a file the system will not

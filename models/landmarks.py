@@ -14,7 +14,7 @@ Groups::
     outer lip 48-59 (48 right corner, 51 top middle, 54 left corner, 57 bottom middle)
     inner lip 60-67 (60 right corner, 62 top middle, 64 left corner, 66 bottom middle)
 
-Feature points (DESIGN.md): 9 rigid points for pose (eye corners 36, 39, 42, 45; nose bridge
+Feature points (docs/DESIGN.md §2): 9 rigid points for pose (eye corners 36, 39, 42, 45; nose bridge
 27; nose tip 30; nostril wings 31, 35; subnasale 33) and 9 non-rigid points for expression
 (brows 19, 21, 22, 24; mouth corners 48, 54; lip middles 51, 57; chin 8). The other 50 points
 are never sent; they measure how well the receiver reconstructs the face (``HELD_OUT``).

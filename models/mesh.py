@@ -1,6 +1,6 @@
 """A head mesh: triangles with UVs, triangle tags, and the vertices that carry landmarks.
 
-Frames and units (DESIGN.md): model space in millimetres, right-handed, x toward the person's
+Frames and units (docs/DESIGN.md §2): model space in mm, right-handed, x toward the person's
 left (image right on a frontal face), y up, z out of the face toward the camera. Triangles
 wind counter-clockwise seen from outside, so ``cross(b - a, c - a)`` points outward. UVs are
 in [0, 1] with v up, as OpenGL samples them: the texel row of v in an H-row image is

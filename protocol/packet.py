@@ -23,14 +23,14 @@ rotation-vector component (at most 0.087 degree of rotation), 0.25 mm in x and y
 depth, 0.125 mm per residual coordinate, 1/32 layer in Q. The tracker's own noise is about a
 pixel, roughly 1 mm at a typical webcam distance, so quantisation stays well below it.
 
-Meaning of the values (frames as in DESIGN.md):
+Meaning of the values (frames as in docs/DESIGN.md §2):
 
 - ``rotation`` (3,): the head's rotation as a rotation vector (axis times angle, radians in
   the API, quantised in degrees) that maps model space into the camera frame. The camera
   frame is x right, y up, z toward the viewer (the camera looks along -z), so a frontal face
   has rotation (0, 0, 0).
 - ``translation`` (3,): the model origin in that camera frame, mm; z < 0 in front of it.
-- ``residuals`` (9, 2): the expression of the 9 non-rigid feature points (DESIGN.md order:
+- ``residuals`` (9, 2): the expression of the 9 non-rigid feature points (docs/DESIGN.md §2 order:
   19, 21, 22, 24, 48, 54, 51, 57, 8) as displacements on the model surface, mm, in each
   point's tangent frame (t1, t2) defined by the person model. A 2D image residual lifted onto
   the surface has two degrees of freedom; a third coordinate would carry no information.

@@ -1,6 +1,6 @@
 """The receiver's two kinds of view: the sender's camera, and a free virtual camera.
 
-Poses follow DESIGN.md's GL camera (X_cam = R X + t; x right, y up, the camera looking along
+Poses follow the GL camera of docs/DESIGN.md §2 (X_cam = R X + t; x right, y up, looking along
 -z) and the packet's pose: ``rotation`` is a (3,) rotation vector (axis times angle, radians,
 as ``protocol.packet.Frame`` carries it) or a (3, 3) rotation matrix, model to camera.
 
@@ -11,13 +11,13 @@ scale s = W' / W maps u to s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1
 same in y with H' / H (an output of another aspect ratio stretches like a resized frame).
 
 Virtual view (``virtual_view``): a square-pixel camera framing the head as
-``models.build.render_preview`` does: its field of view ``FOV_DEG`` holds ``FIELD_EYE_DISTANCES``
-outer-eye distances (36 to 45) across the image height, aimed at the head centre c (the
-landmarks' mean, raised by a tenth of the field), from the front (yaw 0) or from a
-three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The
+``sender.enroll.build.render_preview`` does: its field of view ``FOV_DEG`` holds
+``FIELD_EYE_DISTANCES`` outer-eye distances (36 to 45) across the image height, aimed at the
+head centre c (the landmarks' mean, raised by a tenth of the field), from the front (yaw 0) or
+from a three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The
 head turns by the received rotation about c and stays there (the translation is not
 followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with (R_v, t_v) the orbit
-pose of ``models.raster.orbit_pose`` around c, so c is always at the image centre.
+pose of ``models.infra.raster.orbit_pose`` around c, so c is always at the image centre.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Head pose from the tracked 68 points: weighted, robust Gauss-Newton, then a One-Euro filter.
 
-Frames as DESIGN.md: model space mm (x toward the person's left, y up, z out of the face);
+Frames as docs/DESIGN.md §2: model space mm (x toward the person's left, y up, z out of the face);
 GL camera frame (x right, y up, z toward the viewer, the camera looks along -z);
 ``X_cam = R X + t``, image point ``u = cx + fx X/d``, ``v = cy - fy Y/d``, ``d = -Z_cam``.
 
@@ -41,7 +41,7 @@ previous frame's raw pose; on acquisition (no previous pose, or after a failure)
 ``cv2.solvePnP`` (SQPnP) on the points with weight >= 0.5 (converted from OpenCV's frame by
 ``S = diag(1, -1, -1)``). A pose is rejected (None) when a weighted point falls behind the
 camera, the result is not finite, or the median reprojection error of the 9 rigid points
-exceeds ``MAX_POSE_ERROR`` (0.15) of the image eye distance (as ``models.fit``).
+exceeds ``MAX_POSE_ERROR`` (0.15) of the image eye distance (as ``sender.enroll.fit``).
 
 Temporal filter
 ---------------

@@ -1,6 +1,6 @@
 """Offscreen rendering of a triangle mesh, textured or grey-shaded (moderngl through EGL).
 
-Camera (the "GL camera" of DESIGN.md): a pose maps model to camera, X_cam = R X + t, with
+Camera (the "GL camera" of docs/DESIGN.md §2): a pose maps model to camera, X_cam = R X + t, with
 x right, y up and the camera looking along -z. Pixels have their origin at the top-left,
 rows down, and pixel (i, j) has its centre at (u, v) = (i, j), as dlib and OpenCV place it:
 

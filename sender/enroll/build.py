@@ -3,15 +3,16 @@
 The steps, in order (``build_model``):
 
 1. Track: the 68 points of the largest face in every frame of the range
-   (``models.tracker``); frames without a face are kept as ``None``.
+   (``sender.tracker``); frames without a face are kept as ``None``.
 2. Fit: choose the neutral frame, estimate the head pose in every frame and the person's 3D
-   landmarks, and warp the generic head onto them (``models.fit``). The camera is unknown, so
-   its intrinsics are a guess (``models.fit.intrinsics_guess``).
+   landmarks, and warp the generic head onto them (``sender.enroll.fit``). The camera is
+   unknown, so its intrinsics are a guess (``sender.enroll.fit.intrinsics_guess``).
 3. Texture: decode the fit's texture views again (the neutral frame first, then side views),
-   project them onto the fitted mesh's UV layout (``models.texture``) at ``TEXTURE_SIZE``, and
-   fill every texel no view saw, so no black gap or seam shows from any angle.
+   project them onto the fitted mesh's UV layout (``sender.enroll.texture``) at
+   ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
+   angle.
 4. Appearance (when an ``appearance`` step is given; ``facewire model build`` gives
-   ``sender.enroll.enroll_regions``): the texture regions' layers and classification
+   ``sender.enroll.layers.enroll_regions``): the texture regions' layers and classification
    templates. It runs the sender's own pose, lift and sampler on the video, which ``models``
    may not import, so the caller hands it in.
 5. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
@@ -95,7 +96,7 @@ class BuildResult:
     appearance: dict[str, Any]
 
     def summary(self) -> dict[str, Any]:
-        """The ``--json`` object: DESIGN.md's model keys, then how the build went."""
+        """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
         return {**model_summary(self.model), "path": str(self.path),
                 "preview": str(self.preview), "frames": len(self.frames),
                 "face_frames": self.face_frames,
