@@ -47,6 +47,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.models.arrays import check_array
+
 MAX_FILE_BYTES = 512 * 1024 * 1024
 MM_PER_M = 1000.0
 
@@ -460,18 +462,18 @@ def _checked_inputs(path: Path, vertices: np.ndarray, triangles: np.ndarray, uv:
                     texture: np.ndarray | None, normals: np.ndarray | None
                     ) -> np.ndarray | None:
     """Validate the writer's inputs (``write_glb``'s Args); return the normals normalised."""
-    n = _check_input(path, "vertices", vertices, np.float32, (None, 3))
-    m = _check_input(path, "triangles", triangles, np.int32, (None, 3))
-    _check_input(path, "uv", uv, np.float32, (n, 2))
+    n = check_array(f"{path}: vertices", vertices, np.float32, (None, 3), GltfError)
+    m = check_array(f"{path}: triangles", triangles, np.int32, (None, 3), GltfError)
+    check_array(f"{path}: uv", uv, np.float32, (n, 2), GltfError)
     if n == 0 or m == 0:
         raise GltfError(f"{path}: vertices/triangles: the mesh is empty")
     if triangles.min() < 0 or triangles.max() >= n:
         raise GltfError(f"{path}: triangles: vertex index outside [0, {n})")
     if texture is not None:
-        _check_input(path, "texture", texture, np.uint8, (None, None, 3))
+        check_array(f"{path}: texture", texture, np.uint8, (None, None, 3), GltfError)
     if normals is None:
         return None
-    _check_input(path, "normals", normals, np.float32, (n, 3))
+    check_array(f"{path}: normals", normals, np.float32, (n, 3), GltfError)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     if (length < 1e-12).any():
         raise GltfError(f"{path}: normals: contains a zero vector")
@@ -559,19 +561,3 @@ class _BinBuilder:
         doc["accessors"] = self.accessors
         doc["buffers"] = [{"byteLength": self.size}]
         return b"".join(self.parts)
-
-
-def _check_input(path: Path, name: str, a: object, dtype: type,
-                 shape: tuple[int | None, ...]) -> int:
-    """Validate one writer input; return its first dimension."""
-    if not isinstance(a, np.ndarray):
-        raise GltfError(f"{path}: {name}: expected a numpy array, got {type(a).__name__}")
-    if a.dtype != dtype:
-        raise GltfError(f"{path}: {name}: expected dtype {np.dtype(dtype).name}, "
-                        f"got {a.dtype.name}")
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise GltfError(f"{path}: {name}: expected shape {want}, got {a.shape}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise GltfError(f"{path}: {name}: contains NaN or infinity")
-    return a.shape[0]
