@@ -47,6 +47,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.models.arrays import check_array
 from facewire.protocol.errors import FacewireError
 
 MAX_FILE_BYTES = 512 * 1024 * 1024
@@ -441,55 +442,11 @@ def write_glb(path: str | os.PathLike, vertices: np.ndarray, triangles: np.ndarr
         GltfError: an input has the wrong shape, dtype or values (the message names it).
     """
     path = Path(path)
-    n = _check_input(path, "vertices", vertices, np.float32, (None, 3))
-    m = _check_input(path, "triangles", triangles, np.int32, (None, 3))
-    _check_input(path, "uv", uv, np.float32, (n, 2))
-    if n == 0 or m == 0:
-        raise GltfError(f"{path}: vertices/triangles: the mesh is empty")
-    if triangles.min() < 0 or triangles.max() >= n:
-        raise GltfError(f"{path}: triangles: vertex index outside [0, {n})")
-    if texture is not None:
-        _check_input(path, "texture", texture, np.uint8, (None, None, 3))
-    if normals is not None:
-        _check_input(path, "normals", normals, np.float32, (n, 3))
-        length = np.linalg.norm(normals, axis=1, keepdims=True)
-        if (length < 1e-12).any():
-            raise GltfError(f"{path}: normals: contains a zero vector")
-        normals = (normals / length).astype(np.float32)
-
+    normals = _checked_inputs(path, vertices, triangles, uv, texture, normals)
     builder = _BinBuilder()
-    positions = (vertices.astype(np.float64) / MM_PER_M).astype(np.float32)
-    attributes = {"POSITION": builder.accessor(positions, _FLOAT, "VEC3", _ARRAY_BUFFER,
-                                               bounds=True)}
-    if normals is not None:
-        attributes["NORMAL"] = builder.accessor(normals, _FLOAT, "VEC3", _ARRAY_BUFFER)
-    gltf_uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
-    attributes["TEXCOORD_0"] = builder.accessor(gltf_uv, _FLOAT, "VEC2", _ARRAY_BUFFER)
-    index_type, index_dtype = ((_UINT16, np.uint16) if n <= 0xFFFF else (_UINT32, np.uint32))
-    indices = builder.accessor(triangles.astype(index_dtype).reshape(-1, 1), index_type,
-                               "SCALAR", _ELEMENT_ARRAY_BUFFER, bounds=True)
-
-    material: dict = {"name": "facewire",
-                      "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0},
-                      "extensions": {"KHR_materials_unlit": {}}}
-    doc: dict = {
-        "asset": {"version": "2.0", "generator": "facewire models.gltf"},
-        "extensionsUsed": ["KHR_materials_unlit"],
-        "scene": 0, "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "name": "facewire"}],
-        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices,
-                                    "material": 0, "mode": _TRIANGLES}]}],
-        "materials": [material],
-    }
+    doc = _document(builder, vertices, triangles, uv, normals)
     if texture is not None:
-        ok, png = cv2.imencode(".png", cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise GltfError(f"{path}: texture: PNG encoding failed")
-        doc["images"] = [{"bufferView": builder.view(png.tobytes()), "mimeType": "image/png"}]
-        doc["samplers"] = [{"magFilter": _LINEAR, "minFilter": _LINEAR_MIPMAP_LINEAR,
-                            "wrapS": _CLAMP_TO_EDGE, "wrapT": _CLAMP_TO_EDGE}]
-        doc["textures"] = [{"source": 0, "sampler": 0}]
-        material["pbrMetallicRoughness"]["baseColorTexture"] = {"index": 0}
+        _embed_texture(path, doc, builder, texture)
     binary = builder.finish(doc)
     json_bytes = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     json_bytes += b" " * (-len(json_bytes) % 4)
@@ -500,6 +457,70 @@ def write_glb(path: str | os.PathLike, vertices: np.ndarray, triangles: np.ndarr
         f.write(json_bytes)
         f.write(_CHUNK.pack(len(binary), _CHUNK_BIN))
         f.write(binary)
+
+
+def _checked_inputs(path: Path, vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray,
+                    texture: np.ndarray | None, normals: np.ndarray | None
+                    ) -> np.ndarray | None:
+    """Validate the writer's inputs (``write_glb``'s Args); return the normals normalised."""
+    n = check_array(f"{path}: vertices", vertices, np.float32, (None, 3), GltfError)
+    m = check_array(f"{path}: triangles", triangles, np.int32, (None, 3), GltfError)
+    check_array(f"{path}: uv", uv, np.float32, (n, 2), GltfError)
+    if n == 0 or m == 0:
+        raise GltfError(f"{path}: vertices/triangles: the mesh is empty")
+    if triangles.min() < 0 or triangles.max() >= n:
+        raise GltfError(f"{path}: triangles: vertex index outside [0, {n})")
+    if texture is not None:
+        check_array(f"{path}: texture", texture, np.uint8, (None, None, 3), GltfError)
+    if normals is None:
+        return None
+    check_array(f"{path}: normals", normals, np.float32, (n, 3), GltfError)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if (length < 1e-12).any():
+        raise GltfError(f"{path}: normals: contains a zero vector")
+    return (normals / length).astype(np.float32)
+
+
+def _document(builder: _BinBuilder, vertices: np.ndarray, triangles: np.ndarray,
+              uv: np.ndarray, normals: np.ndarray | None) -> dict:
+    """The JSON chunk of one node with one triangle primitive and its unlit material, its
+    attributes and indices appended to ``builder`` (positions in metres, v down)."""
+    positions = (vertices.astype(np.float64) / MM_PER_M).astype(np.float32)
+    attributes = {"POSITION": builder.accessor(positions, _FLOAT, "VEC3", _ARRAY_BUFFER,
+                                               bounds=True)}
+    if normals is not None:
+        attributes["NORMAL"] = builder.accessor(normals, _FLOAT, "VEC3", _ARRAY_BUFFER)
+    gltf_uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
+    attributes["TEXCOORD_0"] = builder.accessor(gltf_uv, _FLOAT, "VEC2", _ARRAY_BUFFER)
+    n = len(vertices)
+    index_type, index_dtype = ((_UINT16, np.uint16) if n <= 0xFFFF else (_UINT32, np.uint32))
+    indices = builder.accessor(triangles.astype(index_dtype).reshape(-1, 1), index_type,
+                               "SCALAR", _ELEMENT_ARRAY_BUFFER, bounds=True)
+
+    material: dict = {"name": "facewire",
+                      "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0},
+                      "extensions": {"KHR_materials_unlit": {}}}
+    return {
+        "asset": {"version": "2.0", "generator": "facewire models.gltf"},
+        "extensionsUsed": ["KHR_materials_unlit"],
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "facewire"}],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices,
+                                    "material": 0, "mode": _TRIANGLES}]}],
+        "materials": [material],
+    }
+
+
+def _embed_texture(path: Path, doc: dict, builder: _BinBuilder, texture: np.ndarray) -> None:
+    """Embed the (H, W, 3) uint8 RGB texture as PNG, the base colour of ``doc``'s material."""
+    ok, png = cv2.imencode(".png", cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise GltfError(f"{path}: texture: PNG encoding failed")
+    doc["images"] = [{"bufferView": builder.view(png.tobytes()), "mimeType": "image/png"}]
+    doc["samplers"] = [{"magFilter": _LINEAR, "minFilter": _LINEAR_MIPMAP_LINEAR,
+                        "wrapS": _CLAMP_TO_EDGE, "wrapT": _CLAMP_TO_EDGE}]
+    doc["textures"] = [{"source": 0, "sampler": 0}]
+    doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] = {"index": 0}
 
 
 class _BinBuilder:
@@ -541,19 +562,3 @@ class _BinBuilder:
         doc["accessors"] = self.accessors
         doc["buffers"] = [{"byteLength": self.size}]
         return b"".join(self.parts)
-
-
-def _check_input(path: Path, name: str, a: object, dtype: type,
-                 shape: tuple[int | None, ...]) -> int:
-    """Validate one writer input; return its first dimension."""
-    if not isinstance(a, np.ndarray):
-        raise GltfError(f"{path}: {name}: expected a numpy array, got {type(a).__name__}")
-    if a.dtype != dtype:
-        raise GltfError(f"{path}: {name}: expected dtype {np.dtype(dtype).name}, "
-                        f"got {a.dtype.name}")
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise GltfError(f"{path}: {name}: expected shape {want}, got {a.shape}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise GltfError(f"{path}: {name}: contains NaN or infinity")
-    return a.shape[0]

@@ -17,6 +17,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from facewire.models.arrays import check_array
 from facewire.models.landmarks import N_LANDMARKS, N_PHANTOMS
 from facewire.protocol.errors import FacewireError
 
@@ -57,12 +58,12 @@ class Mesh:
     phantoms: np.ndarray
 
     def __post_init__(self) -> None:
-        n = _check("vertices", self.vertices, np.float32, (None, 3))
-        m = _check("triangles", self.triangles, np.int32, (None, 3))
-        _check("uv", self.uv, np.float32, (n, 2))
-        _check("tags", self.tags, np.uint8, (m,))
-        _check("landmarks", self.landmarks, np.int32, (N_LANDMARKS,))
-        _check("phantoms", self.phantoms, np.int32, (N_PHANTOMS,))
+        n = check_array("vertices", self.vertices, np.float32, (None, 3), MeshError)
+        m = check_array("triangles", self.triangles, np.int32, (None, 3), MeshError)
+        check_array("uv", self.uv, np.float32, (n, 2), MeshError)
+        check_array("tags", self.tags, np.uint8, (m,), MeshError)
+        check_array("landmarks", self.landmarks, np.int32, (N_LANDMARKS,), MeshError)
+        check_array("phantoms", self.phantoms, np.int32, (N_PHANTOMS,), MeshError)
         for name in ("triangles", "landmarks", "phantoms"):
             idx = getattr(self, name)
             if idx.size and (idx.min() < 0 or idx.max() >= n):
@@ -80,17 +81,3 @@ class Mesh:
             np.add.at(normals, self.triangles[:, k], face)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         return (normals / np.maximum(length, 1e-12)).astype(np.float32)
-
-
-def _check(name: str, a: np.ndarray, dtype: type, shape: tuple[int | None, ...]) -> int:
-    """Validate one array field; return its first dimension."""
-    if not isinstance(a, np.ndarray):
-        raise MeshError(f"{name}: expected a numpy array, got {type(a).__name__}")
-    if a.dtype != dtype:
-        raise MeshError(f"{name}: expected dtype {np.dtype(dtype).name}, got {a.dtype.name}")
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-        raise MeshError(f"{name}: expected shape {want}, got {a.shape}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise MeshError(f"{name}: contains NaN or infinity")
-    return a.shape[0]

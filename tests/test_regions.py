@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facewire.models.head import EYE_UV, EYE_UV_RADIUS, MOUTH_UV, MOUTH_UV_RADIUS, SKIN_U_MAX, generic_head
+from facewire.models.head import generic_head
+from facewire.models.head.uvlayout import EYE_UV, EYE_UV_RADIUS, MOUTH_UV, MOUTH_UV_RADIUS, SKIN_U_MAX
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.regions import (OFFSETS, RAMP_TEXELS, REGION_NAMES, REGIONS, SUPERSAMPLE,
                             TEMPLATE_SIZE, RegionError, RegionSpec, place, ramp_mask, spec,

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from facewire.models.head import EYE_RADIUS, generic_head, mirror_map
+from facewire.models.head import generic_head, mirror_map
+from facewire.models.head.anatomy import EYE_RADIUS
 from facewire.models.landmarks import FEATURES, MIRROR, NONRIGID, PHANTOM_NAMES
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.rig import (

@@ -25,11 +25,8 @@ keeps streaming and answers a good HelloRequest and every chunk afterwards.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
-import socket
-import struct
 import threading
 import time
 from collections import Counter, deque
@@ -43,6 +40,7 @@ import pytest
 import zmq
 
 from conftest import free_endpoint, start
+from rawzmtp import connect_as_dealer, declare_a_gigabyte
 from facewire.protocol.control import (CHUNK_BYTES, Camera, Error, Hello, HelloRequest, Message,
                               ModelChunk, ModelRequest, decode_message, encode_message,
                               model_chunks)
@@ -331,30 +329,6 @@ class Dealer:
         self.socket.close(linger=0)
 
 
-def _zmtp_client(port: int) -> socket.socket:
-    """A raw TCP connection that has done a ZMTP 3.0 NULL handshake as a DEALER."""
-    conn = socket.create_connection(("127.0.0.1", port), timeout=10)
-    conn.sendall(b"\xff" + bytes(8) + b"\x7f\x03\x00" + b"NULL".ljust(20, b"\x00") + bytes(32))
-    assert _read(conn, 64)[:1] == b"\xff"
-    body = b"\x05READY\x0bSocket-Type" + struct.pack(">I", 6) + b"DEALER"
-    conn.sendall(bytes([0x04, len(body)]) + body)
-    header = _read(conn, 2)
-    assert header[:1] == b"\x04", header
-    assert _read(conn, header[1]).startswith(b"\x05READY")
-    return conn
-
-
-def _read(conn: socket.socket, size: int) -> bytes:
-    """Exactly ``size`` bytes (a socket with a timeout may return fewer per ``recv``, even with
-    ``MSG_WAITALL``: libzmq sends its greeting in two parts)."""
-    data = b""
-    while len(data) < size:
-        part = conn.recv(size - len(data))
-        assert part, f"the connection closed after {len(data)} of {size} bytes"
-        data += part
-    return data
-
-
 def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
         generic_model: Path, grey_video: Callable[..., Path]) -> None:
     endpoint = free_endpoint()
@@ -362,7 +336,6 @@ def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
     data = generic_model.read_bytes()
     sha = hashlib.sha256(data).hexdigest()
     count = len(model_chunks(data, sha))
-    rng = np.random.default_rng(8)
     dealer = Dealer(control)
     with PacketSubscriber(endpoint) as sub:
         thread, stop, result = start(send, model_path=generic_model,
@@ -372,66 +345,8 @@ def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
             hello = dealer.ask(encode_message(HelloRequest()), timeout_ms=TIMEOUT_MS)
             assert isinstance(hello, Hello) and hello.model_sha256 == sha, result
             assert sub.recv(5000) is not None
-            errors = 0
-
-            def refused(body: bytes, *words: str) -> None:
-                nonlocal errors
-                reply = dealer.ask(body)
-                assert isinstance(reply, Error), (body[:40], reply)
-                assert all(w in reply.message for w in words), (reply.message, words)
-                assert reply.message.isprintable()
-                errors += 1
-
-            refused(b"\xc1 not msgpack", "bad request", "not valid msgpack")
-            refused(b"", "bad request")
-            for header in (b"\xdb", b"\xc6", b"\xdd", b"\xdf", b"\xc9"):  # 4 GiB declared
-                refused(header + b"\xff\xff\xff\xff", "bad request")
-            refused(packb({"type": "model_request", "sha256": 5, "index": "0"}), "wrong type")
-            refused(packb({"type": "model_request", "sha256": sha, "index": True}),
-                    "wrong type")
-            refused(packb({"type": 7}), "unknown control message type")
-            refused(packb([1, 2]), "not a map")
-            refused(packb({"type": "hello_request", ESCAPES: 1}), "unknown field", "\\x1b")
-            refused(packb(msgpack.ExtType(1, b"x")), "extension")
-            refused(encode_message(ModelRequest(sha, count)), "out of range")
-            for index in (-1, 2**40):
-                refused(packb({"type": "model_request", "sha256": sha, "index": index}),
-                        "index")
-            refused(encode_message(ModelRequest("0" * 64, 0)), sha)
-            refused(encode_message(hello), "not a request")
-            refused(encode_message(model_chunks(data, sha)[0]), "not a request")
-            refused(encode_message(Error(ESCAPES)), "not a request")
-            for size in rng.integers(0, 300, 200):  # random bytes: almost never msgpack maps
-                refused(rng.bytes(int(size)) or b"\xc1", "bad request")
-            # a flood, read back afterwards: every request answered
-            for _ in range(300):
-                dealer.socket.send_multipart([b"", b"\xc1"])
-            for _ in range(300):
-                assert dealer.socket.poll(5000)
-                assert isinstance(decode_message(dealer.socket.recv_multipart()[-1]), Error)
-            errors += 300
-
-            # broken framing: dropped, unanswered and uncounted
-            request = encode_message(HelloRequest())
-            assert dealer.frames(request, timeout_ms=300) is None  # no delimiter
-            assert dealer.frames(b"", b"", request, timeout_ms=300) is None
-            assert dealer.frames(*[b"hop"] * 8, b"", request,
-                                 timeout_ms=300) is None  # 9 hops: more than MAX_HOPS
-            relayed = dealer.frames(*[b"hop"] * 6, b"", request)
-            assert relayed == hello  # 7 hops: answered along its envelope
-            # a frame over the limit ends the connection; the DEALER connects again
-            assert dealer.ask(b"\x00" * (MAX_CONTROL_FRAME + 1), timeout_ms=500) is None
-            assert dealer.ask(encode_message(HelloRequest())) == hello
-            # a raw peer that only declares a frame of 1 GiB is cut off at the header
-            port = int(control.rsplit(":", 1)[1])
-            with _zmtp_client(port) as conn:
-                conn.sendall(b"\x02" + struct.pack(">Q", 1 << 30))
-                tick = time.monotonic()
-                with contextlib.suppress(ConnectionResetError):  # closed, by FIN or RST
-                    while conn.recv(4096):
-                        pass
-                assert time.monotonic() - tick < 5
-
+            errors = _ask_bad_requests(dealer, hello, data, np.random.default_rng(8))
+            _send_broken_frames(dealer, hello, int(control.rsplit(":", 1)[1]))
             # the sender still answers, serves the whole model, and streams
             assert dealer.ask(encode_message(HelloRequest())) == hello
             fetched = b""
@@ -455,6 +370,67 @@ def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
     assert result["stopped"] == "stop"
     assert result["control"] == {"hello_requests": 4, "chunk_requests": count,
                                  "errors": errors}, (result["control"], errors)
+
+
+def _ask_bad_requests(dealer: Dealer, hello: Hello, data: bytes,
+                      rng: np.random.Generator) -> int:
+    """Bad requests of every kind, and a flood of them, each answered with an ``Error``
+    that says why in printable text; returns how many were sent."""
+    sha = hello.model_sha256
+    count = len(model_chunks(data, sha))
+    errors = 0
+
+    def refused(body: bytes, *words: str) -> None:
+        nonlocal errors
+        reply = dealer.ask(body)
+        assert isinstance(reply, Error), (body[:40], reply)
+        assert all(w in reply.message for w in words), (reply.message, words)
+        assert reply.message.isprintable()
+        errors += 1
+
+    refused(b"\xc1 not msgpack", "bad request", "not valid msgpack")
+    refused(b"", "bad request")
+    for header in (b"\xdb", b"\xc6", b"\xdd", b"\xdf", b"\xc9"):  # 4 GiB declared
+        refused(header + b"\xff\xff\xff\xff", "bad request")
+    refused(packb({"type": "model_request", "sha256": 5, "index": "0"}), "wrong type")
+    refused(packb({"type": "model_request", "sha256": sha, "index": True}), "wrong type")
+    refused(packb({"type": 7}), "unknown control message type")
+    refused(packb([1, 2]), "not a map")
+    refused(packb({"type": "hello_request", ESCAPES: 1}), "unknown field", "\\x1b")
+    refused(packb(msgpack.ExtType(1, b"x")), "extension")
+    refused(encode_message(ModelRequest(sha, count)), "out of range")
+    for index in (-1, 2**40):
+        refused(packb({"type": "model_request", "sha256": sha, "index": index}), "index")
+    refused(encode_message(ModelRequest("0" * 64, 0)), sha)
+    refused(encode_message(hello), "not a request")
+    refused(encode_message(model_chunks(data, sha)[0]), "not a request")
+    refused(encode_message(Error(ESCAPES)), "not a request")
+    for size in rng.integers(0, 300, 200):  # random bytes: almost never msgpack maps
+        refused(rng.bytes(int(size)) or b"\xc1", "bad request")
+    # a flood, read back afterwards: every request answered
+    for _ in range(300):
+        dealer.socket.send_multipart([b"", b"\xc1"])
+    for _ in range(300):
+        assert dealer.socket.poll(5000)
+        assert isinstance(decode_message(dealer.socket.recv_multipart()[-1]), Error)
+    return errors + 300
+
+
+def _send_broken_frames(dealer: Dealer, hello: Hello, port: int) -> None:
+    """Requests with broken framing are dropped unanswered (and uncounted); a frame over the
+    limit ends the DEALER's connection (it connects again); a raw peer on the control
+    ``port`` that only declares a frame of 1 GiB is cut off at the header."""
+    request = encode_message(HelloRequest())
+    assert dealer.frames(request, timeout_ms=300) is None  # no delimiter
+    assert dealer.frames(b"", b"", request, timeout_ms=300) is None
+    assert dealer.frames(*[b"hop"] * 8, b"", request,
+                         timeout_ms=300) is None  # 9 hops: more than MAX_HOPS
+    relayed = dealer.frames(*[b"hop"] * 6, b"", request)
+    assert relayed == hello  # 7 hops: answered along its envelope
+    assert dealer.ask(b"\x00" * (MAX_CONTROL_FRAME + 1), timeout_ms=500) is None
+    assert dealer.ask(encode_message(HelloRequest())) == hello
+    with connect_as_dealer(port) as conn:
+        assert declare_a_gigabyte(conn) < 5
 
 
 @pytest.mark.parametrize("rate", [0.5, 1e-300, float("nan"), 1001.0])

@@ -24,6 +24,7 @@ than ``receiver.receiver.MAX_GAP_S``.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -31,7 +32,7 @@ import numpy as np
 
 from cliprocess import Facewire
 from conftest import free_endpoint
-from lossy import LossyRelay
+from lossy import LossyRelay, Record
 from facewire.protocol.log import read_log
 from facewire.receiver.playout import EASE_S, HOLD_S
 
@@ -54,9 +55,56 @@ def _wait_frames(folder: Path, count: int, process: Facewire) -> float:
     return time.monotonic()
 
 
+@dataclass(frozen=True)
+class _Scene:
+    """What the scene left: the summaries of the sender and of the second receiver, what the
+    relay forwarded and dropped, and when (``time.monotonic``) the second receiver was
+    started, was ready, the network paused and resumed, and the receiver was interrupted."""
+
+    sent: dict
+    got: dict
+    record: Record
+    started: float
+    ready: float
+    paused: float
+    resumed: float
+    interrupted: float
+
+
 def test_receiver_killed_started_before_and_after_the_sender_and_a_network_pause(
         person_model: Path, shared_data: Path, tmp_path: Path) -> None:
-    sender_at, receivers_at, cache = free_endpoint(), free_endpoint(), tmp_path / "cache"
+    cache = tmp_path / "cache"
+    scene = _play(person_model, shared_data / "video" / "lp_d0.mp4", tmp_path, cache)
+    sent, got, record = scene.sent, scene.got, scene.record
+    # the sender ran on through everything, and its log holds every packet it sent
+    assert sent["stopped"] == "interrupt" and sent["receivers_max"] >= 1, sent
+    assert sent["packets"] == len(read_log(tmp_path / "sent.fwlog").packets)
+    assert (cache / f"{sent['model_sha256']}.fwm").read_bytes() == person_model.read_bytes()
+    # the second receiver: model from the cache, one stream through the pause
+    assert got["ended"] == "stop" and got["model_source"] == "cache", got
+    assert got["streams"] == 1 and got["restarts"] == 0 and got["hellos"] >= 2, got
+    # it received every packet the relay forwarded while it was connected...
+    times = [t for _, t in record.forwarded]
+    assert sum(scene.ready + 0.5 <= t <= scene.interrupted - 0.2 for t in times) \
+        <= got["received"] <= sum(t >= scene.started for t in times), got
+    assert got["corrupt"] == got["duplicates"] == got["stray"] == got["overflow"] == 0, got
+    # ...and concealed exactly the slots whose packet the relay dropped (or came late)
+    rate = sent["rate_hz"]
+    assert abs(len(record.dropped) - PAUSE_S * rate) <= 0.2 * PAUSE_S * rate
+    assert got["lost"] == len(record.dropped) + got["late"], got
+    played = got["received"] - got["late"] - got["discarded"]
+    frames = sorted((tmp_path / "second").glob("frame_*.png"))
+    assert got["frames"] == len(frames) == played + got["lost"], got
+    assert got["late"] + got["discarded"] <= 3, got  # nothing else went missing
+    _check_the_pause_in_the_video(frames, rate)
+    assert scene.resumed - scene.paused >= PAUSE_S
+
+
+def _play(model: Path, video: Path, tmp_path: Path, cache: Path) -> _Scene:
+    """The scene of the module docstring, steps 1 to 4, through a ``LossyRelay``; the
+    receivers write their frames to ``tmp_path / "first"`` and ``"second"``, the sender its
+    log to ``tmp_path / "sent.fwlog"``."""
+    sender_at, receivers_at = free_endpoint(), free_endpoint()
     relay = LossyRelay(sender_at, receivers_at)
     processes: list[Facewire] = []
 
@@ -71,10 +119,9 @@ def test_receiver_killed_started_before_and_after_the_sender_and_a_network_pause
         first = receiver("first")
         first.wait_for("waiting for a sender")
         # 2. the sender comes: the model is fetched through the relay, cached, and played
-        sender = Facewire("send", "--model", str(person_model), "--source",
-                          str(shared_data / "video" / "lp_d0.mp4"), "--loop", "--bind",
-                          sender_at, "--record", str(tmp_path / "sent.fwlog"), "--json",
-                          cache=cache)
+        sender = Facewire("send", "--model", str(model), "--source", str(video), "--loop",
+                          "--bind", sender_at, "--record", str(tmp_path / "sent.fwlog"),
+                          "--json", cache=cache)
         processes.append(sender)
         first.wait_for("fetched")
         _wait_frames(tmp_path / "first", 15, first)
@@ -109,28 +156,12 @@ def test_receiver_killed_started_before_and_after_the_sender_and_a_network_pause
         record = relay.stop()
         for process in processes:
             process.close()
+    return _Scene(sent, got, record, started, ready, paused, resumed, interrupted)
 
-    # the sender ran on through everything, and its log holds every packet it sent
-    assert sent["stopped"] == "interrupt" and sent["receivers_max"] >= 1, sent
-    assert sent["packets"] == len(read_log(tmp_path / "sent.fwlog").packets)
-    assert (cache / f"{sent['model_sha256']}.fwm").read_bytes() == person_model.read_bytes()
-    # the second receiver: model from the cache, one stream through the pause
-    assert got["ended"] == "stop" and got["model_source"] == "cache", got
-    assert got["streams"] == 1 and got["restarts"] == 0 and got["hellos"] >= 2, got
-    # it received every packet the relay forwarded while it was connected...
-    times = [t for _, t in record.forwarded]
-    assert sum(ready + 0.5 <= t <= interrupted - 0.2 for t in times) <= got["received"] \
-        <= sum(t >= started for t in times), got
-    assert got["corrupt"] == got["duplicates"] == got["stray"] == got["overflow"] == 0, got
-    # ...and concealed exactly the slots whose packet the relay dropped (or came late)
-    rate = sent["rate_hz"]
-    assert abs(len(record.dropped) - PAUSE_S * rate) <= 0.2 * PAUSE_S * rate
-    assert got["lost"] == len(record.dropped) + got["late"], got
-    played = got["received"] - got["late"] - got["discarded"]
-    frames = sorted((tmp_path / "second").glob("frame_*.png"))
-    assert got["frames"] == len(frames) == played + got["lost"], got
-    assert got["late"] + got["discarded"] <= 3, got  # nothing else went missing
-    # the pause in the video: the last frame held, then eased to a neutral face that stays
+
+def _check_the_pause_in_the_video(frames: list[Path], rate: float) -> None:
+    """The pause in the second receiver's video: the last frame held, then eased to a
+    neutral face that stays."""
     runs = _still_runs([cv2.imread(str(f)) for f in frames])
     longest = max(range(len(runs)), key=lambda i: runs[i][1])
     assert runs[longest][1] >= (PAUSE_S - HOLD_S - EASE_S) * rate - 5, runs
@@ -138,7 +169,6 @@ def test_receiver_killed_started_before_and_after_the_sender_and_a_network_pause
     assert held, runs[longest - 20:longest + 1]
     easing = runs[longest][0] - sum(held[-1])  # frames from the held one to the neutral one
     assert 0 < easing <= EASE_S * rate + 2, runs[longest - 20:longest + 1]
-    assert resumed - paused >= PAUSE_S
 
 
 def _still_runs(images: list[np.ndarray]) -> list[tuple[int, int]]:
