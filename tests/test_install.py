@@ -17,3 +17,18 @@ def test_installed_only_under_facewire(tmp_path, name):
     generic = imports(name)
     assert generic.returncode != 0
     assert "No module named" in generic.stderr
+
+
+def test_every_package_folder_is_installed():
+    """A folder with an ``__init__.py`` that pyproject's package list forgets would be left out
+    of a plain ``pip install .`` (the editable install would still find it)."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    config = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {name: root / path for name, path in config["package-dir"].items()}
+    folders["facewire"] = root / "facewire"
+    found = {f"{name}.{'.'.join(init.parent.relative_to(top).parts)}".rstrip(".")
+             for name, top in folders.items() for init in top.rglob("__init__.py")}
+    assert found == set(config["packages"])
