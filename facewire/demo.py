@@ -6,48 +6,49 @@ Steps (``demo``):
    public-domain portrait into a video of a scripted performance (head turns, brow raises,
    mouth opening, blinks; what is synthetic is said there): ``demo-performer.mp4``. With
    ``--source VIDEO`` that video is the performer.
-2. Model. ``models.build.build_model`` with ``sender.enroll.enroll_regions`` (what
+2. Model. ``sender.enroll.build.build_model`` with ``sender.enroll.layers.enroll_regions`` (what
    ``facewire model build`` does) on the performer's first ``ENROLL_S`` seconds:
    ``demo.fwm`` and its preview ``demo.preview.png``. The built-in script shows each
    movement once in those seconds, so enrollment sees brows up, an open mouth, a blink and
    head turns.
-3. Stream (``loopback``). The frames after them go through the real sender pipeline
-   (``sender.pipeline.SenderPipeline``, paced at the video's rate as a camera delivers
-   them) on one thread, out of a real ZeroMQ PUB socket bound to tcp on 127.0.0.1, with the
-   Hello answered on the control socket (port + 1); the receiver, on this thread,
-   subscribes, asks for the Hello, checks that it announces the model's sha256 (both ends
-   read the same ``demo.fwm``: the model is not transferred), and runs per packet what a
-   receiver runs: ``receiver.playout.Playout``, ``models.rig.Rig`` morph and
-   ``receiver.render.FaceRenderer`` from the sender's camera
-   (``receiver.views.sender_view``). The sender records its packets to ``demo.fwlog``
-   (``facewire replay`` / ``bench bandwidth`` read it).
-4. Outputs in ``out_dir``: ``demo.mp4``, each streamed frame as performer | reconstruction
-   (``receiver.output.side_by_side``, labelled), one frame per slot played;
-   ``demo-bandwidth.png``, the bit rate the receiver measured on the link over time; and the
-   summary (``DemoResult.summary``).
+3. Stream (``loopback``). What ``facewire send`` and ``facewire receive`` run, in this
+   process over ZeroMQ on 127.0.0.1: ``sender.sender.send`` sends the frames after them (in
+   real time, at the video's rate), bound to a free pair of ports, with ``demo.fwm``, and
+   records its packets to ``demo.fwlog`` (``facewire replay`` / ``bench bandwidth`` read
+   it); ``receiver.receiver.receive``, on a thread of its own, is not given the model: it
+   asks for the Hello, fetches the model from the sender by its sha256 in chunks over the
+   control channel into a temporary cache (not the user's), and plays every packet
+   (``receiver.playout``, morph, render from the sender's camera). The sender holds its
+   first frame until the receiver is ready to play (one event: the receiver's ``ready``,
+   the sender's ``start``), so the receiver has no backlog to catch up on. When
+   the sender has sent its last frame and the receiver has taken every packet (or none came
+   for ``QUIET_S``), the receiver is stopped: it plays what it received, and ends.
+4. Outputs in ``out_dir``: ``demo.mp4``, each output frame of the receiver (its
+   ``on_frame``) as performer | reconstruction (``receiver.output.side_by_side``,
+   labelled), the performer's frame being the one the sender sent for that slot;
+   ``demo-bandwidth.png``, the bit rate the receiver measured on the link over time (its
+   ``on_packet``); and the summary (``DemoResult.summary``): the sender's and the
+   receiver's own summaries, among them the model's source ("fetched") and the packets the
+   receiver took from the socket.
 
-The demo's render clock. A live receiver plays each slot as soon as its packet is in and
-conceals a missing one at a deadline on its clock (``receiver.receiver``); this one has no
-clock: it plays each slot as soon as its packet is in (``Playout.ready``), conceals a missing
-slot once ``depth`` packets behind it have arrived, and drains the buffer at the end, so the
-output has exactly one frame per streamed frame, in step with the performer, even when this
-machine cannot run the sender at the video's rate. The playout buffer still orders,
-de-duplicates and conceals as it does live.
+The output has one frame per slot from the first packet played to the last (the receiver's
+"Output frames"): on a link without loss, one per streamed frame. A sender this machine
+cannot run at the video's rate sends its packets late, and the receiver conceals the slots it
+gives up (``packets_lost``) as it would live.
 
 Bit rates. ``payload_kbps`` is the packet size at 30 Hz (the contract's number);
 ``wire_kbps`` adds ZeroMQ's 2 bytes of framing per message (``protocol.transport``).
 ``measured_payload_kbps`` is what arrived per second of the stream, at the rate the sender
-actually ran. Latency is measured per packet from the moment the sender handed it to the
-socket to the moment its frame was rendered (one process, one monotonic clock): the
-transport, any wait behind a missing slot or a frame still rendering, and the render.
+actually ran. Latency is the receiver's: a packet's arrival to its frame rendered.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,32 +59,25 @@ import numpy as np
 from facewire.performer import ENROLL_S, PerformanceResult, perform
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.build import BuildResult, build_model
-from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.video import read_frames, video_info
-from facewire.protocol.control import ControlError, Hello, HelloRequest, decode_message
-from facewire.protocol.log import LogWriter
+from facewire.models.infra.video import VideoFrame, read_frames, video_info
 from facewire.protocol.packet import PACKET_BYTES
-from facewire.protocol.transport import (WIRE_OVERHEAD, ControlClient, ControlServer, PacketPublisher,
-                                PacketSubscriber, TransportError, control_endpoint)
+from facewire.protocol.transport import WIRE_OVERHEAD, free_loopback_endpoint
 from facewire.receiver.output import VideoWriter, side_by_side
-from facewire.receiver.playout import Playout
-from facewire.receiver.scene import StateRenderer, rest_q
-from facewire.sender.capture import open_source
+from facewire.receiver.playout import FrameState
+from facewire.receiver.receiver import receive
 from facewire.sender.enroll.layers import enroll_regions
-from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.sender import send
 
 DEFAULT_OUT = "facewire-demo"
-HOST = "127.0.0.1"
-BIND_TRIES = 5  # ephemeral ports tried for a free packet port whose port + 1 is free too
-HELLO_TIMEOUT_S = 30.0  # the receiver's wait for the sender's Hello (the sender loads first)
-SETTLE_S = 0.3  # after the Hello, before the first packet: the subscription reaches the PUB
-IDLE_S = 0.05  # the receiver's poll while waiting for packets
+QUIET_S = 2.0  # the sender done, the receiver stops when no packet came for this long
 NOMINAL_HZ = 30.0
 WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10
 DEMO_CRF, DEMO_PRESET = 20, "veryfast"  # demo.mp4: the encoder shares 2 cores with both ends
+_RECEIVER_COUNTS = ("received", "lost", "late", "corrupt", "duplicates", "stray", "discarded",
+                    "restarts", "overflow")
 Status = Callable[[str], None]
 
 
@@ -96,7 +90,7 @@ class LinkResult:
     """What ``loopback`` streamed, received and rendered.
 
     Attributes:
-        frames: performer frame indices of the slots played, in order (one output frame each).
+        frames: (F,) int performer frame index of each output frame (the one its slot sent).
         seq: (F,) int the slots' sequence numbers.
         status: per slot, the playout status ("received", "held", ...).
         rotation: (F, 3, 3) float64 the head rotations rendered (model -> camera).
@@ -104,11 +98,8 @@ class LinkResult:
         residuals: (F, 9, 2) float32 the tangent residuals rendered, mm.
         arrival_s: (P,) float64 arrival time of each packet received, s from the first.
         packet_bytes: (P,) int their sizes.
-        latency_ms: (F',) float64 per received slot, sender's send to frame rendered, ms.
-        sent: packets the sender published; face_frames: of them with a face tracked.
-        playout: the playout buffer's counts (received, concealed, late, corrupt ...).
-        sender_fps: frames the sender processed per second of its loop.
-        render_fps: frames the receiver rendered per second of render time.
+        sender: ``sender.sender.send``'s summary.
+        receiver: ``receiver.receiver.receive``'s summary.
         seconds: wall time of the stream.
     """
 
@@ -120,12 +111,8 @@ class LinkResult:
     residuals: np.ndarray
     arrival_s: np.ndarray
     packet_bytes: np.ndarray
-    latency_ms: np.ndarray
-    sent: int
-    face_frames: int
-    playout: dict[str, int]
-    sender_fps: float
-    render_fps: float
+    sender: dict[str, Any]
+    receiver: dict[str, Any]
     seconds: float
 
 
@@ -163,25 +150,27 @@ class DemoResult:
 
     def summary(self) -> dict[str, Any]:
         """The report: bit rates, speeds, counts, where the files are."""
-        link = self.link
+        link, sent, got = self.link, self.link.sender, self.link.receiver
         span = float(link.arrival_s[-1]) if len(link.arrival_s) > 1 else 0.0
         measured_hz = (len(link.arrival_s) - 1) / span if span > 0 else 0.0
-        latency = link.latency_ms
+        render_ms = got["render_ms_median"]
         return {
             "video": str(self.video), "bandwidth_plot": str(self.plot),
             "performer": str(self.source), "model": str(self.model),
             "preview": str(self.build.preview), "log": str(self.log),
             "frames": len(link.frames), "enroll_frames": self.enroll_frames,
-            "packets_sent": link.sent, "face_frames": link.face_frames,
-            **{f"packets_{k}": v for k, v in link.playout.items()},
+            "packets_sent": sent["packets"], "face_frames": sent["face_frames"],
+            **{f"packets_{k}": got[k] for k in _RECEIVER_COUNTS},
+            "model_source": got["model_source"], "model_fetch_s": got["model_fetch_s"],
             "packet_bytes": PACKET_BYTES,
             "payload_kbps": _kbps(PACKET_BYTES, NOMINAL_HZ),
             "wire_kbps": _kbps(PACKET_BYTES + WIRE_OVERHEAD["plain"], NOMINAL_HZ),
             "measured_rate_hz": round(measured_hz, 2),
             "measured_payload_kbps": _kbps(PACKET_BYTES, measured_hz),
-            "sender_fps": round(link.sender_fps, 1), "render_fps": round(link.render_fps, 1),
-            "latency_ms_median": _round(np.median(latency)) if len(latency) else None,
-            "latency_ms_p95": _round(np.percentile(latency, 95)) if len(latency) else None,
+            "sender_fps": sent["fps"],
+            "render_fps": round(1000 / render_ms, 1) if render_ms else None,
+            "latency_ms_median": got["latency_ms_median"],
+            "latency_ms_p95": got["latency_ms_p95"],
             "model_bytes": self.build.model.file_bytes, "regions": len(self.build.model.regions),
             "seconds": {k: round(v, 1) for k, v in self.seconds.items()},
         }
@@ -199,9 +188,10 @@ def demo(out_dir: str | os.PathLike[str] = DEFAULT_OUT,
             ``enroll_s`` seconds build the model, the rest is streamed.
         seconds: stream at most this many seconds after the enrollment part (all by default).
         enroll_s: how many seconds at the start build the model (> 0).
-        progress: wraps an iterable to show progress: ``progress(items, label, total)``.
-        status: called with one line of text at each step and about once a second while
-            streaming; None: silent.
+        progress: wraps an iterable to show progress: ``progress(items, label, total)``
+            (the performer, the model build).
+        status: called with one line of text at each step, and with the receiver's status
+            lines while streaming; None: silent.
 
     Returns:
         What was made (``DemoResult.summary()`` for the report).
@@ -251,11 +241,11 @@ def demo(out_dir: str | os.PathLike[str] = DEFAULT_OUT,
                         progress=progress, appearance=enroll_regions)
     timings["build"] = time.perf_counter() - tick
 
-    say("stream: sender -> ZeroMQ on 127.0.0.1 -> receiver")
+    say("stream: facewire send -> ZeroMQ on 127.0.0.1 -> facewire receive (model by sha256)")
     tick = time.perf_counter()
     out_video, log_path = out / "demo.mp4", out / "demo.fwlog"
-    link = loopback(model_path, video, slice(enroll, stop), out_video, log_path,
-                    progress=progress, status=say)
+    link = loopback(model_path, video, slice(enroll, stop), rate, out_video, log_path,
+                    status=say)
     timings["stream"] = time.perf_counter() - tick
     plot = out / "demo-bandwidth.png"
     plot_bandwidth(link.arrival_s, link.packet_bytes, plot)
@@ -265,242 +255,151 @@ def demo(out_dir: str | os.PathLike[str] = DEFAULT_OUT,
 
 
 def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], frames: slice,
-             out_video: str | os.PathLike[str], record: str | os.PathLike[str] | None = None,
-             progress: Progress = no_progress, status: Status | None = None) -> LinkResult:
-    """Stream a video through the real sender, a ZeroMQ link on 127.0.0.1 and the receiver.
+             rate_hz: float, out_video: str | os.PathLike[str],
+             record: str | os.PathLike[str] | None = None,
+             status: Status | None = None) -> LinkResult:
+    """Stream a video with the real ``send`` and ``receive`` over ZeroMQ on 127.0.0.1.
 
-    The sender runs on its own thread; this thread is the receiver (module docstring, 3).
+    ``send`` runs on this thread, ``receive`` on its own; the receiver fetches the model from
+    the sender by its sha256 into a temporary cache (module docstring, 3).
 
     Args:
-        model_path: the person model (``.fwm``), the same file for both ends.
-        video: the video to send, paced at its own rate.
+        model_path: the person model (``.fwm``), the sender's.
+        video: the video to send, in real time.
         frames: which of its frames (indices, step 1).
+        rate_hz: the stream's rate, Hz (the video's).
         out_video: the ``.mp4`` to write: the video's frame | the reconstruction, per slot.
         record: a packet log the sender writes, or None.
-        progress: wraps an iterable to show progress.
-        status: called with a status line about once a second.
+        status: called with the receiver's status lines.
 
     Returns:
         The stream's record.
 
     Raises:
-        DemoError: the sender failed, or no Hello arrived.
-        TransportError: no free pair of ports on 127.0.0.1.
+        DemoError: the receiver failed, or played nothing.
+        TransportError: no free pair of ports on 127.0.0.1, or it was taken meanwhile.
+        ModelFileError, CaptureError, LogError: from ``send``.
     """
     say = status or (lambda _: None)
-    model = load_model(model_path)
-    publisher, control = _bind()
-    sender = _Sender(model, video, frames, publisher, control, record)
-    thread = threading.Thread(target=sender.run, name="demo sender", daemon=True)
-    thread.start()
-    try:
-        with PacketSubscriber(publisher.endpoint) as subscriber, \
-                ControlClient(control.endpoint) as client:
-            hello = _hello(client, model, sender)
-            return _receive(model, hello, subscriber, sender, video, frames, out_video,
-                            progress, say)
-    finally:
-        sender.stop.set()
-        thread.join()
-        publisher.close()
-        control.close()
-
-
-class _Sender:
-    """The demo's sender thread: the real pipeline, paced, publishing every packet."""
-
-    def __init__(self, model: PersonModel, video: str | os.PathLike[str], frames: slice,
-                 publisher: PacketPublisher, control: ControlServer,
-                 record: str | os.PathLike[str] | None) -> None:
-        self.model, self.video, self.frames = model, str(video), frames
-        self.publisher, self.control, self.record = publisher, control, record
-        self.stop = threading.Event()
-        self.done = threading.Event()
-        self.sent_at: dict[int, float] = {}  # seq -> time.monotonic() at send
-        self.sent = 0
-        self.face_frames = 0
-        self.loop_seconds = 0.0
-        self.error: BaseException | None = None
-        self.hello: Hello | None = None
-
-    def run(self) -> None:
-        try:
-            self._run()
-        except BaseException as exc:  # noqa: BLE001 - handed to the receiver thread
-            self.error = exc
-        finally:
-            self.done.set()
-
-    def _run(self) -> None:
-        source = open_source(self.video, frames=self.frames, pace=True)
-        with source:
-            camera = sender_camera(source.width, source.height)
-            pipeline = SenderPipeline(self.model, camera, rate_hz=source.rate_hz or NOMINAL_HZ)
-            self.hello = pipeline.hello()
-            while not self.stop.is_set() and not self._answer(100):
-                pass  # no receiver has asked for the Hello yet
-            deadline = time.monotonic() + SETTLE_S
-            while time.monotonic() < deadline:
-                self._answer(10)
-            log = LogWriter(self.record, self.hello) if self.record is not None else None
-            start = time.perf_counter()
-            try:
-                for frame in source:
-                    if self.stop.is_set():
-                        break
-                    out = pipeline.process(frame.image, frame.time)
-                    self.sent_at[out.frame.seq] = time.monotonic()
-                    self.publisher.send(out.packet)
-                    if log is not None:
-                        log.write(out.packet, frame.time)
-                    self.sent += 1
-                    self.face_frames += out.points is not None
-                    self._answer(0)
-            finally:
-                self.loop_seconds = time.perf_counter() - start
-                if log is not None:
-                    log.close()
-
-    def _answer(self, timeout_ms: int) -> bool:
-        """Answer one control request if one comes; True when it was a Hello request."""
-        request = self.control.recv(timeout_ms)
-        if request is None:
-            return False
-        peer, raw = request
-        try:
-            message = decode_message(raw)
-        except ControlError:
-            return False
-        if isinstance(message, HelloRequest) and self.hello is not None:
-            self.control.reply(peer, self.hello)
-            return True
-        return False
-
-
-def _bind() -> tuple[PacketPublisher, ControlServer]:
-    """A PUB socket on a free port of 127.0.0.1 and the control socket on the next port."""
-    last: TransportError | None = None
-    for _ in range(BIND_TRIES):
-        publisher = PacketPublisher(f"tcp://{HOST}:*")
-        try:
-            return publisher, ControlServer(control_endpoint(publisher.endpoint))
-        except TransportError as exc:
-            last = exc
-            publisher.close()
-    raise TransportError(f"no free pair of ports on {HOST} after {BIND_TRIES} tries: {last}")
-
-
-def _hello(client: ControlClient, model: PersonModel, sender: _Sender) -> Hello:
-    """Ask for the Hello until it comes; check it announces this model."""
-    deadline = time.monotonic() + HELLO_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if sender.done.is_set():
-            raise DemoError(f"the sender stopped before it said hello: {sender.error}") \
-                from sender.error
-        reply = client.request(HelloRequest(), 500)
-        if isinstance(reply, Hello):
-            if reply.model_sha256 != model.sha256:
-                raise DemoError(f"the sender's model {reply.model_sha256[:16]}... is not the "
-                                f"receiver's {model.sha256[:16]}...")
-            return reply
-    raise DemoError(f"no Hello from the sender within {HELLO_TIMEOUT_S:g} s")
-
-
-def _receive(model: PersonModel, hello: Hello, subscriber: PacketSubscriber, sender: _Sender,
-             video: str | os.PathLike[str], frames: slice, out_video: str | os.PathLike[str],
-             progress: Progress, say: Status) -> LinkResult:
-    """The receiver: packets in, one rendered slot per packet, side by side with the video."""
+    endpoint = free_loopback_endpoint()
+    recorder = _Recorder(_Performer(video, frames, rate_hz), out_video, rate_hz)
+    sender_stop, receiver_stop, ready = threading.Event(), threading.Event(), threading.Event()
+    outcome: dict[str, Any] = {}
     start = time.perf_counter()
-    width, height = hello.camera.width, hello.camera.height
-    playout = Playout(hello.rate_hz, rest_q=rest_q(model))
-    performer = read_frames(video, frames)
-    arrivals: list[float] = []
-    sizes: list[int] = []
-    played: list[int] = []
-    seqs: list[int] = []
-    statuses: list[str] = []
-    rotations: list[np.ndarray] = []
-    qs: list[np.ndarray] = []
-    residuals: list[np.ndarray] = []
-    latency: list[float] = []
-    render_seconds = 0.0
-    left_label = "performer (sender's camera)"
-    right_label = f"reconstruction ({PACKET_BYTES} bytes/frame)"
-    last_status = time.monotonic()
-    last_seq: int | None = None
-    ext = 0  # the slot's sequence number, extended past 16 bits: the sender starts at 0
+    with tempfile.TemporaryDirectory(prefix="facewire-demo-cache-") as cache:
 
-    def states():
-        """Each slot the playout plays: as soon as it is ready (module docstring), then the
-        drain."""
-        while True:
-            data = subscriber.recv(int(IDLE_S * 1000))
-            if data is None:
-                if sender.done.is_set():
-                    break
-                continue
-            now = time.monotonic()
-            arrivals.append(now)
-            sizes.append(len(data))
-            playout.push(data, now)
-            while playout.ready or playout.ahead > playout.depth:
-                state = playout.pop()
-                if state.seq is not None:
-                    yield state
-        while not playout.drained:
-            state = playout.pop()
-            if state.seq is not None:
-                yield state
+        def run_receiver() -> None:
+            try:
+                outcome["summary"] = receive(
+                    endpoint, cache_dir=cache, status=lambda line: say(f"receiver: {line}"),
+                    stop=receiver_stop, on_frame=recorder.frame, on_packet=recorder.packet,
+                    ready=ready)
+            except BaseException as exc:  # noqa: BLE001 - raised on this thread below
+                outcome["error"] = exc
+                sender_stop.set()
 
-    count = video_info(video).frames or None  # 0: the container does not say
-    stop = count if frames.stop is None else min(frames.stop, count or frames.stop)
-    total = None if stop is None else max(stop - frames.start, 0)
-    with StateRenderer(model, width, height, hello.camera) as renderer, \
-            VideoWriter(out_video, 2 * width, height, hello.rate_hz, crf=DEMO_CRF,
-                        preset=DEMO_PRESET) as writer:
-        for state in progress(states(), "streaming", total):
-            ext = state.seq if last_seq is None else ext + (state.seq - last_seq) % 65536
-            last_seq = state.seq
-            frame = next(performer, None)
-            while frame is not None and frame.index < frames.start + ext:
-                frame = next(performer, None)
-            if frame is None:
-                raise DemoError(f"{video}: no frame {frames.start + ext} for slot {state.seq}")
-            tick = time.perf_counter()
-            image = renderer.render(state)
-            render_seconds += time.perf_counter() - tick
-            if state.status == "received" and state.seq in sender.sent_at:
-                latency.append(1000.0 * (time.monotonic() - sender.sent_at[state.seq]))
-            left = _label(np.ascontiguousarray(frame.image[..., ::-1]), left_label)
-            writer.write(side_by_side(left, _label(image, right_label), height))
-            played.append(frame.index)
-            seqs.append(state.seq)
-            statuses.append(state.status)
-            rotations.append(state.rotation)
-            qs.append(state.q.copy())
-            residuals.append(state.residuals.copy())
-            now = time.monotonic()
-            if now - last_status >= 1.0:
-                last_status = now
-                span = arrivals[-1] - arrivals[0] if len(arrivals) > 1 else 0.0
-                fps = (len(arrivals) - 1) / span if span > 0 else 0.0
-                say(f"stream: {len(played)} frames, {fps:.1f} packets/s, "
-                    f"{_kbps(PACKET_BYTES, fps):.2f} kbit/s, "
-                    f"face {'present' if state.status == 'received' else state.status}")
-    if sender.error is not None:
-        raise DemoError(f"the sender failed: {sender.error}") from sender.error
-    if not played:
+        thread = threading.Thread(target=run_receiver, name="facewire demo receiver")
+        thread.start()
+        try:
+            sent = send(model_path, str(video), endpoint, record, rate_hz, stop=sender_stop,
+                        frames=frames, start=ready)
+            recorder.wait_packets(sent["packets"], QUIET_S)
+        finally:
+            receiver_stop.set()
+            thread.join()
+            recorder.close()
+    if "error" in outcome:
+        raise DemoError(f"the receiver failed: {outcome['error']}") from outcome["error"]
+    if not recorder.seq:
         raise DemoError("no packet arrived from the sender")
-    t = np.array(arrivals)
+    t = np.array(recorder.arrivals)
     return LinkResult(
-        frames=np.array(played), seq=np.array(seqs), status=tuple(statuses),
-        rotation=np.array(rotations), q=np.array(qs, np.float32),
-        residuals=np.array(residuals, np.float32),
-        arrival_s=t - t[0], packet_bytes=np.array(sizes), latency_ms=np.array(latency),
-        sent=sender.sent, face_frames=sender.face_frames, playout=playout.stats,
-        sender_fps=sender.sent / sender.loop_seconds if sender.loop_seconds else 0.0,
-        render_fps=len(played) / render_seconds if render_seconds else 0.0,
-        seconds=time.perf_counter() - start)
+        frames=np.array(recorder.frames), seq=np.array(recorder.seq),
+        status=tuple(recorder.status), rotation=np.array(recorder.rotation),
+        q=np.array(recorder.q, np.float32), residuals=np.array(recorder.residuals, np.float32),
+        arrival_s=t - t[0], packet_bytes=np.array(recorder.sizes), sender=sent,
+        receiver=outcome["summary"], seconds=time.perf_counter() - start)
+
+
+class _Performer:
+    """The performer's frame of each slot of the stream, as ``send`` picks it: slot ``k`` gets
+    the latest frame stamped at most a quarter period after ``t_0 + k / rate_hz`` (``t_0``
+    the first frame's time; ``sender.sender``)."""
+
+    def __init__(self, video: str | os.PathLike[str], frames: slice, rate_hz: float) -> None:
+        self._video = video
+        self._frames: Iterator[VideoFrame] = read_frames(video, frames)
+        self._held = next(self._frames, None)
+        if self._held is None:
+            raise DemoError(f"{video}: no frame in {frames.start}:{frames.stop or ''}")
+        self._next = next(self._frames, None)
+        self._t0 = self._held.time
+        self._period = 1.0 / rate_hz
+
+    def at(self, slot: int) -> VideoFrame:
+        """The frame sent in slot ``slot`` (slots in increasing order)."""
+        limit = self._t0 + (slot + 0.25) * self._period
+        while self._next is not None and self._next.time <= limit:
+            self._held, self._next = self._next, next(self._frames, None)
+        return self._held
+
+
+class _Recorder:
+    """The demo receiver's callbacks: each packet's arrival (``on_packet``), and each output
+    frame (``on_frame``) written side by side with the performer's frame of its slot."""
+
+    def __init__(self, performer: _Performer, out_video: str | os.PathLike[str],
+                 rate_hz: float) -> None:
+        self._performer, self._out, self._rate_hz = performer, out_video, rate_hz
+        self._writer: VideoWriter | None = None
+        self._ext: int | None = None  # the slot: the sequence number extended past 16 bits
+        self._last_seq = 0
+        self.arrivals: list[float] = []
+        self.sizes: list[int] = []
+        self.frames: list[int] = []
+        self.seq: list[int] = []
+        self.status: list[str] = []
+        self.rotation: list[np.ndarray] = []
+        self.q: list[np.ndarray] = []
+        self.residuals: list[np.ndarray] = []
+
+    def packet(self, data: bytes, arrival: float) -> None:
+        self.arrivals.append(arrival)
+        self.sizes.append(len(data))
+
+    def frame(self, image: np.ndarray, state: FrameState) -> None:
+        """Write one output frame ((H, W, 3) uint8 RGB) beside the performer's; the sender
+        numbers its slots from 0."""
+        self._ext = state.seq if self._ext is None else \
+            self._ext + (state.seq - self._last_seq) % 65536
+        self._last_seq = state.seq
+        performer = self._performer.at(self._ext)
+        left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
+                      "performer (sender's camera)")
+        right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
+        both = side_by_side(left, right, image.shape[0])
+        if self._writer is None:
+            self._writer = VideoWriter(self._out, both.shape[1], both.shape[0], self._rate_hz,
+                                       crf=DEMO_CRF, preset=DEMO_PRESET)
+        self._writer.write(both)
+        self.frames.append(performer.index)
+        self.seq.append(state.seq)
+        self.status.append(state.status)
+        self.rotation.append(state.rotation)
+        self.q.append(state.q.copy())
+        self.residuals.append(state.residuals.copy())
+
+    def wait_packets(self, count: int, quiet_s: float) -> None:
+        """Return once ``count`` packets were taken, or none for ``quiet_s``."""
+        seen, since = len(self.arrivals), time.monotonic()
+        while seen < count and time.monotonic() - since < quiet_s:
+            time.sleep(0.05)
+            if len(self.arrivals) > seen:
+                seen, since = len(self.arrivals), time.monotonic()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
 
 
 def plot_bandwidth(arrival_s: np.ndarray, packet_bytes: np.ndarray,
@@ -553,7 +452,3 @@ def _label(image: np.ndarray, text: str) -> np.ndarray:
 
 def _kbps(message_bytes: float, rate_hz: float) -> float:
     return round(message_bytes * 8 * rate_hz / 1000, 3)
-
-
-def _round(value: float) -> float:
-    return round(float(value), 1)

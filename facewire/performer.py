@@ -6,7 +6,7 @@ U.S. Navy's official photograph of Rear Admiral Grace Hopper; ``portrait``).
 
 How a frame is made (``Performer.frame``), and what in it is synthetic
 ---------------------------------------------------------------------
-1. A *bootstrap model* of the portrait: ``models.build.build_model`` on a clip of
+1. A *bootstrap model* of the portrait: ``sender.enroll.build.build_model`` on a clip of
    ``STILL_FRAMES`` copies of the still (geometry and neutral texture, no regions; one view,
    so the depth is the generic head's). The only edit: the mouth cavity's texels
    (``Tag.MOUTH_INTERIOR`` triangles in UV) are painted a dark red (``MOUTH_COLOUR``): the
@@ -16,7 +16,7 @@ How a frame is made (``Performer.frame``), and what in it is synthetic
    (pitch), degrees, rotates the head about ``PIVOT`` (a point behind and below the face,
    near where the neck turns it): ``X_cam = R0 (P (X - c) + c) + t0``, with P = R_y(yaw)
    R_x(-pitch) and c the pivot. Positive yaw turns the nose toward the image's right,
-   positive pitch lifts the chin (``models.fit``'s convention).
+   positive pitch lifts the chin (``sender.enroll.fit``'s convention).
 3. Expression. The performer stands in for a real face, so it moves more than the packet
    carries: an RBF volume morph (``models.morph.VolumeMorph``, as the rig's) centred on all
    68 landmark vertices, the phantoms and the rig's anchors, with the landmarks moved by
@@ -27,7 +27,7 @@ How a frame is made (``Performer.frame``), and what in it is synthetic
    lips part along their whole width, so the cavity shows (the rig moves 9 points, of the
    lips only the middles and the corners), and the receiver shows the open mouth through
    its morph and the mouth region's appearance layers, as the paper intends. The eyeballs
-   stay rigid. The real renderer (``models.raster.MeshRenderer``) draws the morphed mesh.
+   stay rigid. The real renderer (``models.infra.raster.MeshRenderer``) draws the morphed mesh.
 4. Compositing over the portrait. Only the face is taken from the render: the polygon of the
    projected jaw contour (0-16) and the brows raised by ``FOREHEAD`` times their height
    over the eyes, feathered (``FEATHER_PX``). Around it the portrait itself (hat, hair,
@@ -80,7 +80,7 @@ from facewire.receiver.output import VideoWriter
 
 PORTRAIT = "grace_hopper.jpg"  # matplotlib's sample data: public domain (U.S. Navy photo)
 RATE_HZ = 30.0
-STILL_FRAMES = 10  # the bootstrap clip: models.fit needs at least 10 face frames
+STILL_FRAMES = 10  # the bootstrap clip: sender.enroll.fit needs at least 10 face frames
 CHANNELS = ("yaw", "pitch", "brows", "mouth", "blink")
 MOUTH_COLOUR = (58, 16, 20)  # RGB of the painted mouth cavity
 PIVOT = (0.0, -40.0, -80.0)  # mm from the landmarks' centroid: the head turns about this

@@ -18,7 +18,7 @@ deleted, since another receiver may be replacing it at that moment.
 Writing (``verify_model``, then ``ModelCache.put``): fetched bytes must hash to the
 announced sha256 and decode as a model before anything is written; ``put`` takes the
 decoded model and checks it is the model of those bytes. The bytes go to a temporary file
-in the cache folder (``models.atomic``: ``.<sha256>.fwm.<random>.tmp``, created
+in the cache folder (``models.infra.atomic``: ``.<sha256>.fwm.<random>.tmp``, created
 exclusively), are flushed to disk (fsync), and are renamed over ``<sha256>.fwm`` with
 ``os.replace``; the folder is then fsynced so the rename survives a crash.
 

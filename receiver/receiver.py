@@ -10,25 +10,16 @@ Session
    reconnect one whose peer broke the protocol (a frame over its size limit).
 2. Hello. Asked again every ``HELLO_TIMEOUT_S`` until a sender answers; meanwhile the status
    says that the receiver waits, where, and for how long. ``idle_timeout_s`` ends the wait.
-3. Model. With ``model_path``, the file's sha256 must be the Hello's, or ``ReceiveError``.
-   Without, the model cache (``receiver.modelcache``) by the Hello's sha256, else the sender's
-   file in chunks (``ModelRequest`` -> ``ModelChunk``, reassembled by
-   ``protocol.control.ModelAssembler``), each chunk asked up to ``CHUNK_ATTEMPTS`` times;
-   the whole is verified (sha256, then decoded) before it is cached and used. A sender that
-   stops answering mid-transfer (a chunk request times out) sends the receiver back to step
-   2; a transfer whose whole fails the sha256, or in which a chunk was answered
-   ``CHUNK_ATTEMPTS`` times with something else (another chunk, an error), is a failed
-   attempt, and ``MODEL_ATTEMPTS`` of them end the session with ``ReceiveError``.
+3. Model (``receiver.acquire.ModelAcquirer``): with ``model_path``, the file's sha256 must
+   be the Hello's, or ``ReceiveError``; without, the model cache by the Hello's sha256, else
+   the sender's file, fetched in chunks over the control channel by its sha256 and verified
+   before it is cached and used. A sender that stops answering mid-transfer sends the
+   receiver back to step 2; a model that keeps failing its sha256 ends the session.
 4. Play (below), until ``stop`` is set, ``max_frames`` frames are out, or no packet (and
    no control reply) has come for ``idle_timeout_s``.
 
-Control requests (ZeroMQ's "lazy pirate" pattern)
--------------------------------------------------
-One request at a time, each with a timeout. A DEALER queues a request even when no sender is
-there yet and delivers it when one appears, so a reply may come after its request timed out.
-After a timeout or a bad reply (malformed, an ``Error``, or not the answer asked for) the
-socket is closed and opened again, so a late reply can never be taken for the answer to the
-next request. Both are counted (``control_timeouts``, ``control_errors``), neither is fatal.
+Control requests follow ZeroMQ's "lazy pirate" pattern (``receiver.acquire.ControlChannel``):
+one at a time, each with a timeout, the socket reopened after a timeout or a bad reply.
 
 Threads, packets and playing on arrival
 ---------------------------------------
@@ -62,8 +53,7 @@ start, while the Hello is asked, the model fetched and the renderer set up): wit
 they are played, late; with a view they are dropped (``ignored``), since the picture is to be
 live.
 
-Per slot: ``receiver.scene.StateRenderer`` (morph, the sender's view at the output size,
-render), as ``receiver.replay`` does.
+Per slot: ``receiver.scene.StateRenderer`` (morph, sender's view, render), as in replay.
 
 Output frames (the file, and ``frames`` in the summary)
 ------------------------------------------------------
@@ -96,23 +86,8 @@ the packets the old one still held count as ``discarded``, and those that arrive
 answered the loop goes on rendering with what it has, asking every ``RECHECK_EVERY_S`` (each
 try waits at most ``RECHECK_TIMEOUT_S``).
 
-Statistics
-----------
-Summary keys: ``frames`` (output frames, above), ``received``, ``lost`` (concealed slots
-written), ``late``, ``corrupt``, ``duplicates``, ``stray``, ``discarded``, ``skipped``,
-``restarts`` (the playout's counts), ``ignored``, ``overflow``, ``streams`` (runs of output
-frames: each stream, split again by a gap over ``MAX_GAP_S``), ``hellos`` (Hellos answered),
-``control_timeouts``, ``control_errors``, ``fps`` (frames over the time from the first to
-the last), ``kbps`` (packet bytes, kbit/s, from the first packet's arrival to the last's),
-``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
-rendered: the frame's own time, plus the wait behind a missing slot or a frame still
-rendering, and any backlog of a loop that fell behind), ``render_ms_median`` (morph,
-view and render with readback), ``model_sha256``, ``model_source`` (file, cache or fetched),
-``model_bytes``, ``model_fetch_s`` (fetch and verification, None unless fetched), ``cached``
-(the cache file, or None), ``width``, ``height``, ``out``, ``seconds``, and ``ended``: stop,
-max_frames or idle_timeout. The live statistics (``LIVE_KEYS``: the second argument of
-``view``, and the status line every ``STATUS_EVERY_S``) measure fps and kbit/s over the last
-``WINDOW_S``.
+Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
+counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
 """
 
 from __future__ import annotations
@@ -130,44 +105,32 @@ from typing import Any
 
 import numpy as np
 
-from facewire.models.modelfile import ModelFileError, PersonModel, load_model
-from facewire.protocol import control as ctl
-from facewire.protocol.control import (ControlError, Hello, HelloRequest, ModelAssembler, ModelChunk,
-                              ModelRequest)
-from facewire.protocol.errors import FacewireError
+from facewire.models.modelfile import PersonModel, load_model
+from facewire.protocol.control import Hello, HelloRequest
 from facewire.protocol.keys import CurveClient, client_keys
-from facewire.protocol.transport import ControlClient, PacketSubscriber, control_endpoint
-from facewire.receiver.modelcache import ModelCache, ModelCacheError, verify_model
+from facewire.protocol.transport import PacketSubscriber, control_endpoint
+from facewire.receiver.acquire import ControlChannel, ModelAcquirer, ReceiveError
+from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.output import FrameFolderWriter, VideoWriter
 from facewire.receiver.playout import FrameState, Playout
-from facewire.receiver.scene import STATS_FRAMES, StateRenderer, rest_q
+from facewire.receiver.scene import StateRenderer, rest_q
+from facewire.receiver.stats import ReceiveStats
 
 HELLO_TIMEOUT_S = 1.0
-CHUNK_TIMEOUT_S = 5.0
-CHUNK_ATTEMPTS = 5
-MODEL_ATTEMPTS = 3
 RECHECK_TIMEOUT_S = 0.5
 RECHECK_EVERY_S = 2.0
 RESUME_GAP_S = 0.5
 REOPEN_S = 8.0
 MAX_GAP_S = 10.0
 QUEUE_PACKETS = 4096
-STATUS_EVERY_S = 1.0
-WINDOW_S = 1.0
 MAX_SIZE = 4096
-LIVE_KEYS = ("state", "seq", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
-             "duplicates", "latency_ms")
 _POLL_MS = 50
 _POLL_S = _POLL_MS / 1000
-_PLAYOUT_KEYS = ("received", "corrupt", "duplicate", "late", "stray", "discarded",
-                 "skipped", "restarts")
 
 Status = Callable[[str], None]
 View = Callable[[np.ndarray, dict[str, Any]], None]
-
-
-class ReceiveError(FacewireError, ValueError):
-    """The receive cannot go on: a bad option, or a model that is not the sender's."""
+OnFrame = Callable[[np.ndarray, FrameState], None]
+OnPacket = Callable[[bytes, float], None]
 
 
 def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
@@ -177,7 +140,9 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             cache_dir: str | os.PathLike[str] | None = None,
             size: tuple[int, int] | None = None, status: Status | None = None,
             stop: threading.Event | None = None, max_frames: int | None = None,
-            idle_timeout_s: float | None = None) -> dict[str, Any]:
+            idle_timeout_s: float | None = None, on_frame: OnFrame | None = None,
+            on_packet: OnPacket | None = None,
+            ready: threading.Event | None = None) -> dict[str, Any]:
     """Receive a sender's stream and render it until stopped (module docstring).
 
     Args:
@@ -186,19 +151,28 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
         out: an H.264 ``.mp4`` to write (``receiver.output.VideoWriter``).
         frames_dir: a folder for PNG frames (``FrameFolderWriter``); not with ``out``.
         view: called with each rendered frame ((H, W, 3) uint8 RGB) and the live statistics
-            (``LIVE_KEYS``), e.g. ``receiver.liveview.LiveView.publish``.
+            (``receiver.stats.LIVE_KEYS``), e.g. ``LiveView.publish``; plays live.
         curve_dir: a CURVE key folder (``protocol.keys.client_keys``).
         cache_dir: the model cache folder (``receiver.modelcache.default_folder`` if None).
         size: (width, height) of the output; the sender camera's size by default.
         status: called with one line of text when the state changes, and every
-            ``STATUS_EVERY_S`` while playing.
-        stop: set it (from another thread) to end the session cleanly.
+            ``receiver.stats.STATUS_EVERY_S`` while playing.
+        stop: set it (from another thread) to end the session cleanly, after playing the
+            packets already received.
         max_frames: end after this many output frames.
         idle_timeout_s: end when no packet and no control reply came for this long (also
             while waiting for a sender); None waits for ever.
+        on_frame: called with each output frame ((H, W, 3) uint8 RGB) and its slot's state,
+            in output order: the frames ``out`` would hold (module docstring, "Output
+            frames").
+        on_packet: called with each message's bytes (corrupt ones too) and arrival time
+            (``time.monotonic()`` s) as it enters the playout, in arrival order.
+        ready: set once the receiver can play (a model, a renderer and a playout), e.g. the
+            ``start`` of a ``sender.sender.send`` in the same process.
 
     Returns:
-        The summary (module docstring, "Statistics").
+        The summary (``receiver.stats``, and ``connect``, ``out``, ``width``, ``height`` and
+        the model's keys, ``receiver.acquire``).
 
     Raises:
         ReceiveError: bad arguments; the model file is not the sender's; the sender's model
@@ -207,6 +181,22 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             missing or bad model file or key folder, a bad address, an unwritable output,
             no headless OpenGL.
     """
+    size = _check_options(out, frames_dir, view, size, max_frames, idle_timeout_s,
+                          on_frame, on_packet, ready)
+    local = load_model(model_path) if model_path is not None else None
+    curve = client_keys(curve_dir) if curve_dir is not None else None
+    session = _Session(connect, curve, local, ModelCache(cache_dir), out, frames_dir,
+                       view or None, size, status, stop, max_frames, idle_timeout_s,
+                       on_frame, on_packet, ready)
+    return session.run()
+
+
+def _check_options(out: str | os.PathLike[str] | None,
+                   frames_dir: str | os.PathLike[str] | None, view: object, size: object,
+                   max_frames: object, idle_timeout_s: object, on_frame: object,
+                   on_packet: object, ready: object) -> tuple[int, int] | None:
+    """Validate ``receive``'s options (``ReceiveError`` names the first that is not valid);
+    the size as a tuple of ints, or None."""
     if out is not None and frames_dir is not None:
         raise ReceiveError("--out and --frames: give one or the other, not both")
     for name, path in (("--out", out), ("--frames", frames_dir)):
@@ -219,12 +209,13 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
     if view is not None and view is not False and not callable(view):
         raise ReceiveError(f"view: expected a callable (frame, stats) or None, got "
                            f"{type(view).__name__}")
-    if size is not None:
-        if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(
-                isinstance(v, numbers.Integral) and 0 < v <= MAX_SIZE for v in size):
-            raise ReceiveError(f"size: expected a width and height in [1, {MAX_SIZE}], "
-                               f"got {size!r}")
-        size = (int(size[0]), int(size[1]))
+    for name, callback in (("on_frame", on_frame), ("on_packet", on_packet)):
+        if callback is not None and not callable(callback):
+            raise ReceiveError(f"{name}: expected a callable or None, got "
+                               f"{type(callback).__name__}")
+    if ready is not None and not isinstance(ready, threading.Event):
+        raise ReceiveError(f"ready: expected a threading.Event or None, got "
+                           f"{type(ready).__name__}")
     if max_frames is not None and (isinstance(max_frames, bool) or
                                    not isinstance(max_frames, numbers.Integral)
                                    or max_frames < 1):
@@ -233,11 +224,13 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
                                            and math.isfinite(idle_timeout_s)
                                            and idle_timeout_s > 0):
         raise ReceiveError(f"idle_timeout_s: expected a number > 0, got {idle_timeout_s!r}")
-    local = load_model(model_path) if model_path is not None else None
-    curve = client_keys(curve_dir) if curve_dir is not None else None
-    session = _Session(connect, curve, local, ModelCache(cache_dir), out, frames_dir,
-                       view or None, size, status, stop, max_frames, idle_timeout_s)
-    return session.run()
+    if size is None:
+        return None
+    if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(
+            isinstance(v, numbers.Integral) and 0 < v <= MAX_SIZE for v in size):
+        raise ReceiveError(f"size: expected a width and height in [1, {MAX_SIZE}], "
+                           f"got {size!r}")
+    return int(size[0]), int(size[1])
 
 
 class _End(Exception):
@@ -315,47 +308,6 @@ class _PacketReader:
         self._thread.join()
 
 
-class _Control:
-    """The control socket, reopened after any timeout or bad reply (module docstring)."""
-
-    def __init__(self, endpoint: str, curve: CurveClient | None) -> None:
-        self.endpoint = endpoint
-        self._curve = curve
-        self._client = ControlClient(endpoint, curve)
-        self.timeouts = 0
-        self.errors = 0
-        self.last_error = ""
-
-    def ask(self, message: ctl.Message, expect: type, timeout_s: float) -> Any:
-        """The reply if it is an ``expect``; None (counted, socket reopened) otherwise."""
-        try:
-            reply = self._client.request(message, max(1, round(timeout_s * 1000)))
-        except ControlError as exc:
-            return self.reject(f"malformed reply: {exc}")
-        if reply is None:
-            self.timeouts += 1
-            self._reopen()
-            return None
-        if isinstance(reply, expect):
-            return reply
-        if isinstance(reply, ctl.Error):
-            return self.reject(f"the sender says: {reply.message}")
-        return self.reject(f"a {reply.TYPE} reply to a {message.TYPE}")
-
-    def reject(self, why: str) -> None:
-        """Count a reply that is not the answer asked for, and reopen the socket."""
-        self.errors += 1
-        self.last_error = why
-        self._reopen()
-
-    def _reopen(self) -> None:
-        self._client.close()
-        self._client = ControlClient(self.endpoint, self._curve)
-
-    def close(self) -> None:
-        self._client.close()
-
-
 class _Session:
     """One ``receive`` call: its sockets, model, renderer, playout, output and counts."""
 
@@ -364,16 +316,19 @@ class _Session:
                  frames_dir: str | os.PathLike[str] | None, view: View | None,
                  size: tuple[int, int] | None, status: Status | None,
                  stop: threading.Event | None, max_frames: int | None,
-                 idle_timeout_s: float | None) -> None:
+                 idle_timeout_s: float | None, on_frame: OnFrame | None,
+                 on_packet: OnPacket | None, ready: threading.Event | None) -> None:
         self.connect = connect
         self.control_endpoint = control_endpoint(connect)
         self.curve, self.local, self.cache = curve, local, cache
         self.out, self.frames_dir, self.view, self.size = out, frames_dir, view, size
+        self.on_frame, self.on_packet, self.ready = on_frame, on_packet, ready
         self.say = status or (lambda _: None)
         self.stop = stop if stop is not None else threading.Event()
         self.max_frames, self.idle_timeout_s = max_frames, idle_timeout_s
         self.reader: _PacketReader | None = None
-        self.control: _Control | None = None
+        self.control: ControlChannel | None = None
+        self.acquirer: ModelAcquirer | None = None
         # what is played
         self.hello: Hello | None = None
         self.scene: StateRenderer | None = None
@@ -387,21 +342,7 @@ class _Session:
         self.next_check = 0.0
         self.playing_since = 0.0  # when the current playout was set up
         self.last_contact = time.monotonic()  # the last control reply or ready loop
-        # counts and measurements
-        self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos"), 0)
-        self.totals = dict.fromkeys(_PLAYOUT_KEYS, 0)  # of the playouts already retired
-        self.model_info: dict[str, Any] = {"model_sha256": None, "model_source": None,
-                                           "model_bytes": None, "model_fetch_s": None,
-                                           "cached": None}
-        self.first_packet: tuple[float, int] | None = None  # arrival, bytes
-        self.last_packet: float | None = None
-        self.bytes_total = 0
-        self.first_frame: float | None = None
-        self.last_frame: float | None = None
-        self.latencies: deque[float] = deque(maxlen=STATS_FRAMES)
-        self.recent_packets: deque[tuple[float, int]] = deque()  # arrival, bytes
-        self.recent_frames: deque[tuple[float, float | None]] = deque()  # time, latency
-        self.next_status = 0.0
+        self.stats = ReceiveStats()
 
     # -- the session -----------------------------------------------------------------------
 
@@ -410,13 +351,15 @@ class _Session:
         with contextlib.ExitStack() as stack:
             self.reader = _PacketReader(lambda: PacketSubscriber(self.connect, self.curve))
             stack.callback(self.reader.close)
-            self.control = _Control(self.control_endpoint, self.curve)
+            self.control = ControlChannel(self.control_endpoint, self.curve)
             stack.callback(self.control.close)
+            self.acquirer = ModelAcquirer(self.connect, self.control, self.cache, self.local,
+                                          self.say, self._check_end, self._touch)
             stack.callback(self._release)
             try:
                 while True:  # until _End: _play returns only by raising it
                     hello = self._await_hello()
-                    model = self._obtain(hello)
+                    model = self.acquirer.obtain(hello)
                     if model is not None:
                         self._adopt(hello, model)
                         self._play()
@@ -432,6 +375,10 @@ class _Session:
                 self.writer.close()  # closed already on a normal end (then no effect)
         if self.scene is not None:
             self.scene.release()
+
+    def _touch(self) -> None:
+        """A sign of the sender: a control reply."""
+        self.last_contact = time.monotonic()
 
     def _idle_s(self) -> float:
         """Seconds since the last sign of a sender (packet, control reply) or ready loop."""
@@ -453,8 +400,8 @@ class _Session:
                 timeout = min(timeout, max(0.05, self.idle_timeout_s - self._idle_s()))
             hello = self.control.ask(HelloRequest(), Hello, timeout)
             if hello is not None:
-                self.last_contact = time.monotonic()
-                self.counts["hellos"] += 1
+                self._touch()
+                self.stats.counts["hellos"] += 1
                 cam = hello.camera
                 self.say(f"sender at {self.connect}: model {hello.model_sha256[:12]}, "
                          f"{hello.rate_hz:g} Hz, camera {cam.width}x{cam.height}, "
@@ -465,95 +412,6 @@ class _Session:
             self.say(f"waiting for a sender at {self.connect} (control "
                      f"{self.control_endpoint}): no answer for "
                      f"{time.monotonic() - since:.0f} s{why}")
-
-    def _obtain(self, hello: Hello) -> PersonModel | None:
-        """The Hello's model: the local file, the cache, or fetched; None: sender gone."""
-        sha = hello.model_sha256
-        if self.local is not None:
-            if self.local.sha256 != sha:
-                raise ReceiveError(
-                    f"--model: {self.local.sha256[:16]}... is not the sender's model "
-                    f"({sha[:16]}..., announced by {self.connect}); omit --model to fetch it")
-            self._note_model(self.local, "file")
-            return self.local
-        try:
-            model = self.cache.get(sha)
-        except ModelCacheError as exc:
-            self.say(f"{exc}: fetching it again")
-            model = None
-        if model is not None:
-            self._note_model(model, "cache", cached=self.cache.path(sha))
-            self.say(f"model {sha[:12]} from the cache ({self.cache.path(sha)})")
-            return model
-        for _ in range(MODEL_ATTEMPTS):
-            tick = time.monotonic()
-            data = self._fetch(hello)
-            if data is None:
-                return None
-            if not data:  # the chunks did not hash to the announced sha256
-                continue
-            try:
-                model = verify_model(data, sha, f"model {sha[:12]} from {self.connect}")
-            except ModelFileError as exc:
-                raise ReceiveError(f"the sender's model is not a valid model file: {exc}") \
-                    from None
-            seconds = time.monotonic() - tick
-            try:
-                path = self.cache.put(data, model)
-            except ModelCacheError as exc:
-                path = None
-                self.say(f"model not cached: {exc}")
-            self._note_model(model, "fetched", cached=path, seconds=seconds)
-            self.say(f"model {sha[:12]} fetched: {len(data)} bytes in {seconds:.2f} s"
-                     + (f", cached as {path}" if path else ""))
-            return model
-        raise ReceiveError(f"the model announced by {self.connect} ({sha[:16]}...) failed "
-                           f"its sha256 {MODEL_ATTEMPTS} times (its chunks did not hash to "
-                           f"it, or were not the ones asked for)")
-
-    def _fetch(self, hello: Hello) -> bytes | None:
-        """The model file's bytes; None when the sender stopped answering (a chunk timed
-        out), b"" when the whole does not hash to the announced sha256 or every answer for
-        a chunk was another chunk or an error (a failed attempt, bounded by
-        ``MODEL_ATTEMPTS``)."""
-        sha, total = hello.model_sha256, hello.model_bytes
-        assembler = ModelAssembler(sha, total)
-        for index in assembler.missing():
-            timeouts = self.control.timeouts
-            for _ in range(CHUNK_ATTEMPTS):
-                self._check_end()
-                chunk = self.control.ask(ModelRequest(sha, index), ModelChunk, CHUNK_TIMEOUT_S)
-                if chunk is None:
-                    continue
-                if (chunk.sha256, chunk.index, chunk.total) != (sha, index, total):
-                    self.control.reject(f"chunk {chunk.index} of {chunk.sha256[:12]} "
-                                        f"({chunk.total} bytes) for chunk {index} of "
-                                        f"{sha[:12]} ({total} bytes)")
-                    continue
-                self.last_contact = time.monotonic()
-                assembler.add(chunk)
-                self.say(f"fetching model {sha[:12]}: chunk {index + 1}/{assembler.count} "
-                         f"({min((index + 1) * ctl.CHUNK_BYTES, total) // 1024} of "
-                         f"{total // 1024} KiB)")
-                break
-            else:
-                gone = self.control.timeouts > timeouts
-                self.say(f"model {sha[:12]}: chunk {index} failed {CHUNK_ATTEMPTS} times "
-                         f"({self.control.last_error or 'no answer'}); "
-                         + ("asking the sender again" if gone else "fetching it again"))
-                return None if gone else b""
-        try:
-            return assembler.result()
-        except ControlError as exc:
-            self.say(f"model {sha[:12]}: {exc}; fetching it again")
-            return b""
-
-    def _note_model(self, model: PersonModel, source: str, cached: Path | None = None,
-                    seconds: float | None = None) -> None:
-        self.model_info = {"model_sha256": model.sha256, "model_source": source,
-                           "model_bytes": model.file_bytes,
-                           "model_fetch_s": None if seconds is None else round(seconds, 3),
-                           "cached": None if cached is None else str(cached)}
 
     # -- playing ---------------------------------------------------------------------------
 
@@ -570,7 +428,8 @@ class _Session:
         if self.scene is None:
             self.scene = StateRenderer(model, *self.size, hello.camera)
         self.scene.hello_camera = hello.camera
-        self._retire_playout()
+        if self.playout is not None:
+            self.stats.retire(self.playout, self.played)
         self.hello = hello
         self.playout = Playout(hello.rate_hz, rest_q=rest_q(model), skip=self.view is not None)
         self.played, self.restarts_seen, self.stream_played = 0, 0, False
@@ -578,23 +437,12 @@ class _Session:
         now = time.monotonic()
         self.playing_since = now
         if self.view is not None:
-            self.counts["ignored"] += self.reader.discard()
+            self.stats.counts["ignored"] += self.reader.discard()
         self.last_contact = now  # the idle timeout counts from a ready loop
         self.say(f"playing {self.connect} at {hello.rate_hz:g} Hz, {self.size[0]}x"
                  f"{self.size[1]}: waiting for packets")
-
-    def _retire_playout(self) -> None:
-        """Add the current playout's counts to the totals; what it still held is
-        ``discarded``."""
-        if self.playout is None:
-            return
-        stats = self.playout.stats
-        for key in _PLAYOUT_KEYS:
-            self.totals[key] += stats[key]
-        unplayed = stats["received"] - self.played - sum(
-            stats[k] for k in ("duplicate", "late", "stray", "discarded"))
-        self.totals["discarded"] += max(unplayed, 0)
-        self.playout = None
+        if self.ready is not None:
+            self.ready.set()
 
     def _play(self) -> None:
         """Play until the session ends: raises ``_End``, after playing what was received
@@ -611,7 +459,10 @@ class _Session:
                 else:
                     wait = _POLL_S if due is None else min(due - now, _POLL_S)
                     self.reader.arrived.wait(wait)
-                self._status()
+                line = self.stats.status_line(time.monotonic(), self.playout, self.connect,
+                                              self.reader.last_arrival, self.playing_since)
+                if line is not None:
+                    self.say(line)
         except _End as end:
             if end.reason != "max_frames":
                 self._drain()
@@ -670,9 +521,9 @@ class _Session:
         self.played += 1
         if not self.stream_played:
             self.stream_played = True
-            self.counts["streams"] += 1
+            self.stats.counts["streams"] += 1
         for concealed in self.pending:
-            self.counts["lost"] += 1
+            self.stats.counts["lost"] += 1
             self._emit(concealed, None, None)
         self.pending.clear()
         image = self.scene.render(state)
@@ -688,8 +539,8 @@ class _Session:
         if hello is None:
             self.next_check = time.monotonic() + RECHECK_EVERY_S
             return False
-        self.last_contact = time.monotonic()
-        self.counts["hellos"] += 1
+        self._touch()
+        self.stats.counts["hellos"] += 1
         self.hello_due = False
         same_model = hello.model_sha256 == self.hello.model_sha256
         if same_model and hello.rate_hz == self.hello.rate_hz:
@@ -698,7 +549,7 @@ class _Session:
             return False
         self.say(f"the sender at {self.connect} now sends model {hello.model_sha256[:12]} "
                  f"at {hello.rate_hz:g} Hz")
-        model = self.scene.model if same_model else self._obtain(hello)
+        model = self.scene.model if same_model else self.acquirer.obtain(hello)
         if model is None:
             self.hello_due, self.next_check = True, time.monotonic() + RECHECK_EVERY_S
             return False
@@ -706,113 +557,43 @@ class _Session:
         return True
 
     def _note_packet(self, data: bytes, arrival: float) -> None:
-        if self.last_packet is not None and arrival - self.last_packet > RESUME_GAP_S:
+        last = self.stats.last_packet
+        if last is not None and arrival - last > RESUME_GAP_S:
             self.hello_due, self.next_check = True, 0.0
-        if self.first_packet is None:
-            self.first_packet = (arrival, len(data))
-        self.last_packet = arrival
-        self.bytes_total += len(data)
-        self.recent_packets.append((arrival, len(data)))
+        self.stats.packet(len(data), arrival)
+        if self.on_packet is not None:
+            self.on_packet(data, arrival)
 
     def _emit(self, state: FrameState, image: np.ndarray | None,
               latency: float | None) -> None:
-        """One output frame: written if there is a file (rendered now if ``image`` is None),
-        counted, and the end of the session at ``max_frames``."""
+        """One output frame: written if there is a file and handed to ``on_frame`` (rendered
+        now if ``image`` is None), counted, and the end of the session at ``max_frames``."""
+        if image is None and (self.out is not None or self.frames_dir is not None
+                              or self.on_frame is not None):
+            image = self.scene.render(state)
         if self.out is not None or self.frames_dir is not None:
-            if image is None:
-                image = self.scene.render(state)
             if self.writer is None:
                 width, height = self.size
                 self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz) \
                     if self.out is not None else FrameFolderWriter(self.frames_dir)
             self.writer.write(image)
-        now = time.monotonic()
-        self.counts["frames"] += 1
-        self.first_frame = self.first_frame or now
-        self.last_frame = now
-        if latency is not None:
-            self.latencies.append(latency)
-        self.recent_frames.append((now, latency))
-        if self.max_frames is not None and self.counts["frames"] >= self.max_frames:
+        if self.on_frame is not None:
+            self.on_frame(image, state)
+        frames = self.stats.frame(time.monotonic(), latency)
+        if self.max_frames is not None and frames >= self.max_frames:
             raise _End("max_frames")
 
-    # -- statistics ------------------------------------------------------------------------
-
-    def _playout_counts(self) -> dict[str, int]:
-        counts = dict(self.totals)
-        if self.playout is not None:
-            for key, value in self.playout.stats.items():
-                if key in counts:
-                    counts[key] += value
-        return counts
-
     def _live(self, state: FrameState | None) -> dict[str, Any]:
-        """The live statistics (``LIVE_KEYS``) as of this slot (its playout status and wire
-        sequence number), or between slots (None: "playing")."""
-        now = time.monotonic()
-        while self.recent_packets and self.recent_packets[0][0] < now - WINDOW_S:
-            self.recent_packets.popleft()
-        while self.recent_frames and self.recent_frames[0][0] < now - WINDOW_S:
-            self.recent_frames.popleft()
-        counts = self._playout_counts()
-        latencies = [x for _, x in self.recent_frames if x is not None]
-        return {"state": "playing" if state is None else state.status,
-                "seq": None if state is None else state.seq,
-                "fps": round(len(self.recent_frames) / WINDOW_S, 1),
-                "kbps": round(sum(n for _, n in self.recent_packets) * 8 / 1000 / WINDOW_S, 2),
-                "frames": self.counts["frames"], "received": counts["received"],
-                "lost": self.counts["lost"], "late": counts["late"],
-                "corrupt": counts["corrupt"], "duplicates": counts["duplicate"],
-                "latency_ms": round(1000 * float(np.median(latencies)), 1) if latencies
-                else None}
-
-    def _status(self) -> None:
-        """The status line every ``STATUS_EVERY_S`` while playing."""
-        now = time.monotonic()
-        if now < self.next_status:
-            return
-        self.next_status = now + STATUS_EVERY_S
-        last = self.reader.last_arrival
-        if last is None or now - last > STATUS_EVERY_S:
-            quiet = now - max(last or 0.0, self.playing_since)
-            self.say(f"no packets from {self.connect} for {quiet:.0f} s: waiting for the "
-                     f"sender")
-            return
-        s = self._live(None)
-        latency = "-" if s["latency_ms"] is None else f"{s['latency_ms']:.0f} ms"
-        self.say(f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
-                 f"lost {s['lost']}, late {s['late']}, corrupt {s['corrupt']}; latency "
-                 f"{latency}")
+        return self.stats.live(time.monotonic(), state, self.playout)
 
     def _summary(self, ended: str, seconds: float) -> dict[str, Any]:
-        counts = self._playout_counts()
-        frames = self.counts["frames"]
-        span = (self.last_frame - self.first_frame) if frames > 1 else 0.0
-        packet_span = (self.last_packet - self.first_packet[0]) if self.first_packet else 0.0
-        latencies = np.asarray(self.latencies) * 1000
-        renders = np.asarray(self.scene.render_seconds if self.scene else []) * 1000
         width, height = self.size if self.size is not None else (None, None)
         out = self.out if self.out is not None else self.frames_dir
-
-        def ms(values: np.ndarray, q: float) -> float | None:
-            return round(float(np.percentile(values, q)), 1) if len(values) else None
-
         return {
-            "connect": self.connect, "ended": ended, "out": None if out is None else str(out),
-            "width": width, "height": height, "frames": frames,
-            "received": counts["received"], "lost": self.counts["lost"],
-            "late": counts["late"], "corrupt": counts["corrupt"],
-            "duplicates": counts["duplicate"], "stray": counts["stray"],
-            "discarded": counts["discarded"], "skipped": counts["skipped"],
-            "restarts": counts["restarts"], "ignored": self.counts["ignored"],
-            "overflow": self.reader.overflow, "streams": self.counts["streams"],
-            "hellos": self.counts["hellos"], "control_timeouts": self.control.timeouts,
-            "control_errors": self.control.errors,
-            "fps": round((frames - 1) / span, 1) if span > 0 else None,
-            "kbps": round((self.bytes_total - self.first_packet[1]) * 8 / 1000 / packet_span, 3)
-            if packet_span > 0 else None,
-            "latency_ms_median": ms(latencies, 50), "latency_ms_p95": ms(latencies, 95),
-            "render_ms_median": None if not len(renders) else round(float(np.median(renders)),
-                                                                   2),
-            **self.model_info, "seconds": round(seconds, 2),
+            "connect": self.connect, "out": None if out is None else str(out),
+            "width": width, "height": height,
+            **self.stats.summary(self.playout, ended, seconds, self.reader.overflow,
+                                 self.control.timeouts, self.control.errors,
+                                 self.scene.render_seconds if self.scene else ()),
+            **self.acquirer.info,
         }

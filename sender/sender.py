@@ -43,6 +43,11 @@ would wait for a frame's tracking and pacing, one frame period each, and a Hello
 behind the tracker. Its work (a lookup and a send) is small beside the frame loop's. Each
 thread uses only its own sockets.
 
+Holding the start (``start``): the frame loop holds the first frame until the event is set
+(or ``stop`` is), while the control thread answers: e.g. until a receiver in the same process,
+which fetches the model first, is ready to play (``receiver.receiver.receive(ready=)``), so
+that it gets a file from its first frame without a backlog to catch up.
+
 Receiver count: TCP connections open to the packet socket (``protocol.transport.PeerCounter``):
 a relay counts as one, a peer still in its handshake counts too.
 
@@ -234,7 +239,9 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
 def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BIND,
          record: str | os.PathLike[str] | None = None, rate_hz: float = 30.0,
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
-         stop: threading.Event | None = None, loop: bool = False) -> dict[str, Any]:
+         stop: threading.Event | None = None, loop: bool = False,
+         frames: slice = slice(0, None), start: threading.Event | None = None
+         ) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -252,6 +259,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             frame had one) and ``receivers``.
         stop: set it (from another thread) to stop cleanly.
         loop: start a video file again when it ends (until stopped).
+        frames: which frames of a file or folder, by index (step 1; a camera ignores it).
+        start: hold the first frame until it is set, or None to start at once (module
+            docstring).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -263,23 +273,20 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         (``end``, ``stop`` or ``interrupt``).
 
     Raises:
-        ValueError: rate out of range.
+        ValueError: rate out of range, or a frame range with a step.
         TransportError: a bad endpoint or a port in use.
         ModelFileError, KeyFileError: a missing or invalid model or key folder (named).
         LogError: the log cannot be written (named).
         CaptureError: no such camera, an unreadable or empty video (named).
     """
-    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float)) and
-                                         MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
-        raise ValueError(f"rate_hz: expected a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
-                         f"got {rate_hz!r}")
+    _check_rate(rate_hz)
     control_at = control_endpoint(bind)
     stop = stop if stop is not None else threading.Event()
     report = status if status is not None else (lambda _: None)
     model, data = _read_model(model_path)
     curve = server_keys(curve_dir) if curve_dir is not None else None
     with ExitStack() as stack:
-        src = stack.enter_context(open_source(str(source), rate_hz))
+        src = stack.enter_context(open_source(str(source), rate_hz, frames=frames))
         rate = float(min(rate_hz, src.rate_hz))
         # bound before the model's pipeline is set up: a port in use fails at once
         publisher = stack.enter_context(PacketPublisher(bind, curve))
@@ -294,38 +301,44 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         stack.callback(responder.stop)
         try:
             counts, stopped = _stream(src, pipeline, publisher, log, peers, rate, loop, stop,
-                                      report)
+                                      report, start)
         except CaptureError:
             if log is not None and log.records == 0:
                 log.close()
                 Path(record).unlink(missing_ok=True)
             raise
+    return {**_rates(counts), "log": None if record is None else str(record),
+            "model_sha256": hello.model_sha256, "model_bytes": len(data),
+            "model_chunks": len(chunks), "rate_hz": rate, "endpoint": bind,
+            "control_endpoint": control_at, "encrypted": curve is not None,
+            "warning": unencrypted_warning(bind, curve_dir),
+            "control": dict(responder.counts), "stopped": stopped}
+
+
+def _check_rate(rate_hz: object) -> None:
+    if isinstance(rate_hz, bool) or not (isinstance(rate_hz, (int, float)) and
+                                         MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
+        raise ValueError(f"rate_hz: expected a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
+                         f"got {rate_hz!r}")
+
+
+def _rates(counts: dict[str, Any]) -> dict[str, Any]:
+    """The frame loop's counts, with its seconds and CPU time turned into rates."""
+    counts = dict(counts)
     seconds, cpu = counts.pop("seconds"), counts.pop("cpu_seconds")
     per_second = 1.0 / seconds if seconds > 0 else 0.0
-    return {
-        **counts,
-        "seconds": round(seconds, 3),
-        "fps": round(counts["frames"] * per_second, 2),
-        "payload_kbps": round(counts["packets"] * PACKET_BYTES * 8 * per_second / 1000, 3),
-        "cpu_percent": round(100 * cpu * per_second, 1),
-        "log": None if record is None else str(record),
-        "model_sha256": hello.model_sha256,
-        "model_bytes": len(data),
-        "model_chunks": len(chunks),
-        "rate_hz": rate,
-        "endpoint": bind,
-        "control_endpoint": control_at,
-        "encrypted": curve is not None,
-        "warning": unencrypted_warning(bind, curve_dir),
-        "control": dict(responder.counts),
-        "stopped": stopped,
-    }
+    return {**counts, "seconds": round(seconds, 3),
+            "fps": round(counts["frames"] * per_second, 2),
+            "payload_kbps": round(counts["packets"] * PACKET_BYTES * 8 * per_second / 1000, 3),
+            "cpu_percent": round(100 * cpu * per_second, 1)}
 
 
 def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             log: LogWriter | None, peers: PeerCounter, rate_hz: float, loop: bool,
-            stop: threading.Event, report: Status) -> tuple[dict[str, Any], str]:
-    """The frame loop of ``send``: returns the counts and why it stopped."""
+            stop: threading.Event, report: Status, hold: threading.Event | None
+            ) -> tuple[dict[str, Any], str]:
+    """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
+    the first frame waits until it is set (or ``stop`` is)."""
     counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0}
     start = cpu = None
     window = (0.0, 0)  # (start of the status period, frames up to its first)
@@ -333,6 +346,9 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
     epoch = time.time() - time.monotonic()  # log times: Unix, but never stepping back
     stopped = "end"
     try:
+        while hold is not None and not hold.wait(CONTROL_POLL_MS / 1000) \
+                and not stop.is_set():
+            pass
         for image, t in _frames(src, rate_hz, loop, stop):
             if stop.is_set():
                 stopped = "stop"

@@ -31,7 +31,9 @@ from facewire.protocol.keys import generate_keys, server_keys
 from facewire.protocol.log import read_log
 from facewire.protocol.transport import TransportError
 from facewire.receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
-from facewire.receiver.receiver import LIVE_KEYS, MAX_SIZE, ReceiveError, receive
+from facewire.receiver.playout import FrameState
+from facewire.receiver.receiver import MAX_SIZE, ReceiveError, receive
+from facewire.receiver.stats import LIVE_KEYS
 from facewire.sender.pipeline import encode_video
 
 SIZE = (160, 120)
@@ -170,12 +172,19 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     sender = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=40,
                        go=go, junk_every=8)
     out = tmp_path / "live.mp4"
+    packets: list[tuple[bytes, float]] = []
+    ready = threading.Event()
     try:
         summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model, out=out,
-                          size=SIZE, status=_ready(go, lines), idle_timeout_s=1.0)
+                          size=SIZE, status=_ready(go, lines), idle_timeout_s=1.0,
+                          on_packet=lambda *a: packets.append(a), ready=ready)
     finally:
         sender.stop()
+    assert ready.is_set()
     assert sender.sent == 40 and sender.junk == 15
+    # on_packet sees every message taken from the socket, junk too, in arrival order
+    assert len(packets) == 55 and sum(len(d) == 39 for d, _ in packets) >= 40
+    assert all(a <= b for (_, a), (_, b) in zip(packets, packets[1:]))
     assert summary["ended"] == "idle_timeout" and summary["model_source"] == "file"
     assert not sender.requests["model_request"]
     assert summary["received"] == 40 and summary["corrupt"] == 15
@@ -199,10 +208,11 @@ def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retrie
     sender = LogSender(port, log.hello, person_model.read_bytes(), log.packets, count=40,
                        go=go, drop_every=7, faulty=(1, 3))
     out = tmp_path / "frames"
+    shown: list[tuple[np.ndarray, FrameState]] = []
     try:
         summary = receive(f"tcp://127.0.0.1:{port}", frames_dir=out, size=SIZE,
                           cache_dir=tmp_path / "cache", status=_ready(go, lines),
-                          idle_timeout_s=1.0)
+                          idle_timeout_s=1.0, on_frame=lambda *a: shown.append(a))
     finally:
         sender.stop()
     assert summary["control_errors"] == 2 and summary["model_source"] == "fetched"
@@ -211,6 +221,11 @@ def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retrie
     assert sender.dropped == 5 and summary["received"] == 35
     assert summary["lost"] == 5 and summary["frames"] == 40
     assert len(list(out.glob("frame_*.png"))) == 40
+    # on_frame sees the same 40 output frames, the concealed slots rendered too, in order
+    assert len(shown) == 40 and sum(s.arrival_s is None for _, s in shown) == 5
+    assert all(i.shape == (SIZE[1], SIZE[0], 3) and i.mean() > 5 for i, _ in shown)
+    seqs = [s.seq for _, s in shown]
+    assert all((b - a) % 65536 == 1 for a, b in zip(seqs, seqs[1:]))
 
 
 def test_a_restarted_sender_with_a_new_model_is_followed(log, person_model: Path,
@@ -348,6 +363,10 @@ def test_bad_arguments_are_refused_before_connecting(tmp_path: Path) -> None:
         receive("tcp://127.0.0.1:5555", size=(0, 10))
     with pytest.raises(ReceiveError, match="callable"):
         receive("tcp://127.0.0.1:5555", view=5)
+    with pytest.raises(ReceiveError, match="on_frame"):
+        receive("tcp://127.0.0.1:5555", on_frame=5)
+    with pytest.raises(ReceiveError, match="ready"):
+        receive("tcp://127.0.0.1:5555", ready=True)
     with pytest.raises(TransportError):
         receive("udp://nowhere", idle_timeout_s=1)
 

@@ -139,6 +139,38 @@ def test_stop_event_ends_a_looping_send_cleanly(generic_model: Path, grey_clip: 
         pass
 
 
+def test_start_holds_the_first_frame_and_frames_picks_the_file_s_range(
+        generic_model: Path, grey_video: Callable[..., Path], tmp_path: Path) -> None:
+    """Frames 4:10 of a 12-frame clip, held until ``start`` is set while the Hello is served;
+    a send stopped while held sends nothing."""
+    clip = grey_video("grey12.mp4", frames=12)
+    endpoint, log_path = free_endpoint(), tmp_path / "range.fwlog"
+    go = threading.Event()
+    with PacketSubscriber(endpoint) as sub, ControlClient(control_endpoint(endpoint)) as client:
+        thread, _, result = start(send, model_path=generic_model, source=str(clip),
+                                  bind=endpoint, record=log_path, frames=slice(4, 10), start=go)
+        assert isinstance(client.request(HelloRequest(), TIMEOUT_MS), Hello), result
+        assert sub.recv(1000) is None and thread.is_alive()  # held
+        go.set()
+        received = []
+        while (packet := sub.recv(3000)) is not None:
+            received.append(packet)
+        thread.join(10)
+    assert "error" not in result, result.get("error")
+    assert result["stopped"] == "end" and result["frames"] == result["packets"] == 6
+    assert [decode(p).seq for p in received] == list(range(6))
+    assert len(read_log(log_path).packets) == 6
+
+    endpoint = free_endpoint()
+    with ControlClient(control_endpoint(endpoint)) as client:
+        thread, stop, result = start(send, model_path=generic_model, source=str(clip),
+                                     bind=endpoint, start=threading.Event())
+        assert isinstance(client.request(HelloRequest(), TIMEOUT_MS), Hello), result
+        stop.set()
+        thread.join(10)
+    assert not thread.is_alive() and result["stopped"] == "stop" and result["packets"] == 0
+
+
 @pytest.fixture()
 def keys(tmp_path: Path) -> Path:
     """Sender keys trusting 'good'; 'good' and 'stranger' both trust the sender."""

@@ -47,7 +47,8 @@ from facewire.protocol.control import (CHUNK_BYTES, Camera, Error, Hello, HelloR
 from facewire.protocol.packet import Flag, Frame, decode, encode
 from facewire.protocol.transport import (MAX_CONTROL_FRAME, ControlServer, PacketSubscriber,
                                 control_endpoint)
-from facewire.receiver.receiver import CHUNK_ATTEMPTS, MODEL_ATTEMPTS, ReceiveError, receive
+from facewire.receiver.acquire import CHUNK_ATTEMPTS, MODEL_ATTEMPTS
+from facewire.receiver.receiver import ReceiveError, receive
 from facewire.sender.sender import send
 
 RATE_HZ = 30.0
