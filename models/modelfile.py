@@ -1,7 +1,8 @@
 """The person model and its file, ``.fwm``: one zip that both hosts read.
 
 A person model holds what the sender and the receiver both need about one person: the fitted
-head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera, a little
+head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera
+(``models.geometry.Intrinsics``), a little
 metadata and the texture regions of the appearance work (their layer stacks, masks and
 classification templates). The receiver may fetch a model from the network, so the reader
 treats every file as hostile: it never extracts to disk, reads members by exact allow-listed
@@ -42,8 +43,9 @@ N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy for
 their header before that). Manifest ``model.json``, every key required and no others::
 
     {"format": "facewire-model", "format_version": 3,
-     "camera":  {"fx", "fy": focal lengths, px, > 0; "cx", "cy": principal point, px
-                 (image origin top-left); "width", "height": image size, px},
+     "camera":  {"fx", "fy": focal lengths, px; "cx", "cy": principal point, px
+                 (image origin top-left); "width", "height": image size, px; within the
+                 bounds of ``models.geometry.Intrinsics``},
      "info":    {"name": person, "source_video": enrollment video's name ("" if none),
                  "frames_used": strictly increasing frame indices, "neutral_frame": index,
                  "creator": software that built it, "created": a date given by the caller
@@ -108,6 +110,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
+from facewire.models.geometry import Intrinsics
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.mesh import Mesh, MeshError
 
@@ -149,34 +152,6 @@ class ModelError(ValueError):
 
 class ModelFileError(ValueError):
     """A model file cannot be read or written; the message names the file and the field."""
-
-
-@dataclass(frozen=True)
-class Camera:
-    """The enrollment camera's pinhole intrinsics (image origin top-left, rows down).
-
-    Attributes:
-        fx, fy: focal lengths, px, finite and > 0.
-        cx, cy: principal point, px, finite.
-        width, height: image size, px, in [1, 65535].
-    """
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        for name in ("fx", "fy", "cx", "cy"):
-            value = _number(getattr(self, name), f"camera.{name}")
-            if name in ("fx", "fy") and not value > 0:
-                raise ModelError(f"camera.{name}: must be > 0, got {value}")
-            object.__setattr__(self, name, value)
-        for name in ("width", "height"):
-            size = _integer(getattr(self, name), f"camera.{name}", 1, 65535)
-            object.__setattr__(self, name, size)
 
 
 @dataclass(frozen=True)
@@ -328,7 +303,7 @@ class PersonModel:
     Attributes:
         mesh: the fitted head mesh (model space, mm).
         texture: (H, W, 3) uint8 RGB neutral texture, row 0 at v = 1; 1 <= H, W <= 4096.
-        camera: the enrollment camera.
+        camera: the enrollment camera's intrinsics.
         info: name and provenance.
         regions: texture regions in packet order (may be empty), at most 32.
         sha256: the model id, lowercase hex sha256 of the file it was loaded from; "" for a
@@ -338,14 +313,14 @@ class PersonModel:
 
     mesh: Mesh
     texture: np.ndarray
-    camera: Camera
+    camera: Intrinsics
     info: ModelInfo
     regions: tuple[Region, ...] = ()
     sha256: str = ""
     file_bytes: int = 0
 
     def __post_init__(self) -> None:
-        for name, kind in (("mesh", Mesh), ("camera", Camera), ("info", ModelInfo)):
+        for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
             if not isinstance(getattr(self, name), kind):
                 raise ModelError(f"{name}: expected a {kind.__name__}, "
                                  f"got {_kind(getattr(self, name))}")
@@ -699,7 +674,7 @@ class _RegionEntry(NamedTuple):
 
 
 class _Manifest(NamedTuple):
-    camera: Camera
+    camera: Intrinsics
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
     regions: list[_RegionEntry]
@@ -727,7 +702,11 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     if version not in READ_VERSIONS:
         raise ModelError(f"format_version: unsupported version {version} "
                          f"(this reader knows {', '.join(map(str, READ_VERSIONS))})")
-    camera = Camera(**_keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"}))
+    fields = _keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"})
+    try:
+        camera = Intrinsics(**fields)
+    except ValueError as e:
+        raise ModelError(f"camera.{e}") from e
     info = ModelInfo(**_keys(doc["info"], "info", {"name", "source_video", "frames_used",
                                                    "neutral_frame", "creator", "created"}))
     members: dict[str, tuple[int, ...]] = {}
