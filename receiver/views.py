@@ -32,9 +32,9 @@ from facewire.models.mesh import Mesh
 from facewire.models.infra.raster import Camera, RenderError, orbit_pose
 from facewire.protocol import control
 
-FOV_DEG = 25.0  # as models.build.PREVIEW_FOV_DEG
-FIELD_EYE_DISTANCES = 3.6  # as models.build.CROP_EYE_DISTANCES
-THREE_QUARTER_YAW_DEG = 35.0  # as models.build.PREVIEW_YAWS
+FOV_DEG = 25.0  # as sender.enroll.build.PREVIEW_FOV_DEG
+FIELD_EYE_DISTANCES = 3.6  # as sender.enroll.build.CROP_EYE_DISTANCES
+THREE_QUARTER_YAW_DEG = 35.0  # as sender.enroll.build.PREVIEW_YAWS
 VIEW_KINDS = ("front", "three-quarter")
 
 

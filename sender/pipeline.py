@@ -286,7 +286,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         model_path: the person model (``.fwm``).
         source: a video file or a folder of images (``sender.capture.open_source``).
         out_log: the ``.fwlog`` to write (replaced if it exists).
-        frames: which frames (``models.video.frame_range``); all by default.
+        frames: which frames (``models.infra.video.frame_range``); all by default.
         focal: focal length in pixels (``--focal``), else estimated.
         calib: a calibration JSON file (``--calib``).
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
