@@ -2,13 +2,13 @@
 
 A person model holds what the sender and the receiver both need about one person: the fitted
 head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera
-(``models.geometry.Intrinsics``), a little metadata and the texture regions of the appearance
-work (their layer stacks, masks and classification templates). The receiver may fetch a model from the network, so the reader
-treats every file as hostile: it never extracts to disk, reads members by exact allow-listed
-names, bounds every size before it inflates anything, and validates everything before it
-returns. Every failure is a ``ModelFileError`` (a ``ValueError``) whose message names the
-file and the member or field, e.g. ``alice.fwm: arrays/vertices.npy: expected dtype float32,
-got float64``.
+(``models.geometry.Intrinsics``), a little metadata and the texture regions of the
+appearance work (their layer stacks, masks and classification templates). The receiver may
+fetch a model from the network, so the reader treats every file as hostile: it never
+extracts to disk, reads members by exact allow-listed names, bounds every size before it
+inflates anything, and validates everything before it returns. Every failure is a
+``ModelFileError`` (a ``ValueError``) whose message names the file and the member or field,
+e.g. ``alice.fwm: arrays/vertices.npy: expected dtype float32, got float64``.
 
 File layout, format version 1
 -----------------------------

@@ -13,13 +13,14 @@ s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2, and the same in y with 
 output of another aspect ratio stretches like a resized frame).
 
 Virtual view (``virtual_view``): a square-pixel camera framing the head as
-``sender.enroll.build.render_preview`` does: its field of view ``FOV_DEG`` holds ``FIELD_EYE_DISTANCES``
-outer-eye distances (36 to 45) across the image height, aimed at the head centre c (the
-landmarks' mean, raised by a tenth of the field), from the front (yaw 0) or from a
-three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The
-head turns by the received rotation about c and stays there (the translation is not
-followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with (R_v, t_v) the orbit
-pose of ``models.infra.raster.orbit_pose`` around c, so c is always at the image centre.
+``sender.enroll.build.render_preview`` does: its field of view ``FOV_DEG`` holds
+``FIELD_EYE_DISTANCES`` outer-eye distances (36 to 45) across the image height, aimed at the
+head centre c (the landmarks' mean, raised by a tenth of the field), from the front (yaw 0)
+or from a three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the
+model's +x). The head turns by the received rotation about c and stays there (the
+translation is not followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with
+(R_v, t_v) the orbit pose of ``models.infra.raster.orbit_pose`` around c, so c is always at
+the image centre.
 """
 
 from __future__ import annotations

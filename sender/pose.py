@@ -39,9 +39,10 @@ of 1e-3 of the diagonal slowed the steps along that direction to a factor 0.5 ea
 converging in 10; the start is always close (previous frame, or SQPnP). It starts from the
 previous frame's raw pose; on acquisition (no previous pose, or after a failure) from
 ``cv2.solvePnP`` (SQPnP) on the points with weight >= 0.5 (converted from OpenCV's frame by
-``S = diag(1, -1, -1)``, ``models.geometry.Pose.from_opencv``). A pose is rejected (None) when a weighted point falls behind the
-camera, the result is not finite, or the median reprojection error of the 9 rigid points
-exceeds ``MAX_POSE_ERROR`` (0.15) of the image eye distance (as ``sender.enroll.fit``).
+``S = diag(1, -1, -1)``: ``models.geometry.Pose.from_opencv``). A pose is rejected (None)
+when a step cannot be solved, a weighted point falls behind the camera, the result is not
+finite, or the median reprojection error of the 9 rigid points exceeds ``MAX_POSE_ERROR``
+(0.15) of the image eye distance (as ``sender.enroll.fit``).
 
 Temporal filter
 ---------------
@@ -235,7 +236,7 @@ class PoseSolver:
             rows[5] = sab
             normal_grad = (jac * w2.reshape(-1)) @ system.T  # (6, 7): [J^T W J | J^T W res]
             _, _, step, info = _dgesv(normal_grad[:, :6], normal_grad[:, 6])
-            if info != 0 or not np.isfinite(step).all():  # singular normal matrix
+            if info != 0 or not np.isfinite(step).all():  # singular or overflowing
                 return None
             r = rotation_matrix(-step[:3]) @ r
             t = t - step[3:]

@@ -1,4 +1,5 @@
-"""Tests for sender.enroll.fit: fitting the generic head to one person from tracked 68-point frames."""
+"""Tests for sender.enroll.fit: fitting the generic head to one person from tracked 68-point
+frames."""
 
 from __future__ import annotations
 
