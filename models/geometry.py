@@ -161,7 +161,7 @@ def rotation_vector(rotation: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(r)[0].ravel()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Pose:
     """A head (or camera) pose in the GL camera frame: ``X_cam = rotation @ X + translation``.
 
