@@ -68,7 +68,7 @@ import numpy as np
 
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.build import BuildError, BuildResult, build_model
-from facewire.sender.enroll.fit import Pose
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import PersonModel
 from facewire.models.morph import VolumeMorph
@@ -382,7 +382,7 @@ class Performer:
         self._neutral = vertices.astype(np.float32)
         self.pose: Pose = pose
         c = model.camera
-        self._intrinsics = (c.fx, c.fy, c.cx, c.cy)
+        self._intrinsics = Intrinsics(c.fx, c.fy, c.cx, c.cy, self.width, self.height)
         landmarks = model.mesh.vertices[model.mesh.landmarks].astype(np.float64)
         self.pivot = landmarks.mean(axis=0) + np.asarray(PIVOT)
         self._head_points = np.concatenate([model.mesh.landmarks[:17], model.mesh.phantoms])
@@ -419,9 +419,8 @@ class Performer:
         """The camera seeing the head turned by (yaw, pitch) about the pivot."""
         turn = head_turn(yaw_deg, pitch_deg)
         r0, t0 = self.pose.rotation, self.pose.translation
-        fx, fy, cx, cy = self._intrinsics
-        return Camera(fx, fy, cx, cy, self.width, self.height, r0 @ turn,
-                      r0 @ (self.pivot - turn @ self.pivot) + t0)
+        return Camera(self._intrinsics,
+                      Pose(r0 @ turn, r0 @ (self.pivot - turn @ self.pivot) + t0))
 
     def frame(self, values: np.ndarray) -> np.ndarray:
         """One performer frame.

@@ -1,14 +1,14 @@
 """The person model and its file, ``.fwm``: one zip that both hosts read.
 
 A person model holds what the sender and the receiver both need about one person: the fitted
-head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera, a little
-metadata and the texture regions of the appearance work (their layer stacks, masks and
-classification templates). The receiver may fetch a model from the network, so the reader
-treats every file as hostile: it never extracts to disk, reads members by exact allow-listed
-names, bounds every size before it inflates anything, and validates everything before it
-returns. Every failure is a ``ModelFileError`` (a ``ValueError``) whose message names the
-file and the member or field, e.g. ``alice.fwm: arrays/vertices.npy: expected dtype float32,
-got float64``.
+head mesh (``models.mesh.Mesh``), the neutral texture, the enrollment camera
+(``models.geometry.Intrinsics``), a little metadata and the texture regions of the
+appearance work (their layer stacks, masks and classification templates). The receiver may
+fetch a model from the network, so the reader treats every file as hostile: it never
+extracts to disk, reads members by exact allow-listed names, bounds every size before it
+inflates anything, and validates everything before it returns. Every failure is a
+``ModelFileError`` (a ``ValueError``) whose message names the file and the member or field,
+e.g. ``alice.fwm: arrays/vertices.npy: expected dtype float32, got float64``.
 
 File layout, format version 1
 -----------------------------
@@ -42,8 +42,9 @@ N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy for
 their header before that). Manifest ``model.json``, every key required and no others::
 
     {"format": "facewire-model", "format_version": 3,
-     "camera":  {"fx", "fy": focal lengths, px, > 0; "cx", "cy": principal point, px
-                 (image origin top-left); "width", "height": image size, px},
+     "camera":  {"fx", "fy": focal lengths, px; "cx", "cy": principal point, px
+                 (image origin top-left); "width", "height": image size, px; within the
+                 bounds of ``models.geometry.Intrinsics``},
      "info":    {"name": person, "source_video": enrollment video's name ("" if none),
                  "frames_used": strictly increasing frame indices, "neutral_frame": index,
                  "creator": software that built it, "created": a date given by the caller
@@ -71,9 +72,10 @@ reader accepts only the versions it knows, and keeps reading the older ones. Ver
 no ``opacity`` and no ``rest`` (read as all ones and 0); nothing ever wrote a version-1
 model with regions. Version 2 had no ``areas`` (read as none).
 
-The zip itself must be plain: it ends with its end-of-archive record (no comment, nothing
-before or after the archive), members are stored or deflated, never encrypted, and no name
-is absolute or holds ``..``, a drive or a NUL (refused as unsafe, never used). Limits: file
+The zip itself must be plain (``models.archive``, the container this module fills: it
+ends with its end-of-archive record, no comment, nothing before or after the archive),
+members are stored or deflated, never encrypted, and no name is absolute or holds ``..``, a
+drive or a NUL (refused as unsafe, never used). Limits: file
 256 MiB; uncompressed 64 MiB a member (1 MiB for ``model.json``, landmarks, phantoms and
 templates) and 256 MiB in all, checked on the sizes the zip declares before anything is
 inflated, and then by reading no more than the declared size (zipfile checks each member's
@@ -88,26 +90,32 @@ keys; there is no wall-clock time anywhere, so the same model always gives the s
 with the same numpy, zlib and OpenCV builds. A model's id is the sha256 of its file's bytes
 (``model_sha256``); it is the hash of the bytes actually written, so a receiver checks the
 file it fetched, never a rebuild.
+
+Size: this module is over 600 lines because it is one concept, the person model as its
+file defines it: the model types validate the same fields, with the same limits and field
+checks (``_integer``, ``_number``, ``_rect``, ``_array``), that the manifest reader and the
+schema table apply to a file, and both raise this module's ``ModelError``. The zip container
+under it (bounded reading, ``.npy`` and PNG decoding, reproducible writing) is
+``models.archive``.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import math
 import os
 import re
 import stat
-import struct
 import zipfile
-import zlib
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-import cv2
 import numpy as np
 
+from facewire.models.archive import (ZipRules, decode_npy, decode_png, npy_bytes, open_zip,
+                                     png_bytes, read_member, zip_bytes)
+from facewire.models.geometry import Intrinsics
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.mesh import Mesh, MeshError
 from facewire.protocol.errors import FacewireError
@@ -134,14 +142,6 @@ TEXTURE_MEMBER = "textures/neutral.png"
 MANIFEST_MEMBER = "model.json"
 _REGION_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}", re.ASCII)
 _HEX64 = re.compile(r"[0-9a-f]{64}", re.ASCII)
-_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
-_DEFLATE_LEVEL = 6
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_COLOUR_TYPES = {2: 3, 0: 2}  # PNG colour type -> array rank (RGB, grey)
-_EOCD = struct.Struct("<4sHHHHIIH")
-_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, RuntimeError,
-               EOFError, OSError, ValueError, zlib.error, struct.error, KeyError, IndexError,
-               OverflowError)
 
 
 class ModelError(FacewireError, ValueError):
@@ -150,34 +150,6 @@ class ModelError(FacewireError, ValueError):
 
 class ModelFileError(FacewireError, ValueError):
     """A model file cannot be read or written; the message names the file and the field."""
-
-
-@dataclass(frozen=True)
-class Camera:
-    """The enrollment camera's pinhole intrinsics (image origin top-left, rows down).
-
-    Attributes:
-        fx, fy: focal lengths, px, finite and > 0.
-        cx, cy: principal point, px, finite.
-        width, height: image size, px, in [1, 65535].
-    """
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        for name in ("fx", "fy", "cx", "cy"):
-            value = _number(getattr(self, name), f"camera.{name}")
-            if name in ("fx", "fy") and not value > 0:
-                raise ModelError(f"camera.{name}: must be > 0, got {value}")
-            object.__setattr__(self, name, value)
-        for name in ("width", "height"):
-            size = _integer(getattr(self, name), f"camera.{name}", 1, 65535)
-            object.__setattr__(self, name, size)
 
 
 @dataclass(frozen=True)
@@ -329,7 +301,7 @@ class PersonModel:
     Attributes:
         mesh: the fitted head mesh (model space, mm).
         texture: (H, W, 3) uint8 RGB neutral texture, row 0 at v = 1; 1 <= H, W <= 4096.
-        camera: the enrollment camera.
+        camera: the enrollment camera's intrinsics.
         info: name and provenance.
         regions: texture regions in packet order (may be empty), at most 32.
         sha256: the model id, lowercase hex sha256 of the file it was loaded from; "" for a
@@ -339,14 +311,14 @@ class PersonModel:
 
     mesh: Mesh
     texture: np.ndarray
-    camera: Camera
+    camera: Intrinsics
     info: ModelInfo
     regions: tuple[Region, ...] = ()
     sha256: str = ""
     file_bytes: int = 0
 
     def __post_init__(self) -> None:
-        for name, kind in (("mesh", Mesh), ("camera", Camera), ("info", ModelInfo)):
+        for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
             if not isinstance(getattr(self, name), kind):
                 raise ModelError(f"{name}: expected a {kind.__name__}, "
                                  f"got {_kind(getattr(self, name))}")
@@ -423,28 +395,21 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
     """
     if len(data) > MAX_FILE_BYTES:
         raise ModelFileError(f"{where}: more than the {MAX_FILE_BYTES} bytes a model may have")
-    _check_zip_layout(data, where)
     try:
-        archive = zipfile.ZipFile(io.BytesIO(data))
-    except _ZIP_ERRORS as e:
-        raise ModelFileError(f"{where}: not a readable zip file ({e})") from e
+        archive, entries = open_zip(data, where, _RULES)
+    except ValueError as e:
+        raise ModelFileError(str(e)) from e
     with archive:
-        entries = _check_entries(archive, where)
         if MANIFEST_MEMBER not in entries:
             raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: missing")
-        raw = _read_member(archive, entries[MANIFEST_MEMBER], where)
+        raw = _member_bytes(archive, entries[MANIFEST_MEMBER], where)
         try:
             manifest = _parse_manifest(raw)
         except ModelError as e:
             raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: {e}") from e
         expected = _check_members(manifest, entries, where)
-        arrays = {}
-        for name in sorted(expected):
-            raw = _read_member(archive, entries[name], where)
-            try:
-                arrays[name] = _decode(raw, _spec(name), manifest.members[name])
-            except ModelError as e:
-                raise ModelFileError(f"{where}: {name}: {e}") from e
+        arrays = {name: _read_array(archive, entries[name], manifest, where)
+                  for name in sorted(expected)}
     try:
         mesh = Mesh(**{f: arrays[f"arrays/{f}.npy"] for f in MESH_FIELDS})
     except MeshError as e:
@@ -527,6 +492,15 @@ def _spec(name: str) -> _Spec | None:
     return next((s for s in _SPECS if s.pattern.fullmatch(name)), None)
 
 
+def _limit(name: str) -> int | None:
+    spec = _spec(name)
+    return None if spec is None else spec.limit
+
+
+_RULES = ZipRules("a facewire model", _limit, MAX_MEMBERS, MAX_TOTAL_BYTES, MAX_RATIO,
+                  RATIO_FLOOR)
+
+
 def _expected_members(regions: list[_RegionEntry]) -> set[str]:
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
     for r in regions:
@@ -556,15 +530,15 @@ def _encode(model: PersonModel) -> bytes:
 
     for f in MESH_FIELDS:
         array = getattr(model.mesh, f)
-        put(f"arrays/{f}.npy", array, _npy_bytes(array))
-    put(TEXTURE_MEMBER, model.texture, _png_bytes(model.texture))
+        put(f"arrays/{f}.npy", array, npy_bytes(array))
+    put(TEXTURE_MEMBER, model.texture, png_bytes(model.texture))
     for r in model.regions:
         for n, area in enumerate(r.parts()):
             folder = f"regions/{r.name}" + (f"/area_{n}" if n else "")
             for j, layer in enumerate(area.layers):
-                put(f"{folder}/layer_{j:02d}.png", layer, _png_bytes(layer))
-            put(f"{folder}/mask.png", area.mask, _png_bytes(area.mask))
-        put(f"regions/{r.name}/templates.npy", r.templates, _npy_bytes(r.templates))
+                put(f"{folder}/layer_{j:02d}.png", layer, png_bytes(layer))
+            put(f"{folder}/mask.png", area.mask, png_bytes(area.mask))
+        put(f"regions/{r.name}/templates.npy", r.templates, npy_bytes(r.templates))
     c, i = model.camera, model.info
     manifest = {
         "format": FORMAT,
@@ -583,109 +557,10 @@ def _encode(model: PersonModel) -> bytes:
     }
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
                                            allow_nan=False) + "\n").encode("ascii")
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w") as archive:
-        for name in sorted(members):
-            entry = zipfile.ZipInfo(name, date_time=_ZIP_TIME)
-            entry.create_system = 3
-            entry.external_attr = 0o644 << 16
-            entry.compress_type = zipfile.ZIP_STORED if name.endswith(".png") \
-                else zipfile.ZIP_DEFLATED
-            archive.writestr(entry, members[name], compresslevel=_DEFLATE_LEVEL)
-    return out.getvalue()
-
-
-def _npy_bytes(array: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    little = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
-    np.lib.format.write_array(out, little, version=(1, 0), allow_pickle=False)
-    return out.getvalue()
-
-
-def _png_bytes(image: np.ndarray) -> bytes:
-    """8-bit PNG of an (h, w, 3) RGB or (h, w) grey uint8 image."""
-    bgr = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
-    ok, data = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 6])
-    if not ok:
-        raise ModelError(f"PNG encoding failed for an image of shape {image.shape}")
-    return data.tobytes()
+    return zip_bytes(members)
 
 
 # ---- reading -----------------------------------------------------------------------------
-
-def _check_zip_layout(data: bytes, where: str) -> None:
-    """Refuse anything but a plain zip ending in its end record, before zipfile parses it."""
-    if len(data) < _EOCD.size or data[-_EOCD.size:-_EOCD.size + 4] != b"PK\x05\x06":
-        raise ModelFileError(f"{where}: not a facewire model (not a zip file, or truncated, "
-                             f"or followed by a comment or other data)")
-    _, disk, cd_disk, n_disk, n_total, cd_size, cd_offset, comment = _EOCD.unpack(
-        data[-_EOCD.size:])
-    if disk or cd_disk or n_disk != n_total or comment:
-        raise ModelFileError(f"{where}: not a plain zip file (multi-part or commented)")
-    if n_total > MAX_MEMBERS:
-        raise ModelFileError(f"{where}: {n_total} members, at most {MAX_MEMBERS}")
-    if cd_offset + cd_size != len(data) - _EOCD.size:
-        raise ModelFileError(f"{where}: zip directory is not where the end record says "
-                             f"(truncated, prefixed or corrupt file)")
-
-
-def _check_entries(archive: zipfile.ZipFile, where: str) -> dict[str, zipfile.ZipInfo]:
-    """Name, size and compression checks on every entry, before any is read."""
-    entries: dict[str, zipfile.ZipInfo] = {}
-    total = 0
-    for entry in archive.infolist():
-        name = entry.filename
-        parts = entry.orig_filename.replace("\\", "/").split("/")
-        if (entry.orig_filename != name or name.startswith("/") or ":" in name
-                or ".." in parts):
-            raise ModelFileError(f"{where}: zip member {entry.orig_filename!r}: unsafe name "
-                                 f"(absolute, '..', drive or NUL); refused")
-        spec = _spec(name)
-        if spec is None:
-            raise ModelFileError(f"{where}: zip member {name!r}: not a member of a facewire "
-                                 f"model; refused")
-        if name in entries:
-            raise ModelFileError(f"{where}: {name}: appears twice in the zip")
-        if entry.flag_bits & 0x1:
-            raise ModelFileError(f"{where}: {name}: encrypted members are not allowed")
-        if entry.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-            raise ModelFileError(f"{where}: {name}: compression method {entry.compress_type} "
-                                 f"not allowed (stored or deflated only)")
-        if entry.file_size > spec.limit:
-            raise ModelFileError(f"{where}: {name}: declares {entry.file_size} bytes "
-                                 f"uncompressed, limit {spec.limit}")
-        if entry.file_size > RATIO_FLOOR and entry.file_size > MAX_RATIO * entry.compress_size:
-            raise ModelFileError(f"{where}: {name}: compression ratio "
-                                 f"{entry.file_size / max(entry.compress_size, 1):.0f}:1 "
-                                 f"exceeds {MAX_RATIO}:1 (zip bomb?)")
-        total += entry.file_size
-        if total > MAX_TOTAL_BYTES:
-            raise ModelFileError(f"{where}: {name}: members declare more than "
-                                 f"{MAX_TOTAL_BYTES} bytes uncompressed in all")
-        entries[name] = entry
-    return entries
-
-
-def _read_member(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, where: str) -> bytes:
-    """The member's bytes, reading no more than its (already bounded) declared size.
-
-    zipfile verifies the CRC-32 once the declared size has been read.
-    """
-    out = bytearray()
-    try:
-        with archive.open(entry) as f:
-            while len(out) < entry.file_size:
-                chunk = f.read(min(1 << 20, entry.file_size - len(out)))
-                if not chunk:
-                    break
-                out += chunk
-    except _ZIP_ERRORS as e:
-        raise ModelFileError(f"{where}: {entry.filename}: corrupt ({e})") from e
-    if len(out) != entry.file_size:
-        raise ModelFileError(f"{where}: {entry.filename}: truncated ({len(out)} of "
-                             f"{entry.file_size} bytes)")
-    return bytes(out)
-
 
 class _RegionEntry(NamedTuple):
     """One ``regions`` entry of the manifest, its values not yet checked by ``Region``."""
@@ -700,7 +575,7 @@ class _RegionEntry(NamedTuple):
 
 
 class _Manifest(NamedTuple):
-    camera: Camera
+    camera: Intrinsics
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
     regions: list[_RegionEntry]
@@ -728,7 +603,11 @@ def _parse_manifest(raw: bytes) -> _Manifest:
     if version not in READ_VERSIONS:
         raise ModelError(f"format_version: unsupported version {version} "
                          f"(this reader knows {', '.join(map(str, READ_VERSIONS))})")
-    camera = Camera(**_keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"}))
+    fields = _keys(doc["camera"], "camera", {"fx", "fy", "cx", "cy", "width", "height"})
+    try:
+        camera = Intrinsics(**fields)
+    except ValueError as e:
+        raise ModelError(f"camera.{e}") from e
     info = ModelInfo(**_keys(doc["info"], "info", {"name", "source_video", "frames_used",
                                                    "neutral_frame", "creator", "created"}))
     members: dict[str, tuple[int, ...]] = {}
@@ -812,66 +691,27 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
 
 
 def _decode(raw: bytes, spec: _Spec, shape: tuple[int, ...]) -> np.ndarray:
-    """One member's array, checked against its declared shape; raises ``ModelError``."""
+    """One member's array, checked against its declared shape; raises ``ValueError``."""
     if spec.kind == "png":
-        return _decode_png(raw, shape)
-    return _decode_npy(raw, np.dtype(spec.dtype), shape)
+        return decode_png(raw, shape)
+    return decode_npy(raw, np.dtype(spec.dtype), shape)
 
 
-def _decode_npy(raw: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
-    """Parse the header first: refuse object arrays and size mismatches before np.load."""
-    f = io.BytesIO(raw)
+def _read_array(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, manifest: _Manifest,
+                where: str) -> np.ndarray:
+    """One member read and decoded to its declared array; raises ``ModelFileError``."""
+    raw = _member_bytes(archive, entry, where)
     try:
-        version = np.lib.format.read_magic(f)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
-                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
-        if read_header is None:
-            raise ModelError(f"npy format version {version} not supported (1.0 or 2.0)")
-        header = read_header(f)
-    except ModelError:
-        raise
-    except (ValueError, SyntaxError, TypeError, RecursionError, EOFError) as e:
-        raise ModelError(f"not a valid .npy array ({e})") from e
-    got_shape, _, got_dtype = header
-    if got_dtype.hasobject:
-        raise ModelError("object arrays (pickle) are not allowed")
-    want = dtype.newbyteorder("<")
-    if got_dtype != want:
-        shown = got_dtype.name if got_dtype.isnative else got_dtype.str
-        raise ModelError(f"expected dtype {dtype.name}, got {shown}")
-    if tuple(got_shape) != shape:
-        raise ModelError(f"expected shape {shape} (as declared in model.json), "
-                         f"got {tuple(got_shape)}")
-    size = math.prod(shape) * want.itemsize
-    if len(raw) - f.tell() != size:
-        raise ModelError(f"array data is {len(raw) - f.tell()} bytes, expected {size}")
-    try:
-        array = np.load(io.BytesIO(raw), allow_pickle=False)
-    except (ValueError, EOFError, OSError) as e:
-        raise ModelError(f"not a valid .npy array ({e})") from e
-    return np.ascontiguousarray(array, dtype=dtype)
+        return _decode(raw, _spec(entry.filename), manifest.members[entry.filename])
+    except ValueError as e:
+        raise ModelFileError(f"{where}: {entry.filename}: {e}") from e
 
 
-def _decode_png(raw: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    """Check the PNG header against the declared shape before decoding; RGB out."""
-    if len(raw) < 33 or raw[:8] != _PNG_SIGNATURE or raw[8:16] != b"\x00\x00\x00\x0dIHDR":
-        raise ModelError("not a PNG image")
-    width, height = struct.unpack(">II", raw[16:24])
-    depth, colour = raw[24], raw[25]
-    if depth != 8 or _PNG_COLOUR_TYPES.get(colour) != len(shape):
-        want = "RGB" if len(shape) == 3 else "grey"
-        raise ModelError(f"expected an 8-bit {want} PNG, got bit depth {depth}, "
-                         f"colour type {colour}")
-    if (height, width) != shape[:2]:
-        raise ModelError(f"expected a {shape[1]}x{shape[0]} image (as declared in "
-                         f"model.json), got {width}x{height}")
+def _member_bytes(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, where: str) -> bytes:
     try:
-        image = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error as e:
-        raise ModelError(f"PNG does not decode ({e})") from e
-    if image is None or image.dtype != np.uint8 or image.shape != shape:
-        raise ModelError("PNG does not decode to the declared image")
-    return np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+        return read_member(archive, entry, where)
+    except ValueError as e:
+        raise ModelFileError(str(e)) from e
 
 
 # ---- field checks ------------------------------------------------------------------------

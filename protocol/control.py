@@ -71,7 +71,11 @@ class ControlError(FacewireError, ValueError):
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole intrinsics of the sender's camera, pixels; image origin top-left."""
+    """The Hello's wire form of the sender camera's pinhole intrinsics, pixels, image origin
+    top-left: ``models.geometry.Intrinsics`` (which this module may not import) on the wire,
+    with the same bounds. The sender makes it in ``SenderPipeline.hello``; the receiver turns
+    it back into intrinsics in ``receiver.views.sender_view`` (elsewhere only its image size
+    is read)."""
 
     fx: float
     fy: float

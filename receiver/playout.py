@@ -135,6 +135,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facewire.models.geometry import rotation_matrix
 from facewire.protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, PACKET_BYTES, SEQ_MODULO, Flag, Frame,
                              PacketError, decode)
 
@@ -160,7 +161,7 @@ class FrameState:
     Attributes:
         seq: the slot's wire sequence number (0..65535), or None for a pop that plays no slot
             (before the first packet, and the countdown at the start of a stream).
-        rotation: (3, 3) float64 rotation, model -> camera (``models.fit.Pose`` convention).
+        rotation: (3, 3) float64 rotation, model -> camera (``models.geometry.Pose`` convention).
         translation: (3,) float64 model origin in the camera frame, mm.
         residuals: (9, 2) float32 tangent-frame residuals, mm, NONRIGID order (turn them into
             model space with ``models.rig.Rig.from_tangent``).
@@ -199,26 +200,6 @@ class _Packet:
     @property
     def face(self) -> bool:
         return bool(self.flags & Flag.FACE_PRESENT) and not self.flags & Flag.TRACKING_LOST
-
-
-def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula: the (3, 3) float64 rotation of a rotation vector.
-
-    ``R = I + sin(a) K + (1 - cos(a)) K^2`` with ``a = |r|`` and ``K`` the cross-product matrix
-    of the unit axis ``r / a``; below ``a = 1e-8``, ``R = I + [r]_x`` (exact to ``a^2``).
-
-    Args:
-        rvec: (3,) finite rotation vector, radians (``Frame.rotation``).
-    """
-    r = np.asarray(rvec, np.float64).reshape(3)
-    if not np.isfinite(r).all():
-        raise ValueError("rvec: rotation vector must be finite")
-    angle = float(np.linalg.norm(r))
-    cross = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-    if angle < 1e-8:
-        return np.eye(3) + cross
-    k = cross / angle
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
 
 
 def serial_distance(seq: int, ref: int) -> int:

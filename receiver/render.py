@@ -2,7 +2,7 @@
 
 Each frame the receiver has the morphed vertices (N, 3), one value Q per texture region and a
 camera; ``FaceRenderer.render`` draws them offscreen through EGL (moderngl), with the
-conventions of ``models.raster`` (GL camera, projection from pinhole intrinsics with pixel
+conventions of ``models.infra.raster`` (GL camera, projection from pinhole intrinsics with pixel
 centres at integers, multisampled framebuffer resolved and flipped on readback, texture rows
 uploaded bottom first so OpenGL's t is facewire's v). Textured meshes are drawn unlit: the
 texture carries the captured light. The triangles and UVs are uploaded once; a frame writes
@@ -275,7 +275,7 @@ class FaceRenderer(ContextOwner):
             vertices: (N, 3) float32 morphed model-space positions, mm.
             q: (R,) or (8,) float32 region values in layers, packet order (R = the model's
                 regions; of 8 values, the first R are used); each is clamped to [0, k - 1].
-            camera: a ``models.raster.Camera`` whose image size is this renderer's.
+            camera: a ``models.infra.raster.Camera`` whose image size is this renderer's.
 
         Returns:
             (height, width, 3) uint8 RGB image, top row first.
@@ -300,10 +300,11 @@ class FaceRenderer(ContextOwner):
         if not np.isfinite(q[:n_regions]).all():
             raise RenderError("q: contains NaN or infinity")
         if not isinstance(camera, Camera):
-            raise RenderError(f"camera: expected a models.raster.Camera, got "
+            raise RenderError(f"camera: expected a models.infra.raster.Camera, got "
                               f"{type(camera).__name__}")
-        if (camera.width, camera.height) != (self.width, self.height):
-            raise RenderError(f"camera: image {camera.width} x {camera.height}, renderer "
+        size = (camera.intrinsics.width, camera.intrinsics.height)
+        if size != (self.width, self.height):
+            raise RenderError(f"camera: image {size[0]} x {size[1]}, renderer "
                               f"{self.width} x {self.height}")
 
         self.vertex_buffer.write(np.ascontiguousarray(vertices))

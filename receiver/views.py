@@ -4,57 +4,54 @@ Poses follow the GL camera of docs/DESIGN.md §2 (X_cam = R X + t; x right, y up
 -z) and the packet's pose: ``rotation`` is a (3,) rotation vector (axis times angle, radians,
 as ``protocol.packet.Frame`` carries it) or a (3, 3) rotation matrix, model to camera.
 
-Sender view (``sender_view``): the sender's intrinsics from the Hello, scaled to the output,
-with the received pose, so that the render lines up with the sender's frame resized to the
-output. Pixel centres sit at integers and an image of W pixels spans [-1/2, W - 1/2], so a
-scale s = W' / W maps u to s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2, and the
-same in y with H' / H (an output of another aspect ratio stretches like a resized frame).
+Sender view (``sender_view``): the sender's intrinsics from the Hello (the wire's
+``protocol.control.Camera``, converted to ``models.geometry.Intrinsics`` here, the
+receiver's one place), scaled to the output (``Intrinsics.resized``), with the received pose,
+so that the render lines up with the sender's frame resized to the output. Pixel centres sit
+at integers and an image of W pixels spans [-1/2, W - 1/2], so a scale s = W' / W maps u to
+s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2, and the same in y with H' / H (an
+output of another aspect ratio stretches like a resized frame).
 
 Virtual view (``virtual_view``): a square-pixel camera framing the head as
 ``sender.enroll.build.render_preview`` does: its field of view ``FOV_DEG`` holds
 ``FIELD_EYE_DISTANCES`` outer-eye distances (36 to 45) across the image height, aimed at the
-head centre c (the landmarks' mean, raised by a tenth of the field), from the front (yaw 0) or
-from a three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The
-head turns by the received rotation about c and stays there (the translation is not
-followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with (R_v, t_v) the orbit
-pose of ``models.infra.raster.orbit_pose`` around c, so c is always at the image centre.
+head centre c (the landmarks' mean, raised by a tenth of the field), from the front (yaw 0)
+or from a three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the
+model's +x). The head turns by the received rotation about c and stays there (the
+translation is not followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with
+(R_v, t_v) the orbit pose of ``models.infra.raster.orbit_pose`` around c, so c is always at
+the image centre.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from facewire.models.geometry import Intrinsics, Pose, rotation_matrix
 from facewire.models.landmarks import N_LANDMARKS, outer_eye_distance
 from facewire.models.mesh import Mesh
 from facewire.models.infra.raster import Camera, RenderError, orbit_pose
 from facewire.protocol import control
-from facewire.receiver.playout import rotation_matrix as rodrigues
 
-FOV_DEG = 25.0  # as models.build.PREVIEW_FOV_DEG
-FIELD_EYE_DISTANCES = 3.6  # as models.build.CROP_EYE_DISTANCES
-THREE_QUARTER_YAW_DEG = 35.0  # as models.build.PREVIEW_YAWS
+FOV_DEG = 25.0  # as sender.enroll.build.PREVIEW_FOV_DEG
+FIELD_EYE_DISTANCES = 3.6  # as sender.enroll.build.CROP_EYE_DISTANCES
+THREE_QUARTER_YAW_DEG = 35.0  # as sender.enroll.build.PREVIEW_YAWS
 VIEW_KINDS = ("front", "three-quarter")
 
 
-def rotation_matrix(rotation: np.ndarray) -> np.ndarray:
-    """A rotation as a matrix.
-
-    Args:
-        rotation: (3,) rotation vector, radians (Rodrigues), or a (3, 3) rotation matrix.
-
-    Returns:
-        (3, 3) float64 rotation matrix.
-
-    Raises:
-        RenderError: another shape or non-finite values (a matrix is checked by ``Camera``).
-    """
+def _pose(rotation: np.ndarray, translation: np.ndarray) -> Pose:
+    """The received pose: ``rotation`` a (3,) rotation vector (radians) or a (3, 3) matrix,
+    ``translation`` (3,) mm; RenderError naming the field when either is malformed."""
     r = np.asarray(rotation, np.float64)
-    if r.shape not in ((3,), (3, 3)) or not np.isfinite(r).all():
-        raise RenderError(f"rotation: expected a finite (3,) rotation vector or (3, 3) "
-                          f"matrix, got shape {r.shape}")
-    if r.shape == (3, 3):
-        return r
-    return rodrigues(r)
+    try:
+        matrix = r if r.shape == (3, 3) else rotation_matrix(r)
+    except ValueError as e:
+        raise RenderError(f"rotation: expected a (3,) rotation vector or a (3, 3) matrix "
+                          f"({e})") from e
+    try:
+        return Pose(matrix, translation)
+    except ValueError as e:
+        raise RenderError(str(e)) from e
 
 
 def sender_view(hello_camera: control.Camera, rotation: np.ndarray, translation: np.ndarray,
@@ -77,10 +74,12 @@ def sender_view(hello_camera: control.Camera, rotation: np.ndarray, translation:
         raise RenderError(f"hello_camera: expected a protocol.control.Camera, got "
                           f"{type(hello_camera).__name__}")
     _check_size(width, height)
-    sx, sy = width / hello_camera.width, height / hello_camera.height
-    return Camera(sx * hello_camera.fx, sy * hello_camera.fy,
-                  sx * (hello_camera.cx + 0.5) - 0.5, sy * (hello_camera.cy + 0.5) - 0.5,
-                  width, height, rotation_matrix(rotation), _translation(translation))
+    c = hello_camera
+    try:
+        intrinsics = Intrinsics(c.fx, c.fy, c.cx, c.cy, c.width, c.height).resized(width, height)
+    except ValueError as e:
+        raise RenderError(f"camera.{e}") from e
+    return Camera(intrinsics, _pose(rotation, translation))
 
 
 def head_centre(head: Mesh | np.ndarray) -> tuple[np.ndarray, float]:
@@ -127,20 +126,14 @@ def virtual_view(kind: str, head: Mesh | np.ndarray, rotation: np.ndarray, width
     if kind not in VIEW_KINDS:
         raise RenderError(f"kind: expected one of {', '.join(VIEW_KINDS)}, got {kind!r}")
     _check_size(width, height)
-    turn = rotation_matrix(rotation)
+    turn = _pose(rotation, np.zeros(3)).rotation
     centre, field = head_centre(head)
     distance = field / (2 * np.tan(np.radians(FOV_DEG) / 2))
     yaw = 0.0 if kind == "front" else THREE_QUARTER_YAW_DEG
-    view_r, view_t = orbit_pose(yaw, 0.0, distance, centre)
-    return Camera.virtual(width, height, view_r @ turn, view_r @ (centre - turn @ centre)
-                          + view_t, fov_y_deg=FOV_DEG)
-
-
-def _translation(translation: np.ndarray) -> np.ndarray:
-    t = np.asarray(translation, np.float64)
-    if t.shape != (3,) or not np.isfinite(t).all():
-        raise RenderError(f"translation: expected a finite (3,) array, got shape {t.shape}")
-    return t
+    view = orbit_pose(yaw, 0.0, distance, centre)
+    pose = Pose(view.rotation @ turn,
+                view.rotation @ (centre - turn @ centre) + view.translation)
+    return Camera.virtual(width, height, pose, fov_y_deg=FOV_DEG)
 
 
 def _check_size(width: int, height: int) -> None:

@@ -28,10 +28,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from facewire.models.geometry import Intrinsics
 from facewire.models.mesh import Mesh
 from facewire.models.regions import SUPERSAMPLE, TEMPLATE_SIZE, spec, template_samples
 from facewire.models.rig import Rig
-from facewire.protocol.control import Camera
 
 N_OFFSETS = 5
 _REMAP_COLUMNS = 32766
@@ -71,7 +71,7 @@ class SurfacePoints:
         return self.neutral + self.weights @ np.asarray(residuals, np.float32)
 
     def project(self, residuals: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-                camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+                camera: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
         """``project(positions(residuals), ...)`` in one product: R (P0 + W r) + t =
         [R  R r^T] [P0 W]^T + t, a (3, 12) @ (12, n) float32 product.
 
@@ -86,7 +86,7 @@ class SurfacePoints:
 
 
 def project(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-            camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+            camera: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates of model-space points (module docstring).
 
     Args:
@@ -103,7 +103,7 @@ def project(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
     return _pixels(cam[:, 0], cam[:, 1], cam[:, 2], camera)
 
 
-def _pixels(xc: np.ndarray, yc: np.ndarray, zc: np.ndarray, camera: Camera
+def _pixels(xc: np.ndarray, yc: np.ndarray, zc: np.ndarray, camera: Intrinsics
             ) -> tuple[np.ndarray, np.ndarray]:
     """(n,) float32 GL camera-frame coordinates X, Y, Z -> pixel x, y (n,) float32."""
     inverse = np.float32(-1.0) / np.maximum(-zc, np.float32(1.0))
@@ -159,7 +159,7 @@ class AppearanceSampler:
         RegionError: a name is not a known region.
     """
 
-    def __init__(self, mesh: Mesh, rig: Rig, camera: Camera, names: tuple[str, ...]) -> None:
+    def __init__(self, mesh: Mesh, rig: Rig, camera: Intrinsics, names: tuple[str, ...]) -> None:
         self.names = tuple(names)
         self.camera = camera
         grids = [template_samples(spec(name)) for name in self.names]

@@ -10,7 +10,7 @@
   be decoded is skipped and counted (``Source.skipped``, names in ``Source.skipped_names``);
   its index stays unused so indices still name files by position. Images must all have the
   first readable image's size (an error names the odd one out).
-- anything else: a video file, decoded by ``models.video.read_frames`` with the file's own
+- anything else: a video file, decoded by ``models.infra.video.read_frames`` with the file's own
   timestamps and rate (``rate_hz`` does not apply to a file; its ``Source.rate_hz`` is the
   container's). A file without a frame, or whose frame count (when the container gives
   one) ``frames`` selects none of, is refused when opened.
@@ -19,13 +19,14 @@ Files and folders run as fast as the consumer pulls unless ``pace=True``; then e
 released no earlier than its timestamp after the first frame (real time, as a live camera
 would deliver it; see ``Pacer``). Cameras are paced unless ``pace=False``.
 
-Every source yields ``models.video.VideoFrame(index, time, image)``: ``image`` is (H, W, 3)
+Every source yields ``models.infra.video.VideoFrame(index, time, image)``: ``image`` is (H, W, 3)
 uint8 BGR, ``time`` in seconds (a file's presentation time, else from the start), ``index``
 the frame's position in the file, folder, or camera stream (dropped camera frames keep their
 numbers).
 
-Intrinsics. Without a calibration they are ``models.fit.intrinsics_guess`` (the guess the
-model build makes, so enrollment and sending agree): ``fx = fy = W`` pixels (a horizontal
+Intrinsics (``models.geometry.Intrinsics``). Without a calibration they are
+``models.geometry.intrinsics_guess`` (the guess the model build makes, so enrollment and
+sending agree): ``fx = fy = W`` pixels (a horizontal
 field of view of 53 degrees), principal point at the image centre ``((W - 1) / 2,
 (H - 1) / 2)`` (pixel centres at integers). ``--focal F`` replaces fx and fy.
 ``--calib FILE`` reads a JSON object::
@@ -33,9 +34,10 @@ field of view of 53 degrees), principal point at the image centre ``((W - 1) / 2
     {"fx": 612.3, "fy": 611.8, "cx": 319.2, "cy": 241.7, "width": 640, "height": 480}
 
 fx, fy > 0 and cx, cy in pixels of a ``width`` x ``height`` image, origin top-left, rows
-down. When the source's size differs from the calibrated one with the same aspect ratio
-(within 1 %), the intrinsics are scaled (a camera delivering a resized image); a different
-aspect ratio means a crop or another camera, and is refused.
+down, the principal point within the image, and the bounds of ``Intrinsics``. When the
+source's size differs from the calibrated one with the same aspect ratio (within 1 %), the
+intrinsics are scaled (a camera delivering a resized image); a different aspect ratio means
+a crop or another camera, and is refused.
 """
 
 from __future__ import annotations
@@ -46,15 +48,15 @@ import re
 import sys
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from facewire.models.geometry import MAX_FOCAL_PX, Intrinsics, intrinsics_guess
 from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.fit import intrinsics_guess
 from facewire.models.infra.video import VideoError, VideoFrame, read_frames, video_info
-from facewire.protocol.control import Camera, ControlError
 
 __all__ = ["CaptureError", "Source", "VideoFrame", "open_source", "estimate_intrinsics",
            "read_calibration", "scale_intrinsics", "Pacer", "RateLimiter", "IMAGE_SUFFIXES"]
@@ -314,7 +316,7 @@ def open_source(spec: str, rate_hz: float = 30.0, pace: bool | None = None,
         spec: the ``--source`` text.
         rate_hz: target rate of a camera, frame rate of a folder (> 0, <= 1000).
         pace: release frames in real time; None means yes for a camera, no otherwise.
-        frames: which frames of a file or folder (``models.video.frame_range("A:B")``), by
+        frames: which frames of a file or folder (``models.infra.video.frame_range("A:B")``), by
             index; a camera ignores it.
         clock, sleep: time functions (seconds), replaceable in tests.
 
@@ -340,7 +342,7 @@ def open_source(spec: str, rate_hz: float = 30.0, pace: bool | None = None,
     return VideoSource(path, frames, bool(pace), clock, sleep)
 
 
-def estimate_intrinsics(width: int, height: int, focal: float | None = None) -> Camera:
+def estimate_intrinsics(width: int, height: int, focal: float | None = None) -> Intrinsics:
     """Pinhole intrinsics of an uncalibrated camera (guess in the module docstring).
 
     Args:
@@ -348,20 +350,18 @@ def estimate_intrinsics(width: int, height: int, focal: float | None = None) -> 
         focal: focal length in pixels (``--focal``), for fx and fy; None for the guess.
 
     Raises:
-        ValueError: a size or focal length out of range.
+        ValueError: a size or focal length out of range (naming it).
     """
-    for name, value in (("width", width), ("height", height)):
-        if not (isinstance(value, (int, np.integer)) and 0 < value <= 16384):
-            raise ValueError(f"{name}: expected an integer in [1, 16384], got {value!r}")
-    if focal is not None and not (np.isfinite(focal) and 0 < focal < 1e6):
-        raise ValueError(f"--focal: expected a focal length in pixels in (0, 1e6), got {focal}")
-    fx, fy, cx, cy = intrinsics_guess(int(width), int(height))
-    if focal is not None:
-        fx = fy = float(focal)
-    return Camera(fx, fy, cx, cy, int(width), int(height))
+    guess = intrinsics_guess(width, height)
+    if focal is None:
+        return guess
+    if not (np.isfinite(focal) and 0 < focal < MAX_FOCAL_PX):
+        raise ValueError(f"--focal: expected a focal length in pixels in (0, {MAX_FOCAL_PX:g}), "
+                         f"got {focal}")
+    return replace(guess, fx=float(focal), fy=float(focal))
 
 
-def read_calibration(path: str | os.PathLike[str]) -> Camera:
+def read_calibration(path: str | os.PathLike[str]) -> Intrinsics:
     """Read a calibration JSON file (format in the module docstring).
 
     Raises:
@@ -384,39 +384,24 @@ def read_calibration(path: str | os.PathLike[str]) -> Camera:
     unknown = sorted(set(doc) - set(want))
     if unknown:
         raise CaptureError(f"{path}: unknown field {unknown[0]!r} (expected {', '.join(want)})")
-    values: dict[str, float | int] = {}
-    for name in want:
-        if name not in doc:
-            raise CaptureError(f"{path}: field {name!r} is missing")
-        value = doc[name]
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise CaptureError(f"{path}: field {name!r} must be a number, got {value!r}")
-        if name in ("width", "height"):
-            if not isinstance(value, int) or not 0 < value <= 16384:
-                raise CaptureError(f"{path}: field {name!r} must be an integer in "
-                                   f"[1, 16384], got {value!r}")
-        elif not np.isfinite(value):
-            raise CaptureError(f"{path}: field {name!r} must be finite, got {value!r}")
-        values[name] = value
-    for name in ("fx", "fy"):
-        if not 0 < values[name] < 1e6:
-            raise CaptureError(f"{path}: field {name!r} must be in (0, 1e6), got {values[name]}")
-    for name, size in (("cx", "width"), ("cy", "height")):
-        if not 0 <= values[name] <= values[size]:
-            raise CaptureError(f"{path}: field {name!r} = {values[name]} lies outside the "
-                               f"image (0 .. {size} = {values[size]})")
+    missing = [name for name in want if name not in doc]
+    if missing:
+        raise CaptureError(f"{path}: field {missing[0]!r} is missing")
     try:
-        return Camera(float(values["fx"]), float(values["fy"]), float(values["cx"]),
-                      float(values["cy"]), int(values["width"]), int(values["height"]))
-    except ControlError as exc:
-        raise CaptureError(f"{path}: {exc}") from None
+        camera = Intrinsics(**{name: doc[name] for name in want})
+    except ValueError as exc:
+        raise CaptureError(f"{path}: field {exc}") from None
+    for name, size in (("cx", "width"), ("cy", "height")):
+        if not 0 <= getattr(camera, name) <= getattr(camera, size):
+            raise CaptureError(f"{path}: field {name}: {getattr(camera, name)} lies outside the "
+                               f"image (0 .. {size} = {getattr(camera, size)})")
+    return camera
 
 
-def scale_intrinsics(camera: Camera, width: int, height: int, name: str = "calibration"
-                     ) -> Camera:
-    """The intrinsics of ``camera`` for an image resized to ``width`` x ``height``.
-
-    Pixel centres map as ``x' = (x + 1/2) s - 1/2``, focal lengths as ``f' = f s``.
+def scale_intrinsics(camera: Intrinsics, width: int, height: int, name: str = "calibration"
+                     ) -> Intrinsics:
+    """The intrinsics of ``camera`` for an image resized to ``width`` x ``height``
+    (``Intrinsics.resized``).
 
     Raises:
         CaptureError: the aspect ratios differ by more than 1 % (a crop, not a resize).
@@ -428,8 +413,7 @@ def scale_intrinsics(camera: Camera, width: int, height: int, name: str = "calib
             f"{width}x{height}; a different aspect ratio cannot be scaled (recalibrate)")
     if (width, height) == (camera.width, camera.height):
         return camera
-    return Camera(camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5,
-                  (camera.cy + 0.5) * sy - 0.5, width, height)
+    return camera.resized(width, height)
 
 
 def _natural_key(path: Path) -> list[object]:

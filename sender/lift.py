@@ -47,10 +47,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.sender.enroll.fit import Pose
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.landmarks import N_LANDMARKS, NONRIGID
 from facewire.models.rig import Rig
-from facewire.protocol.control import Camera
 from facewire.sender.pose import PoseSolver
 
 GRAZING_COS = 0.25
@@ -86,11 +85,11 @@ class Lifter:
         camera: the sender camera's intrinsics.
     """
 
-    def __init__(self, rig: Rig, camera: Camera) -> None:
+    def __init__(self, rig: Rig, camera: Intrinsics) -> None:
         if not isinstance(rig, Rig):
             raise ValueError(f"rig: expected a models.rig.Rig, got {type(rig).__name__}")
-        if not isinstance(camera, Camera):
-            raise ValueError(f"camera: expected a protocol.control.Camera, got "
+        if not isinstance(camera, Intrinsics):
+            raise ValueError(f"camera: expected a models.geometry.Intrinsics, got "
                              f"{type(camera).__name__}")
         self.camera = camera
         self._neutral = rig.mesh.vertices[rig.mesh.landmarks[NONRIGID]].astype(np.float64)

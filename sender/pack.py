@@ -2,11 +2,11 @@
 
 What goes in (``protocol.packet.QUANTISERS`` fixes the ranges and steps):
 
-- rotation: the pose's rotation as a rotation vector (``cv2.Rodrigues``; radians in the
-  ``Frame``, degrees on the wire);
+- rotation: the pose's rotation as a rotation vector (``models.geometry.rotation_vector``;
+  radians in the ``Frame``, degrees on the wire);
 - translation: mm;
-- residuals: the (9, 3) model-space displacements projected on the rig's tangent frames,
-  ``Rig.to_tangent`` -> (9, 2), mm;
+- residuals: the (9, 2) tangent-frame residuals (u, v), mm (``Rig.to_tangent`` of the
+  model-space displacements, which the pipeline computes once);
 - q: the 8 region values (neutral 0 until the appearance work lands);
 - flags and the 16-bit sequence number.
 
@@ -24,10 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.sender.enroll.fit import Pose
+from facewire.models.geometry import Pose, rotation_matrix, rotation_vector
 from facewire.models.rig import Rig
-from facewire.protocol.packet import (N_REGIONS, SEQ_MODULO, Flag, Frame, decode, encode_frames)
-from facewire.sender.pose import rotation_matrix, rotation_vector
+from facewire.protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, SEQ_MODULO, Flag, Frame, decode,
+                                      encode_frames)
 
 
 @dataclass(frozen=True)
@@ -39,16 +39,16 @@ class Packed:
     clamped: int
 
 
-def pack(rig: Rig, seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
+def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
          q: np.ndarray | None = None) -> Packed:
     """Quantise and encode one frame.
 
     Args:
-        rig: the person's rig (for the tangent frames).
         seq: sequence number (taken modulo 65536).
         flags: the frame's flags (``Flag.CLAMPED`` is added by the encoder when needed).
         pose: the pose to send.
-        residuals: (9, 3) model-space displacements, mm, ``NONRIGID`` order.
+        residuals: (9, 2) finite tangent-frame residuals (u, v), mm, ``NONRIGID`` order
+            (``Rig.to_tangent``).
         q: (8,) region values, layers; None for neutral (all 0).
 
     Returns:
@@ -58,10 +58,14 @@ def pack(rig: Rig, seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
     q = np.zeros(N_REGIONS, np.float32) if q is None else np.asarray(q, np.float32)
     if q.shape != (N_REGIONS,):
         raise ValueError(f"q: expected shape ({N_REGIONS},), got {q.shape}")
+    uv = np.asarray(residuals, np.float32)
+    if uv.shape != (N_RESIDUAL_POINTS, 2) or not np.isfinite(uv).all():
+        raise ValueError(f"residuals: expected finite ({N_RESIDUAL_POINTS}, 2) tangent "
+                         f"residuals, got shape {uv.shape}")
     frame = Frame(seq=int(seq) % SEQ_MODULO, flags=Flag(int(flags)),
                   rotation=rotation_vector(pose.rotation).astype(np.float32),
                   translation=np.asarray(pose.translation, np.float32).copy(),
-                  residuals=rig.to_tangent(residuals), q=q)
+                  residuals=uv.copy(), q=q)
     packets, clamped = encode_frames(frame.to_record().reshape(1))
     if clamped[0]:
         frame.flags |= Flag.CLAMPED

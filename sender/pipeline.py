@@ -3,7 +3,7 @@
 Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings``, s):
 
 1. ``track``: the frame converted to grey once (the sampler reads the same grey frame),
-   ``models.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
+   ``sender.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
@@ -12,9 +12,10 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    points, lifted again with the filtered pose (the one that is sent, so the receiver's
    points land on the tracked ones), with per-point validity.
 4. ``heuristics``: ``sender.heuristics.ResidualFilter`` (decay, mirror completion, jump hold,
-   face loss); the residuals it returns are then projected on the rig's tangent planes,
-   ``from_tangent(to_tangent(.))``: ``SenderOutput.residuals`` is exactly the geometry the
-   packet can carry, before quantisation.
+   face loss); the residuals it returns are then projected once on the rig's tangent planes
+   (``Rig.to_tangent``, what the packet carries) and taken back to model space
+   (``Rig.from_tangent``): ``SenderOutput.residuals`` is exactly the geometry the packet
+   can carry, before quantisation.
 5. ``sample``: ``sender.appearance.AppearanceSampler`` reads every region's five offset
    16 x 16 samples from the grey frame at the sent pose and residuals.
 6. ``classify``: ``sender.classify.RegionClassifiers`` -> one Q per region, in the model's
@@ -31,7 +32,9 @@ or the tracked face lost and another found in the same frame: ``TrackResult.acqu
 new face: the pose is fitted from scratch, the pose filter restarts and the packet is
 ``REACQUIRED`` (``ResidualFilter.restart``), as after a loss.
 
-Hello: the model's sha256 and size, the rate, the camera, the quantiser table, and the
+Hello: the model's sha256 and size, the rate, the camera (the ``models.geometry.Intrinsics``
+converted to the wire's ``protocol.control.Camera`` here, the sender's one place), the
+quantiser table, and the
 model's region names (``PersonModel.regions``, in packet order, the first 8). A model without
 regions (built without appearance) gives an empty list, and every Q slot carries 0
 (neutral); Q slots beyond the named regions carry 0 and mean nothing. Naming regions the
@@ -52,7 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.sender.enroll.fit import Pose
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
 from facewire.models.infra.progress import Progress, no_progress
@@ -125,11 +128,11 @@ class SenderPipeline:
             whose time does not advance).
     """
 
-    def __init__(self, model: PersonModel, camera: Camera, rate_hz: float = 30.0) -> None:
+    def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = 30.0) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
-        if not isinstance(camera, Camera):
-            raise ValueError(f"camera: expected a protocol.control.Camera, got "
+        if not isinstance(camera, Intrinsics):
+            raise ValueError(f"camera: expected a models.geometry.Intrinsics, got "
                              f"{type(camera).__name__}")
         if not (np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
@@ -154,8 +157,10 @@ class SenderPipeline:
         """The Hello announcing this stream (module docstring)."""
         summary = model_summary(self.model)
         regions = tuple(r.name for r in self.model.regions)[:N_REGIONS]
+        c = self.camera
+        wire = Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
         return Hello(model_sha256=summary["sha256"], model_bytes=summary["bytes"],
-                     rate_hz=self.rate_hz, camera=self.camera, regions=regions)
+                     rate_hz=self.rate_hz, camera=wire, regions=regions)
 
     def reset(self) -> None:
         """Forget the stream: tracker, filters, last pose and the sequence number."""
@@ -218,7 +223,8 @@ class SenderPipeline:
             out = self.residual_filter.step(None, None, dt)
         else:
             out = self.residual_filter.step(lifted.residuals, lifted.valid, dt)
-        residuals = self.rig.from_tangent(self.rig.to_tangent(out.residuals))
+        tangent = self.rig.to_tangent(out.residuals)
+        residuals = self.rig.from_tangent(tangent)
         flags = out.flags | (Flag.FACE_PRESENT if points is not None else Flag(0))
         t4 = clock()
         offsets = samples = None
@@ -234,7 +240,7 @@ class SenderPipeline:
         t6 = clock()
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
-        packed = pack(self.rig, self._seq, flags, self._sent, residuals, q)
+        packed = pack(self._seq, flags, self._sent, tangent, q)
         t7 = clock()
         self._seq = (self._seq + 1) % (1 << 16)
         return SenderOutput(
@@ -260,7 +266,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 
 def sender_camera(width: int, height: int, focal: float | None = None,
-                  calib: str | os.PathLike[str] | None = None) -> Camera:
+                  calib: str | os.PathLike[str] | None = None) -> Intrinsics:
     """The camera of a ``width`` x ``height`` source: a calibration file (scaled to the
     source's size), else ``--focal``, else the guess (``sender.capture``)."""
     if calib is not None:
@@ -280,7 +286,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         model_path: the person model (``.fwm``).
         source: a video file or a folder of images (``sender.capture.open_source``).
         out_log: the ``.fwlog`` to write (replaced if it exists).
-        frames: which frames (``models.video.frame_range``); all by default.
+        frames: which frames (``models.infra.video.frame_range``); all by default.
         focal: focal length in pixels (``--focal``), else estimated.
         calib: a calibration JSON file (``--calib``).
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.

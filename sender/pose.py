@@ -39,9 +39,10 @@ of 1e-3 of the diagonal slowed the steps along that direction to a factor 0.5 ea
 converging in 10; the start is always close (previous frame, or SQPnP). It starts from the
 previous frame's raw pose; on acquisition (no previous pose, or after a failure) from
 ``cv2.solvePnP`` (SQPnP) on the points with weight >= 0.5 (converted from OpenCV's frame by
-``S = diag(1, -1, -1)``). A pose is rejected (None) when a weighted point falls behind the
-camera, the result is not finite, or the median reprojection error of the 9 rigid points
-exceeds ``MAX_POSE_ERROR`` (0.15) of the image eye distance (as ``sender.enroll.fit``).
+``S = diag(1, -1, -1)``: ``models.geometry.Pose.from_opencv``). A pose is rejected (None)
+when a step cannot be solved, a weighted point falls behind the camera, the result is not
+finite, or the median reprojection error of the 9 rigid points exceeds ``MAX_POSE_ERROR``
+(0.15) of the image eye distance (as ``sender.enroll.fit``).
 
 Temporal filter
 ---------------
@@ -72,12 +73,10 @@ import cv2
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from facewire.sender.enroll.fit import Pose
+from facewire.models.geometry import Intrinsics, Pose, rotation_matrix, rotation_vector
 from facewire.models.landmarks import N_LANDMARKS, RIGID
-from facewire.protocol.control import Camera
 
-__all__ = ["Pose", "POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver", "PoseFilter",
-           "rotation_vector", "rotation_matrix"]
+__all__ = ["POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver", "PoseFilter"]
 
 # Measured weights per landmark group (module docstring); rigid feature points are 1.
 GROUP_WEIGHTS: dict[str, tuple[tuple[int, ...], float]] = {
@@ -107,17 +106,6 @@ STEP_RAD = 1e-4  # converged when a step turns less than this (0.006 deg) ...
 STEP_MM = 0.02  # ... and moves less than this (mm); quanta: 0.1 deg, 0.25 mm
 MAX_POSE_ERROR = 0.15
 ACQUIRE_WEIGHT = 0.5
-_S = np.diag([1.0, -1.0, -1.0])
-
-
-def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
-    """(3, 3) float64 rotation of a rotation vector (3,) (axis times angle, radians)."""
-    return cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
-
-
-def rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    """(3,) float64 rotation vector (radians, angle in [0, pi]) of a (3, 3) rotation."""
-    return cv2.Rodrigues(np.asarray(rotation, np.float64))[0].ravel()
 
 
 class PoseSolver:
@@ -132,7 +120,7 @@ class PoseSolver:
         ValueError: wrong shapes, non-finite values, or fewer than 4 weighted points.
     """
 
-    def __init__(self, landmarks3d: np.ndarray, camera: Camera,
+    def __init__(self, landmarks3d: np.ndarray, camera: Intrinsics,
                  weights: np.ndarray = POSE_WEIGHTS) -> None:
         model = np.asarray(landmarks3d, np.float64)
         if model.shape != (N_LANDMARKS, 3) or not np.isfinite(model).all():
@@ -143,8 +131,8 @@ class PoseSolver:
             raise ValueError("weights: expected (68,) finite non-negative values")
         if np.count_nonzero(weights) < 4:
             raise ValueError("weights: at least 4 points must have a positive weight")
-        if not isinstance(camera, Camera):
-            raise ValueError(f"camera: expected a protocol.control.Camera, got "
+        if not isinstance(camera, Intrinsics):
+            raise ValueError(f"camera: expected a models.geometry.Intrinsics, got "
                              f"{type(camera).__name__}")
         self.camera = camera
         self._used = np.flatnonzero(weights > 0)
@@ -153,8 +141,7 @@ class PoseSolver:
         self._rigid = np.searchsorted(self._used, RIGID)
         self._acquire = np.flatnonzero(weights >= ACQUIRE_WEIGHT)
         self._acquire_model = np.ascontiguousarray(model[self._acquire])
-        self._k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
-                            [0.0, 0.0, 1.0]])
+        self._k = camera.matrix()
         self._focal = np.array([[camera.fx], [-camera.fy]])  # u = cx + fx a, v = cy - fy b
         self._centre = np.array([[camera.cx], [camera.cy]])
 
@@ -187,12 +174,30 @@ class PoseSolver:
         eye_px = float(np.hypot(*(p[36] - p[45])))
         if eye_px <= 0:
             return None
-        knee = HUBER * eye_px
-        r, t = start.rotation.copy(), start.translation.copy()
         # (3, K) model points and (2, K) observations: coordinates as rows, so that every
         # step below is one vectorised operation over all points
         model_t = np.ascontiguousarray(model.T)
         obs = np.ascontiguousarray(p[self._used].T)
+        fitted = self._gauss_newton(model_t, obs, start, HUBER * eye_px)
+        if fitted is None:
+            return None
+        return self._accept(*fitted, model_t, obs, eye_px)
+
+    def _gauss_newton(self, model_t: np.ndarray, obs: np.ndarray, start: Pose,
+                      knee: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The reweighted Gauss-Newton steps (module docstring) from ``start``.
+
+        Args:
+            model_t: (3, K) the used model points, mm.
+            obs: (2, K) their observed image points, pixels.
+            start: the starting pose.
+            knee: Huber's knee, pixels.
+
+        Returns:
+            (3, 3) R and (3,) t, or None when a point falls at or behind the camera or a
+            step cannot be solved.
+        """
+        r, t = start.rotation.copy(), start.translation.copy()
         k = obs.shape[1]
         # rows 0-5: the Jacobian d(u, v)/d(w, t), transposed (columns: u of every point,
         # then v); row 6: the residuals. One product gives the normal matrix and the gradient.
@@ -231,7 +236,7 @@ class PoseSolver:
             rows[5] = sab
             normal_grad = (jac * w2.reshape(-1)) @ system.T  # (6, 7): [J^T W J | J^T W res]
             _, _, step, info = _dgesv(normal_grad[:, :6], normal_grad[:, 6])
-            if info != 0:  # singular normal matrix
+            if info != 0 or not np.isfinite(step).all():  # singular or overflowing
                 return None
             r = rotation_matrix(-step[:3]) @ r
             t = t - step[3:]
@@ -239,13 +244,20 @@ class PoseSolver:
             if (iteration >= REWEIGHT_ITERATIONS - 1 and max(abs(wx), abs(wy), abs(wz)) < STEP_RAD
                     and max(abs(dx), abs(dy), abs(dz)) < STEP_MM):
                 break
+        return r, t
+
+    def _accept(self, r: np.ndarray, t: np.ndarray, model_t: np.ndarray, obs: np.ndarray,
+                eye_px: float) -> Pose | None:
+        """The pose (r, t), or None when it is not finite, puts a point at or behind the
+        camera, or leaves the rigid points' median reprojection error above
+        ``MAX_POSE_ERROR`` image eye distances ``eye_px``."""
         if not (np.isfinite(r).all() and np.isfinite(t).all()):
             return None
         x = r @ model_t + t[:, None]
         if np.maximum.reduce(x[2]) >= 0:
             return None
         rigid = x[:, self._rigid]
-        proj = focal * (rigid[:2] / -rigid[2]) + centre
+        proj = self._focal * (rigid[:2] / -rigid[2]) + self._centre
         error = np.sqrt(np.add.reduce((proj - obs[:, self._rigid]) ** 2, axis=0))
         if np.sort(error)[len(error) // 2] > MAX_POSE_ERROR * eye_px:  # median (9 points)
             return None
@@ -262,7 +274,7 @@ class PoseSolver:
             return None
         if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
             return None
-        return Pose(rotation=_S @ rotation_matrix(rvec.ravel()), translation=_S @ tvec.ravel())
+        return Pose.from_opencv(rotation_matrix(rvec.ravel()), tvec)
 
 
 @dataclass(frozen=True)

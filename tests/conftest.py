@@ -26,7 +26,6 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 # the Hello carries it and as a matrix, and an expression in tangent coordinates (u, v), mm,
 # NONRIGID order: brows up, smile, mouth open.
 SYNTH_FX = 640.0
-SYNTH_K = np.array([[SYNTH_FX, 0, 319.5], [0, SYNTH_FX, 239.5], [0, 0, 1]])
 EXPRESSION_UV = np.array([[0.0, 3.0], [0.5, 2.0], [-0.5, 2.0], [0.0, 3.0], [-3.0, 2.0],
                           [3.0, 2.0], [0.0, 1.5], [0.0, -6.0], [0.0, -5.0]], np.float32)
 
@@ -55,10 +54,11 @@ def rig():
 def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generic head with a flat grey texture, saved as a model file."""
     from facewire.models.head import generic_head
-    from facewire.models.modelfile import Camera, ModelInfo, PersonModel, save_model
+    from facewire.models.geometry import Intrinsics
+    from facewire.models.modelfile import ModelInfo, PersonModel, save_model
 
     model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
-                        camera=Camera(640.0, 640.0, 319.5, 239.5, 640, 480),
+                        camera=Intrinsics(640.0, 640.0, 319.5, 239.5, 640, 480),
                         info=ModelInfo(name="generic"))
     path = tmp_path_factory.mktemp("model") / "generic.fwm"
     save_model(model, path)

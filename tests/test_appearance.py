@@ -19,18 +19,18 @@ import pytest
 from conftest import EXPRESSION_UV, SYNTH_FX
 from facewire.models.head import generic_head
 from facewire.models.mesh import Mesh, Tag
+from facewire.models.geometry import Intrinsics
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer, orbit_pose
 from facewire.models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
                             template_samples)
 from facewire.models.rig import Rig
 from facewire.sender.enroll.texture import UVSurface, uv_surface
-from facewire.protocol.control import Camera
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.classify import RegionClassifiers
 
 WIDTH, HEIGHT = 640, 480
-INTRINSICS = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT)
+INTRINSICS = Intrinsics(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT)
 TEXTURE = (512, 1024)  # (H, W)
 GREY = 128
 PAINT_MARGIN_MM = 3.0  # the pattern goes on past the box, so blur at its edge reads pattern
@@ -93,9 +93,9 @@ class Scene:
         self.residuals = rig.from_tangent(EXPRESSION_UV)  # brows up, smile, mouth open
         self.vertices = rig.morph(self.residuals)
         # 600 mm away, 15 degrees toward the person's left, 10 degrees from above
-        self.rotation, self.translation = orbit_pose(15.0, 10.0, 600.0, (0.0, 0.0, 40.0))
-        self.camera = ViewCamera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT,
-                                 self.rotation, self.translation)
+        pose = orbit_pose(15.0, 10.0, 600.0, (0.0, 0.0, 40.0))
+        self.rotation, self.translation = pose.rotation, pose.translation
+        self.camera = ViewCamera(INTRINSICS, pose)
         self.renderer = MeshRenderer(WIDTH, HEIGHT)
         self.renderer.set_mesh(len(self.mesh.vertices), self.mesh.triangles, self.mesh.uv)
 
@@ -260,21 +260,22 @@ def test_surface_points_follow_the_morph_and_project_through_the_pose(rig: Rig) 
     np.testing.assert_allclose(positions, expected, atol=1e-3)
     assert np.abs(positions - points.positions(np.zeros((9, 3)))).max() > 1.0
 
-    rotation, translation = orbit_pose(-20.0, 8.0, 550.0, (5.0, -10.0, 40.0))
+    pose = orbit_pose(-20.0, 8.0, 550.0, (5.0, -10.0, 40.0))
+    rotation, translation = pose.rotation, pose.translation
     x, y = points.project(residuals, rotation, translation, INTRINSICS)
     assert x.shape == y.shape == (1000,) and x.dtype == y.dtype == np.float32
     direct = project(positions, rotation, translation, INTRINSICS)
     np.testing.assert_allclose(x, direct[0], atol=2e-3)
     np.testing.assert_allclose(y, direct[1], atol=2e-3)
     # the renderer's camera projects the same points to the same pixels
-    view = ViewCamera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT, rotation, translation)
+    view = ViewCamera(INTRINSICS, pose)
     pixels = view.project(expected)
     np.testing.assert_allclose(x, pixels[:, 0], atol=2e-3)
     np.testing.assert_allclose(y, pixels[:, 1], atol=2e-3)
 
 
 def test_project_pushes_points_behind_the_camera_to_1_mm() -> None:
-    camera = Camera(500.0, 400.0, 100.0, 80.0, 200, 160)
+    camera = Intrinsics(500.0, 400.0, 100.0, 80.0, 200, 160)
     points = np.array([[2.0, -1.0, -0.25], [2.0, -1.0, 3.0], [2.0, -1.0, -1.0],
                        [2.0, -1.0, -4.0]], np.float32)
     x, y = project(points, np.eye(3), np.zeros(3), camera)
@@ -369,7 +370,8 @@ def test_sampler_reads_each_shared_point_once_and_matches_the_full_grids(rig: Ri
     rng = np.random.default_rng(21)
     grey = cv2.GaussianBlur(rng.integers(0, 256, (HEIGHT, WIDTH), np.uint8), (5, 5), 1.5)
     residuals = rig.from_tangent(EXPRESSION_UV)
-    rotation, translation = orbit_pose(-12.0, 6.0, 620.0, (0.0, 0.0, 40.0))
+    pose = orbit_pose(-12.0, 6.0, 620.0, (0.0, 0.0, 40.0))
+    rotation, translation = pose.rotation, pose.translation
     samples = sampler.sample(grey, rotation, translation, residuals)
 
     grids = [template_samples(spec(name)) for name in names]

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.sender.enroll.fit import intrinsics_guess
+from facewire.models.geometry import intrinsics_guess
 from facewire.sender.capture import (
     CaptureError,
     Pacer,
@@ -189,7 +189,7 @@ def test_rate_limiter_keeps_one_frame_per_slot() -> None:
 
 def test_estimate_intrinsics_matches_the_model_build() -> None:
     cam = estimate_intrinsics(640, 480)
-    assert (cam.fx, cam.fy, cam.cx, cam.cy) == intrinsics_guess(640, 480)
+    assert cam == intrinsics_guess(640, 480)
     assert (cam.width, cam.height) == (640, 480)
     assert (cam.cx, cam.cy) == (319.5, 239.5)
     focal = estimate_intrinsics(640, 480, focal=900.0)
@@ -215,13 +215,14 @@ def test_calibration_round_trip_and_scaling(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"fx": -3.0}, "field 'fx' must be in"),
-    ({"fy": "600"}, "field 'fy' must be a number"),
-    ({"width": 640.5}, "field 'width' must be an integer"),
-    ({"height": True}, "field 'height' must be a number"),
-    ({"cx": 700.0}, "field 'cx' = 700.0 lies outside the image"),
+    ({"fx": -3.0}, "field fx: must be in"),
+    ({"fy": "600"}, "field fy: expected a number"),
+    ({"width": 640.5}, "field width: expected an integer"),
+    ({"height": True}, "field height: expected an integer"),
+    ({"height": 20000}, "field height: must be in"),
+    ({"cx": 700.0}, "field cx: 700.0 lies outside the image"),
     ({"skew": 0.0}, "unknown field 'skew'"),
-    ({"cy": None}, "field 'cy' must be a number"),
+    ({"cy": None}, "field cy: expected a number"),
 ])
 def test_calibration_bad_fields(tmp_path: Path, change: dict, message: str) -> None:
     doc = {"fx": 612.5, "fy": 611.0, "cx": 319.25, "cy": 241.5, "width": 640, "height": 480}

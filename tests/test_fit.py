@@ -1,24 +1,19 @@
-"""Tests for models.fit: fitting the generic head to one person from tracked 68-point frames."""
+"""Tests for sender.enroll.fit: fitting the generic head to one person from tracked 68-point
+frames."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from facewire.sender.enroll.fit import (
-    FitError,
-    Pose,
-    fit_person,
-    flipped_triangles,
-    intrinsics_guess,
-    project,
-)
+from facewire.models.geometry import Intrinsics, Pose, intrinsics_guess, project
+from facewire.sender.enroll.fit import FitError, fit_person, flipped_triangles
 from facewire.models.head import generic_head
 from facewire.models.mesh import Tag
 from facewire.models.infra.raster import orbit_pose
 
 W, H = 640, 480
-CAMERA = np.array([[640.0, 0.0, 319.5], [0.0, 640.0, 239.5], [0.0, 0.0, 1.0]])
+CAMERA = Intrinsics(640.0, 640.0, 319.5, 239.5, W, H)
 TARGET = (0.0, -30.0, 60.0)  # orbit centre, model mm
 DISTANCE = 600.0
 YAWS = np.arange(-30.0, 31.0, 5.0)  # camera orbit yaw, degrees; 0 is frontal (index 6)
@@ -38,9 +33,8 @@ def _person(generic: np.ndarray) -> np.ndarray:
 
 def _frame(rng: np.random.Generator, shape: np.ndarray, yaw: float, pitch: float
            ) -> tuple[np.ndarray, Pose]:
-    rotation, translation = orbit_pose(yaw, pitch, DISTANCE, TARGET)
-    pose = Pose(rotation, translation)
-    return project(pose, shape, CAMERA) + rng.normal(0.0, 0.5, (68, 2)), pose
+    pose = orbit_pose(yaw, pitch, DISTANCE, TARGET)
+    return project(shape, pose, CAMERA) + rng.normal(0.0, 0.5, (68, 2)), pose
 
 
 def _similarity_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -84,7 +78,7 @@ def synthetic(head):
         truth.append(pose)
     points.append(None)
     truth.append(None)
-    fit = fit_person(points, *CAMERA[[0, 1, 0, 1], [0, 1, 2, 2]], head=head)
+    fit = fit_person(points, CAMERA, head=head)
     return fit, person, truth, points
 
 
@@ -164,7 +158,7 @@ def test_generic_depth_without_turning(head):
     rng = np.random.default_rng(3)
     person = _person(head.vertices[head.landmarks].astype(np.float64))
     points = [_frame(rng, person, yaw, 0.0)[0] for yaw in np.linspace(-3, 3, 12)]
-    fit = fit_person(points, *CAMERA[[0, 1, 0, 1], [0, 1, 2, 2]], head=head)
+    fit = fit_person(points, CAMERA, head=head)
     assert fit.depth == "generic"
     assert fit.depth_change_mm == 0.0
     assert fit.views == (fit.neutral,)
@@ -173,22 +167,16 @@ def test_generic_depth_without_turning(head):
 
 def test_errors(head):
     with pytest.raises(FitError, match="no face"):
-        fit_person([None] * 20, 640.0, 640.0, 319.5, 239.5, head=head)
+        fit_person([None] * 20, CAMERA, head=head)
     rng = np.random.default_rng(0)
     person = head.vertices[head.landmarks].astype(np.float64)
     few = [_frame(rng, person, 0.0, 0.0)[0] for _ in range(3)] + [None] * 20
     with pytest.raises(FitError, match="only 3 frames with a face; need at least 10"):
-        fit_person(few, 640.0, 640.0, 319.5, 239.5, head=head)
+        fit_person(few, CAMERA, head=head)
     with pytest.raises(ValueError, match=r"points\[1\]"):
-        fit_person([few[0], np.zeros((67, 2))], 640.0, 640.0, 319.5, 239.5, head=head)
-    with pytest.raises(ValueError, match="fx"):
-        fit_person(few, 0.0, 640.0, 319.5, 239.5, head=head)
-
-
-def test_intrinsics_guess():
-    assert intrinsics_guess(640, 480) == (640.0, 640.0, 319.5, 239.5)
-    with pytest.raises(ValueError):
-        intrinsics_guess(0, 480)
+        fit_person([few[0], np.zeros((67, 2))], CAMERA, head=head)
+    with pytest.raises(ValueError, match="camera: expected a models.geometry.Intrinsics"):
+        fit_person(few, (640.0, 640.0, 319.5, 239.5), head=head)
 
 
 def test_real_video(shared_data, head):
@@ -199,17 +187,16 @@ def test_real_video(shared_data, head):
     info = video_info(path)
     tracker = LandmarkTracker()
     points = [tracker.track(f.image).points for f in read_frames(path, slice(0, 90))]
-    fx, fy, cx, cy = intrinsics_guess(info.width, info.height)
-    fit = fit_person(points, fx, fy, cx, cy, head=head)
+    camera = intrinsics_guess(info.width, info.height)
+    fit = fit_person(points, camera, head=head)
     faces = [i for i, p in enumerate(points) if p is not None]
     assert len(faces) >= 80
     assert sum(fit.poses[i] is not None for i in faces) >= 0.9 * len(faces)
-    camera = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
     neutral = points[fit.neutral]
-    error = np.linalg.norm(project(fit.poses[fit.neutral], fit.landmarks3d, camera) - neutral,
+    error = np.linalg.norm(project(fit.landmarks3d, fit.poses[fit.neutral], camera) - neutral,
                            axis=1)
     assert np.median(error[:60]) < 3.0
-    errors = [np.linalg.norm(project(fit.poses[i], fit.landmarks3d, camera)[17:48]
+    errors = [np.linalg.norm(project(fit.landmarks3d, fit.poses[i], camera)[17:48]
                              - points[i][17:48], axis=1).mean()
               for i in faces if fit.poses[i] is not None]
     assert np.median(errors) < 5.0

@@ -6,19 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from facewire.sender.enroll.fit import Pose, project
+from conftest import EXPRESSION_UV, SYNTH_FX
 from facewire.models.rig import Rig
-from facewire.protocol.control import Camera
 from facewire.sender.lift import GRAZING_COS, Lifter, pose_and_lift
-from facewire.sender.pose import PoseSolver, rotation_matrix, rotation_vector
+from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
+from facewire.sender.pose import PoseSolver
 
-CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
-K = SYNTH_K
+CAMERA = Intrinsics(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
 
 
 def _image(rig: Rig, pose: Pose, uv: np.ndarray) -> np.ndarray:
-    return project(pose, rig.landmarks(rig.from_tangent(uv)), K)
+    return project(rig.landmarks(rig.from_tangent(uv)), pose, CAMERA)
 
 
 def test_exact_pose_gives_exact_residuals(rig: Rig) -> None:

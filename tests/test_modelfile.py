@@ -16,7 +16,8 @@ import pytest
 from conftest import npy_bytes, write_zip, zip_members
 from facewire.models import modelfile
 from facewire.models.mesh import Mesh
-from facewire.models.modelfile import (Area, Camera, ModelError, ModelFileError, ModelInfo, PersonModel,
+from facewire.models.geometry import Intrinsics
+from facewire.models.modelfile import (Area, ModelError, ModelFileError, ModelInfo, PersonModel,
                               Region, load_model, load_model_bytes, model_sha256, model_summary,
                               save_model)
 
@@ -52,7 +53,7 @@ def _model(name: str = "alice", regions: bool = True) -> PersonModel:
     return PersonModel(
         mesh=_grid_mesh(),
         texture=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
-        camera=Camera(fx=610.5, fy=612.25, cx=319.5, cy=241.0, width=640, height=480),
+        camera=Intrinsics(fx=610.5, fy=612.25, cx=319.5, cy=241.0, width=640, height=480),
         info=ModelInfo(name=name, source_video="alice.mp4", frames_used=tuple(range(10, 40, 3)),
                        neutral_frame=13, creator="facewire test"),
         regions=(region,) if regions else ())
@@ -490,7 +491,8 @@ def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("edit", "fragment"), [
     (lambda m: m["camera"].update(fx="600"), "camera.fx: expected a number, got str"),
-    (lambda m: m["camera"].update(fy=-1.0), "camera.fy: must be > 0"),
+    (lambda m: m["camera"].update(fy=-1.0), "camera.fy: must be in"),
+    (lambda m: m["camera"].update(width=65535), "camera.width: must be in"),
     (lambda m: m["camera"].update(width=True), "camera.width: expected an integer"),
     (lambda m: m["camera"].pop("cx"), "camera: missing key 'cx'"),
     (lambda m: m["info"].update(extra=1), "info: unknown key 'extra'"),
@@ -591,9 +593,9 @@ def test_invalid_models_cannot_be_built() -> None:
     with pytest.raises(ModelError, match="templates: expected shape"):
         Region("eye", region.uv_rect, region.template_rect, region.layers, region.mask,
                region.templates[:2])
-    with pytest.raises(ModelError, match="camera.width"):
-        Camera(600.0, 600.0, 320.0, 240.0, 0, 480)
+    with pytest.raises(ModelError, match="camera: expected a Intrinsics"):
+        PersonModel(model.mesh, model.texture, (600.0, 600.0, 320.0, 240.0, 640, 480),
+                    model.info)
     with pytest.raises(ModelError, match="info.frames_used"):
         ModelInfo("alice", frames_used=(1, 1))
     assert ModelInfo("alice", frames_used=list(np.arange(3))).frames_used == (0, 1, 2)
-    assert isinstance(Camera(600, 600, 320, 240, np.int64(640), 480).width, int)

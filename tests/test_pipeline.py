@@ -12,13 +12,13 @@ from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.modelfile import ModelFileError
 from facewire.sender.tracker import LandmarkTracker
 from facewire.models.infra.video import frame_range, read_frames
-from facewire.protocol.control import decode_message, encode_message
+from facewire.protocol.control import Camera, decode_message, encode_message
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import QUANTISERS, Flag
 from facewire.sender.capture import CaptureError, estimate_intrinsics
 from facewire.sender.pack import unpack_geometry
 from facewire.sender.pipeline import SenderPipeline, encode_video
-from facewire.sender.pose import rotation_vector
+from facewire.models.geometry import rotation_vector
 
 ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
 
@@ -53,7 +53,8 @@ def test_encode_real_video(generic_model: Path, video: Path, tmp_path: Path) -> 
     assert summary["clamped"] == sum(bool(f & Flag.CLAMPED) for f in flags)
     assert summary["payload_kbps"] == pytest.approx(9.36)
     # the Hello: camera guess and the model's id; no regions yet
-    assert log.hello.camera == estimate_intrinsics(512, 512)
+    c = estimate_intrinsics(512, 512)
+    assert log.hello.camera == Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
     assert log.hello.model_sha256 == summary["model_sha256"]
     assert log.hello.regions == ()
     assert log.hello.rate_hz == pytest.approx(25.0)

@@ -12,7 +12,8 @@ import pytest
 
 from facewire.protocol.packet import (PACKET_BYTES, QUANTISERS, SEQ_MODULO, Flag, Frame, PacketError,
                              decode, encode)
-from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_states, rotation_matrix
+from facewire.models.geometry import rotation_matrix
+from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_states
 
 RATE = 30.0
 DEPTH = 3
@@ -63,13 +64,6 @@ def ledger(playout: Playout, states: list[FrameState]) -> None:
     played = sum(st.status in PLAYED for st in states)
     assert s["received"] == played + s["duplicate"] + s["late"] + s["stray"] + s["discarded"]
     assert s["concealed"] == sum(st.status in HELD and st.seq is not None for st in states)
-
-
-def test_rotation_matrix_matches_rodrigues() -> None:
-    rng = np.random.default_rng(0)
-    for rvec in [*rng.uniform(-3, 3, (200, 3)), np.zeros(3), np.array([1e-10, -2e-10, 0]),
-                 np.array([np.pi, 0, 0])]:
-        np.testing.assert_allclose(rotation_matrix(rvec), cv2.Rodrigues(rvec)[0], atol=1e-12)
 
 
 def test_in_order_stream_plays_every_packet_after_depth_pops() -> None:

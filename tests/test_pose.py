@@ -6,16 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import EXPRESSION_UV, SYNTH_FX, SYNTH_K
-from facewire.sender.enroll.fit import Pose, project
+from conftest import EXPRESSION_UV, SYNTH_FX
+from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
 from facewire.models.landmarks import NONRIGID, RIGID
 from facewire.models.rig import FRONTAL_POINTS, Rig
-from facewire.protocol.control import Camera
-from facewire.sender.pose import (POSE_WEIGHTS, PoseFilter, PoseSolver, rotation_matrix,
-                         rotation_vector)
+from facewire.sender.pose import POSE_WEIGHTS, PoseFilter, PoseSolver
 
-CAMERA = Camera(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
-K = SYNTH_K
+CAMERA = Intrinsics(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -27,7 +24,7 @@ def _scene(rig: Rig, rvec_deg: tuple[float, float, float], t: tuple[float, float
     """The true pose and the 68 image points of the morphed head (+ Gaussian noise)."""
     pose = Pose(rotation=rotation_matrix(np.radians(rvec_deg)), translation=np.array(t, float))
     points3d = rig.landmarks(rig.from_tangent(uv))
-    image = project(pose, points3d, K)
+    image = project(points3d, pose, CAMERA)
     return pose, image + np.random.default_rng(seed).normal(0.0, noise_px, image.shape)
 
 

@@ -19,6 +19,7 @@ from facewire.models.regions import REGION_NAMES
 from facewire.sender.enroll.layers import enroll_regions
 from facewire.models.landmarks import HELD_OUT, outer_eye_distance
 from facewire.models.modelfile import ModelFileError
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.rig import Rig
 from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
@@ -42,7 +43,7 @@ POSES = [
 def _truth(rig: Rig, rotvec_deg, translation, residuals) -> np.ndarray:
     """Exact projection of the morphed model (scipy rotation, raster camera)."""
     rotation = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    camera = ViewCamera(FX, FY, CX, CY, W, H, rotation, np.asarray(translation, float))
+    camera = ViewCamera(Intrinsics(FX, FY, CX, CY, W, H), Pose(rotation, translation))
     return camera.project(rig.landmarks(rig.from_tangent(residuals)))
 
 

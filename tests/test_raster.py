@@ -8,6 +8,7 @@ import pytest
 
 from facewire.models.infra.egl import EGLUnavailable
 from facewire.models.gltf import read_glb
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera, MeshRenderer, RenderError, orbit_pose
 
 W, H = 160, 120  # not square, so a swapped width and height shows
@@ -19,10 +20,9 @@ def renderer(request):
         yield r
 
 
-def _odd_camera(rotation, translation) -> Camera:
+def _odd_camera(pose: Pose) -> Camera:
     """Unequal focal lengths and an off-centre, fractional principal point."""
-    return Camera(fx=150.0, fy=170.0, cx=70.3, cy=52.8, width=W, height=H,
-                  rotation=rotation, translation=translation)
+    return Camera(Intrinsics(fx=150.0, fy=170.0, cx=70.3, cy=52.8, width=W, height=H), pose)
 
 
 def _weighted_centroid(image: np.ndarray) -> np.ndarray:
@@ -40,7 +40,7 @@ def _triangle() -> tuple[np.ndarray, np.ndarray]:
 
 def test_rendered_triangle_lands_where_the_projection_formula_says(renderer):
     vertices, triangles = _triangle()
-    camera = _odd_camera(*orbit_pose(25.0, -10.0, 450.0, np.array([10.0, -5.0, 20.0])))
+    camera = _odd_camera(orbit_pose(25.0, -10.0, 450.0, np.array([10.0, -5.0, 20.0])))
     renderer.set_mesh(len(vertices), triangles)
     renderer.set_texture(None)
     image = renderer.render(vertices, camera)
@@ -57,7 +57,7 @@ def test_rendered_triangle_lands_where_the_projection_formula_says(renderer):
 
 def test_moving_the_vertices_moves_the_image(renderer):
     vertices, triangles = _triangle()
-    camera = _odd_camera(np.eye(3), np.array([0.0, 0.0, -400.0]))
+    camera = _odd_camera(Pose(np.eye(3), np.array([0.0, 0.0, -400.0])))
     renderer.set_mesh(len(vertices), triangles)
     renderer.set_texture(None)
     first = renderer.render(vertices, camera)
@@ -74,12 +74,12 @@ def _pixel_aligned_quad(texels_x: int, texels_y: int, px_per_texel: int, left: i
 
     Returns vertices, triangles, uv (v up) and the camera.
     """
-    camera = Camera(fx=500.0, fy=500.0, cx=79.0, cy=59.0, width=W, height=H,
-                    rotation=np.eye(3), translation=np.array([0.0, 0.0, -500.0]))
+    camera = Camera(Intrinsics(fx=500.0, fy=500.0, cx=79.0, cy=59.0, width=W, height=H),
+                    Pose(np.eye(3), np.array([0.0, 0.0, -500.0])))
     u0, u1 = left - 0.5, left - 0.5 + texels_x * px_per_texel  # pixel edges
     v0, v1 = top - 0.5, top - 0.5 + texels_y * px_per_texel
-    x0, x1 = u0 - camera.cx, u1 - camera.cx
-    y0, y1 = camera.cy - v0, camera.cy - v1
+    x0, x1 = u0 - camera.intrinsics.cx, u1 - camera.intrinsics.cx
+    y0, y1 = camera.intrinsics.cy - v0, camera.intrinsics.cy - v1
     vertices = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], np.float32)
     uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)  # top edge is v = 1
     triangles = np.array([[0, 3, 2], [0, 2, 1]], np.int32)
@@ -102,7 +102,7 @@ def test_texture_is_not_shaded_when_the_surface_turns_away(renderer):
     vertices, triangles, uv, _ = _pixel_aligned_quad(6, 4, 15, 20, 10)
     renderer.set_mesh(4, triangles, uv)
     renderer.set_texture(np.tile(colour, (4, 6, 1)))
-    camera = Camera.virtual(W, H, *orbit_pose(65.0, 20.0, 500.0), fov_y_deg=40.0)
+    camera = Camera.virtual(W, H, orbit_pose(65.0, 20.0, 500.0), fov_y_deg=40.0)
     image = renderer.render(vertices, camera)
     inside = cv2.erode((image.max(axis=2) > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
     assert inside.sum() > 100
@@ -134,7 +134,7 @@ def test_grey_shading_darkens_surfaces_turned_from_the_light(renderer):
     renderer.set_texture(None)
     facing = renderer.render(vertices, camera)
     centre = vertices.mean(axis=0)
-    turned_rotation, _ = orbit_pose(70.0, 0.0, 1.0)  # the quad turned 70 degrees about y
+    turned_rotation = orbit_pose(70.0, 0.0, 1.0).rotation  # the quad turned 70 deg about y
     turned = ((vertices - centre) @ turned_rotation + centre).astype(np.float32)
     side = renderer.render(turned, camera)
     brightness = [img[img.max(axis=2) > 0].mean() for img in (facing, side)]
@@ -143,7 +143,8 @@ def test_grey_shading_darkens_surfaces_turned_from_the_light(renderer):
 
 def test_orbit_pose_looks_at_the_target_from_the_right_side():
     target = np.array([5.0, -3.0, 40.0])
-    rotation, translation = orbit_pose(30.0, 20.0, 500.0, target)
+    pose = orbit_pose(30.0, 20.0, 500.0, target)
+    rotation, translation = pose.rotation, pose.translation
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(rotation) == pytest.approx(1.0)
     np.testing.assert_allclose(rotation @ target + translation, [0, 0, -500.0], atol=1e-9)
@@ -152,7 +153,7 @@ def test_orbit_pose_looks_at_the_target_from_the_right_side():
     expected = target + 500 * np.array([np.sin(yaw) * np.cos(pitch), np.sin(pitch),
                                         np.cos(yaw) * np.cos(pitch)])
     np.testing.assert_allclose(centre, expected, atol=1e-9)
-    camera = Camera.virtual(W, H, rotation, translation)
+    camera = Camera.virtual(W, H, pose)
     np.testing.assert_allclose(camera.project(target[None])[0], [(W - 1) / 2, (H - 1) / 2])
     # Model up stays image up: a point above the target is on a smaller row.
     assert camera.project((target + [0, 10, 0])[None])[0, 1] < (H - 1) / 2
@@ -162,17 +163,20 @@ def test_bad_inputs_are_named(renderer):
     vertices, triangles = _triangle()
     renderer.set_mesh(3, triangles)
     renderer.set_texture(None)
-    camera = _odd_camera(np.eye(3), np.array([0.0, 0.0, -400.0]))
+    camera = _odd_camera(Pose(np.eye(3), np.array([0.0, 0.0, -400.0])))
     with pytest.raises(RenderError, match="vertices: expected dtype float32"):
         renderer.render(vertices.astype(np.float64), camera)
     with pytest.raises(RenderError, match="vertices: expected shape"):
         renderer.render(vertices[:2], camera)
     with pytest.raises(RenderError, match="camera: image"):
-        renderer.render(vertices, Camera.virtual(W + 1, H, np.eye(3), np.zeros(3)))
+        renderer.render(vertices, Camera.virtual(W + 1, H, Pose(np.eye(3), np.zeros(3))))
     with pytest.raises(RenderError, match="triangles"):
         renderer.set_mesh(3, triangles + 1)
-    with pytest.raises(RenderError, match="rotation"):
-        _odd_camera(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+    with pytest.raises(RenderError, match="camera.pose: expected a models.geometry.Pose"):
+        Camera(Intrinsics(150.0, 170.0, 70.3, 52.8, W, H), (np.eye(3), np.zeros(3)))
+    with pytest.raises(RenderError, match="camera.near, far"):
+        Camera(Intrinsics(150.0, 170.0, 70.3, 52.8, W, H), Pose(np.eye(3), np.zeros(3)),
+               near=0.0)
 
 
 def test_missing_egl_gives_the_install_hint(monkeypatch):
@@ -194,8 +198,8 @@ def test_lee_perry_smith_renders_as_a_face(shared_data):
     mesh = read_glb(folder / "LeePerrySmith.glb", mm_per_unit=50.0)  # ~50 mm per file unit
     texture = cv2.cvtColor(cv2.imread(str(folder / "Map-COL.jpg")), cv2.COLOR_BGR2RGB)
     nose = mesh.positions[np.argmax(mesh.positions[:, 2])]
-    rotation, translation = orbit_pose(0.0, 0.0, 700.0, np.array([0.0, nose[1] + 20.0, 0.0]))
-    camera = Camera.virtual(256, 256, rotation, translation, fov_y_deg=25.0)
+    pose = orbit_pose(0.0, 0.0, 700.0, np.array([0.0, nose[1] + 20.0, 0.0]))
+    camera = Camera.virtual(256, 256, pose, fov_y_deg=25.0)
     detector = dlib.get_frontal_face_detector()
     background = (40, 60, 90)
     with MeshRenderer(256, 256, background=background) as r:

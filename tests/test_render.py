@@ -17,14 +17,14 @@ from facewire.models.draworder import draw_order
 from facewire.models.head import generic_head
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, ModelInfo, PersonModel, Region
-from facewire.models.modelfile import Camera as ModelCamera
+from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera, MeshRenderer, RenderError, orbit_pose
 from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import head_centre, sender_view, virtual_view
 
-MODEL_CAMERA = ModelCamera(640.0, 640.0, 319.5, 239.5, 640, 480)
+MODEL_CAMERA = Intrinsics(640.0, 640.0, 319.5, 239.5, 640, 480)
 HEAD_TEXTURE = (512, 1024)  # rows, columns: a face some 3 times finer than the views below
 PLANE_TEXTURE = 64  # texels a side over the 100 mm square
 PLANE_RECT = (16, 48)  # the plane's regions cover texels [16, 48) in rows and columns
@@ -83,7 +83,7 @@ def _preview(model: PersonModel, vertices: np.ndarray, camera: Camera, samples: 
              background: tuple[int, int, int]) -> np.ndarray:
     """What ``models.build.render_preview`` draws: the mesh with the neutral texture alone."""
     mesh = model.mesh
-    with MeshRenderer(camera.width, camera.height, samples=samples,
+    with MeshRenderer(camera.intrinsics.width, camera.intrinsics.height, samples=samples,
                       background=background) as renderer:
         renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
         renderer.set_texture(model.texture)
@@ -147,7 +147,7 @@ def test_fractional_q_blends_the_two_nearest_layers() -> None:
     assert len(points) > 20
     target = mesh.vertices[points].mean(axis=0)
     # Frontal, 200 mm away: some 2 pixels per texel.
-    camera = Camera.virtual(480, 480, *orbit_pose(0.0, 0.0, 200.0, target), fov_y_deg=25.0)
+    camera = Camera.virtual(480, 480, orbit_pose(0.0, 0.0, 200.0, target), fov_y_deg=25.0)
     with FaceRenderer(model, 480, 480, samples=0) as renderer:
         image = renderer.render(mesh.vertices, np.array([2.25], np.float32), camera)
     px = np.rint(camera.project(mesh.vertices[points])).astype(int)
@@ -191,7 +191,8 @@ def _plane_region(name: str, colours: list[tuple[int, int, int]],
 def _plane_camera(px_per_mm: float = PLANE_PX_PER_MM) -> Camera:
     """Frontal, 200 mm away, ``px_per_mm`` pixels per mm (the plane fills 400 x 400 px)."""
     f = px_per_mm * 200.0
-    return Camera(f, f, 239.5, 239.5, 480, 480, np.eye(3), np.array([0.0, 0.0, -200.0]))
+    return Camera(Intrinsics(f, f, 239.5, 239.5, 480, 480),
+                  Pose(np.eye(3), np.array([0.0, 0.0, -200.0])))
 
 
 def _plane_uv(pixels: np.ndarray) -> np.ndarray:
@@ -326,7 +327,8 @@ def test_bad_inputs_raise_value_errors() -> None:
             renderer.render(vertices, np.zeros(5, np.float32), camera)
         with pytest.raises(RenderError, match="q"):
             renderer.render(vertices, np.array([np.inf], np.float32), camera)
-        small = Camera(400.0, 400.0, 159.5, 119.5, 320, 240, np.eye(3), [0.0, 0.0, -200.0])
+        small = Camera(Intrinsics(400.0, 400.0, 159.5, 119.5, 320, 240),
+                       Pose(np.eye(3), np.array([0.0, 0.0, -200.0])))
         with pytest.raises(RenderError, match="camera"):
             renderer.render(vertices, q, small)
         # 8 values (a packet's) are accepted; values beyond [0, k - 1] are clamped.

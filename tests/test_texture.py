@@ -60,7 +60,7 @@ def scene():
         40 + 170 * u, 40 + 170 * v,
         128 + 70 * np.sin(2 * np.pi * 16 * u) * np.sin(2 * np.pi * 8 * v)], -1)), 0, 255)
     texture = texture.astype(np.uint8)
-    cameras = {yaw: Camera.virtual(IMG, IMG, *orbit_pose(yaw, 0.0, 350.0), fov_y_deg=30.0)
+    cameras = {yaw: Camera.virtual(IMG, IMG, orbit_pose(yaw, 0.0, 350.0), fov_y_deg=30.0)
                for yaw in (0.0, 60.0)}
     with MeshRenderer(IMG, IMG) as renderer:
         renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
@@ -72,7 +72,7 @@ def scene():
 
 def _cos_to(surface, camera: Camera) -> np.ndarray:
     """(H, W) cosine between each texel's normal and its ray to the camera centre."""
-    centre = -camera.rotation.T @ camera.translation
+    centre = -camera.pose.rotation.T @ camera.pose.translation
     ray = centre - surface.positions
     return (surface.normals * ray).sum(-1) / np.linalg.norm(ray, axis=-1)
 
@@ -80,7 +80,7 @@ def _cos_to(surface, camera: Camera) -> np.ndarray:
 def _behind_small_ball(surface, camera: Camera, margin: float) -> np.ndarray:
     """(H, W) bool: the texel is on the big ball, and the segment from the camera centre to
     its point passes through the small ball, at least ``margin`` mm inside its surface."""
-    centre = -camera.rotation.T @ camera.translation
+    centre = -camera.pose.rotation.T @ camera.pose.translation
     p = surface.positions.astype(np.float64)
     d = p - centre
     s = np.clip(((SMALL_C - centre) * d).sum(-1) / (d * d).sum(-1), 0, 1)
@@ -267,8 +267,8 @@ def test_bad_inputs_are_named(scene):
 
 def test_a_callers_renderer_keeps_working_around_our_passes(scene):
     mesh, texture, _, views = scene
-    near = Camera.virtual(64, 64, *orbit_pose(0.0, 0.0, 250.0))
-    far = Camera.virtual(64, 64, *orbit_pose(0.0, 0.0, 500.0))
+    near = Camera.virtual(64, 64, orbit_pose(0.0, 0.0, 250.0))
+    far = Camera.virtual(64, 64, orbit_pose(0.0, 0.0, 500.0))
     with MeshRenderer(64, 64) as renderer:
         renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)
         renderer.set_texture(texture)
@@ -292,7 +292,7 @@ def test_lee_perry_smith_rebuilt_from_two_views_has_no_gaps(shared_data):
     target = np.array([0.0, nose[1] + 20.0, 0.0])
 
     def camera(yaw: float) -> Camera:
-        return Camera.virtual(IMG, IMG, *orbit_pose(yaw, 0.0, 700.0, target), fov_y_deg=25.0)
+        return Camera.virtual(IMG, IMG, orbit_pose(yaw, 0.0, 700.0, target), fov_y_deg=25.0)
 
     with MeshRenderer(IMG, IMG) as renderer:
         renderer.set_mesh(len(mesh.vertices), mesh.triangles, mesh.uv)

@@ -1,8 +1,9 @@
 """Offscreen rendering of a triangle mesh, textured or grey-shaded (moderngl through EGL).
 
-Camera (the "GL camera" of docs/DESIGN.md §2): a pose maps model to camera, X_cam = R X + t, with
-x right, y up and the camera looking along -z. Pixels have their origin at the top-left,
-rows down, and pixel (i, j) has its centre at (u, v) = (i, j), as dlib and OpenCV place it:
+Camera (the "GL camera" of docs/DESIGN.md §2 and ``models.geometry``): intrinsics and a pose
+that maps model to camera, X_cam = R X + t, with x right, y up and the camera looking along -z.
+Pixels have their origin at the top-left, rows down, and pixel (i, j) has its centre at
+(u, v) = (i, j), as dlib and OpenCV place it:
 
     u = cx + fx * X / (-Z),        v = cy - fy * Y / (-Z).
 
@@ -36,6 +37,7 @@ from typing import Any, Self
 
 import numpy as np
 
+from facewire.models.geometry import Intrinsics, Pose, project
 from facewire.models.infra.egl import create_context, in_context
 from facewire.protocol.errors import FacewireError
 
@@ -46,71 +48,50 @@ class RenderError(FacewireError, ValueError):
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """A pinhole camera: intrinsics in pixels of a ``width`` x ``height`` image, and a pose.
+    """A camera to render from: intrinsics, a pose and clipping planes.
 
     Attributes:
-        fx, fy: focal lengths in pixels.
-        cx, cy: principal point in pixels (pixel centres at integers, origin top-left).
-        width, height: output image size in pixels.
-        rotation: (3, 3) float64 rotation R, model to camera.
-        translation: (3,) float64 translation t in mm, X_cam = R X + t.
-        near, far: clipping distances in mm in front of the camera.
+        intrinsics: fx, fy, cx, cy in pixels of the output image, whose size it gives.
+        pose: model to camera, X_cam = R X + t (mm).
+        near, far: clipping distances in mm in front of the camera, 0 < near < far.
     """
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    rotation: np.ndarray
-    translation: np.ndarray
+    intrinsics: Intrinsics
+    pose: Pose
     near: float = 10.0
     far: float = 10000.0
 
     def __post_init__(self) -> None:
-        for name in ("fx", "fy", "cx", "cy", "near", "far"):
-            if not np.isfinite(getattr(self, name)):
-                raise RenderError(f"camera.{name}: not finite")
-        if self.fx <= 0 or self.fy <= 0:
-            raise RenderError(f"camera.fx, fy: must be positive, got {self.fx}, {self.fy}")
-        if not 0 < self.near < self.far:
-            raise RenderError(f"camera.near, far: need 0 < near < far, got {self.near}, "
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise RenderError(f"camera.intrinsics: expected a models.geometry.Intrinsics, got "
+                              f"{type(self.intrinsics).__name__}")
+        if not isinstance(self.pose, Pose):
+            raise RenderError(f"camera.pose: expected a models.geometry.Pose, got "
+                              f"{type(self.pose).__name__}")
+        if not (np.isfinite(self.near) and np.isfinite(self.far) and 0 < self.near < self.far):
+            raise RenderError(f"camera.near, far: need finite 0 < near < far, got {self.near}, "
                               f"{self.far}")
-        if self.width < 1 or self.height < 1:
-            raise RenderError(f"camera.width, height: got {self.width} x {self.height}")
-        rotation = np.asarray(self.rotation, dtype=np.float64)
-        translation = np.asarray(self.translation, dtype=np.float64)
-        if rotation.shape != (3, 3) or not np.isfinite(rotation).all():
-            raise RenderError(f"camera.rotation: expected a finite (3, 3) array, got "
-                              f"shape {rotation.shape}")
-        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) \
-                or np.linalg.det(rotation) < 0:
-            raise RenderError("camera.rotation: not a rotation matrix")
-        if translation.shape != (3,) or not np.isfinite(translation).all():
-            raise RenderError(f"camera.translation: expected a finite (3,) array, got "
-                              f"shape {translation.shape}")
-        object.__setattr__(self, "rotation", rotation)
-        object.__setattr__(self, "translation", translation)
 
     @classmethod
-    def virtual(cls, width: int, height: int, rotation: np.ndarray, translation: np.ndarray,
-                fov_y_deg: float = 30.0) -> Camera:
+    def virtual(cls, width: int, height: int, pose: Pose, fov_y_deg: float = 30.0) -> Camera:
         """A square-pixel camera with its principal point at the image centre.
 
         Args:
             width, height: image size in pixels.
-            rotation, translation: the pose, e.g. from ``orbit_pose``.
+            pose: the camera's pose, e.g. from ``orbit_pose``.
             fov_y_deg: vertical field of view in degrees, in (0, 180).
         """
         if not 0 < fov_y_deg < 180:
             raise RenderError(f"fov_y_deg: expected (0, 180), got {fov_y_deg}")
         f = 0.5 * height / np.tan(np.radians(fov_y_deg) / 2)
-        return cls(f, f, (width - 1) / 2, (height - 1) / 2, width, height, rotation,
-                   translation)
+        try:
+            intrinsics = Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height)
+        except ValueError as e:
+            raise RenderError(f"camera.{e}") from e
+        return cls(intrinsics, pose)
 
     def project(self, points: np.ndarray) -> np.ndarray:
-        """Pixel coordinates of model points.
+        """Pixel coordinates of model points (``models.geometry.project``).
 
         Args:
             points: (K, 3) model-space points in mm, in front of the camera.
@@ -118,31 +99,29 @@ class Camera:
         Returns:
             (K, 2) float64 (u, v): column and row, origin top-left, pixel centres at integers.
         """
-        cam = np.asarray(points, dtype=np.float64) @ self.rotation.T + self.translation
-        depth = -cam[:, 2]
-        return np.column_stack([self.cx + self.fx * cam[:, 0] / depth,
-                                self.cy - self.fy * cam[:, 1] / depth])
+        return project(points, self.pose, self.intrinsics)
 
     def projection_matrix(self) -> np.ndarray:
         """(4, 4) float64 OpenGL projection, camera frame to clip space (module docstring)."""
-        w, h, n, f = self.width, self.height, self.near, self.far
+        c, n, f = self.intrinsics, self.near, self.far
+        w, h = c.width, c.height
         return np.array([
-            [2 * self.fx / w, 0, 1 - 2 * (self.cx + 0.5) / w, 0],
-            [0, 2 * self.fy / h, 2 * (self.cy + 0.5) / h - 1, 0],
+            [2 * c.fx / w, 0, 1 - 2 * (c.cx + 0.5) / w, 0],
+            [0, 2 * c.fy / h, 2 * (c.cy + 0.5) / h - 1, 0],
             [0, 0, -(f + n) / (f - n), -2 * f * n / (f - n)],
             [0, 0, -1, 0]])
 
     def view_matrix(self) -> np.ndarray:
         """(4, 4) float64 model-to-camera transform [R t; 0 1]."""
         m = np.eye(4)
-        m[:3, :3] = self.rotation
-        m[:3, 3] = self.translation
+        m[:3, :3] = self.pose.rotation
+        m[:3, 3] = self.pose.translation
         return m
 
 
 def orbit_pose(yaw_deg: float, pitch_deg: float, distance_mm: float,
                target: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
-               ) -> tuple[np.ndarray, np.ndarray]:
+               ) -> Pose:
     """The pose of a camera on a sphere around ``target``, looking at it, model y up.
 
     Yaw 0, pitch 0 puts the camera on the model's +z axis, in front of the face. Positive yaw
@@ -155,7 +134,7 @@ def orbit_pose(yaw_deg: float, pitch_deg: float, distance_mm: float,
         target: (3,) model-space point in mm at the centre of the image.
 
     Returns:
-        rotation (3, 3) float64 and translation (3,) float64 with X_cam = R X + t.
+        The pose, X_cam = R X + t.
     """
     if not distance_mm > 0:
         raise RenderError(f"distance_mm: must be positive, got {distance_mm}")
@@ -166,7 +145,7 @@ def orbit_pose(yaw_deg: float, pitch_deg: float, distance_mm: float,
     camera_to_model = turn @ tilt
     centre = np.asarray(target, dtype=np.float64) + distance_mm * camera_to_model[:, 2]
     rotation = camera_to_model.T
-    return rotation, -rotation @ centre
+    return Pose(rotation, -rotation @ centre)
 
 
 VERTEX_TEXTURED = """
@@ -389,8 +368,9 @@ class MeshRenderer(ContextOwner):
         if self._triangles is None:
             raise RenderError("render: call set_mesh first")
         _check("vertices", vertices, np.float32, (self._n_vertices, 3))
-        if (camera.width, camera.height) != (self.width, self.height):
-            raise RenderError(f"camera: image {camera.width} x {camera.height}, renderer "
+        size = (camera.intrinsics.width, camera.intrinsics.height)
+        if size != (self.width, self.height):
+            raise RenderError(f"camera: image {size[0]} x {size[1]}, renderer "
                               f"{self.width} x {self.height}")
         mvp = (camera.projection_matrix() @ camera.view_matrix()).astype(np.float32)
         self._positions.write(np.ascontiguousarray(vertices))
@@ -403,7 +383,7 @@ class MeshRenderer(ContextOwner):
         else:
             vao, program = self._vao_shaded, self._shaded
             self._normals.write(_vertex_normals(vertices, self._triangles))
-            program["rotation"].write(camera.rotation.T.astype(np.float32).tobytes())
+            program["rotation"].write(camera.pose.rotation.T.astype(np.float32).tobytes())
         program["mvp"].write(mvp.T.tobytes())  # GLSL matrices are column-major
         self._frame.begin(self.background)
         vao.render()

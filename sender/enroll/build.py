@@ -6,7 +6,7 @@ The steps, in order (``build_model``):
    (``sender.tracker``); frames without a face are kept as ``None``.
 2. Fit: choose the neutral frame, estimate the head pose in every frame and the person's 3D
    landmarks, and warp the generic head onto them (``sender.enroll.fit``). The camera is
-   unknown, so its intrinsics are a guess (``sender.enroll.fit.intrinsics_guess``).
+   unknown, so its intrinsics are a guess (``models.geometry.intrinsics_guess``).
 3. Texture: decode the fit's texture views again (the neutral frame first, then side views),
    project them onto the fitted mesh's UV layout (``sender.enroll.texture``) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
@@ -38,11 +38,12 @@ import numpy as np
 
 from facewire.models.draworder import region_areas, triangle_groups
 from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.fit import Fit, FitError, fit_person, intrinsics_guess
+from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.models.head import generic_head
 from facewire.models.landmarks import outer_eye_distance
 from facewire.models.mesh import Mesh
-from facewire.models.modelfile import Area, Camera, ModelInfo, PersonModel, Region, model_summary, save_model
+from facewire.models.geometry import intrinsics_guess
+from facewire.models.modelfile import Area, ModelInfo, PersonModel, Region, model_summary, save_model
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer, orbit_pose
@@ -152,9 +153,9 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     if face_frames == 0:
         raise BuildError(f"{video}: no face found in frames {indices[0]}..{indices[-1]}")
 
-    fx, fy, cx, cy = intrinsics_guess(info.width, info.height)
+    camera = intrinsics_guess(info.width, info.height)
     try:
-        fit = fit_person(points, fx, fy, cx, cy, head=generic_head())
+        fit = fit_person(points, camera, head=generic_head())
     except FitError as exc:
         raise BuildError(f"{video}: {exc}") from None
 
@@ -163,16 +164,14 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         video, slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
     views = []
     for k in fit.views:
-        pose = fit.poses[k]
-        views.append((images[indices[k]], ViewCamera(fx, fy, cx, cy, info.width, info.height,
-                                                     pose.rotation, pose.translation)))
+        views.append((images[indices[k]], ViewCamera(camera, fit.poses[k])))
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
     texture, weight = project_views(fit.mesh, surface, views)
     texture = fill_holes(texture, weight > 0)
 
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
-        camera=Camera(fx, fy, cx, cy, info.width, info.height),
+        camera=camera,
         info=ModelInfo(name=name or video.stem, source_video=video.name,
                        frames_used=tuple(sorted(indices[k] for k in fit.views)),
                        neutral_frame=indices[fit.neutral], creator=CREATOR))
@@ -273,8 +272,8 @@ def preview_cameras(mesh: Mesh) -> list[ViewCamera]:
     distance = field / (2 * np.tan(np.radians(PREVIEW_FOV_DEG) / 2))
     cameras = []
     for yaw in PREVIEW_YAWS:
-        rotation, translation = orbit_pose(yaw, 0.0, distance, centre)
-        cameras.append(ViewCamera.virtual(PREVIEW_HEIGHT, PREVIEW_HEIGHT, rotation, translation,
+        cameras.append(ViewCamera.virtual(PREVIEW_HEIGHT, PREVIEW_HEIGHT,
+                                          orbit_pose(yaw, 0.0, distance, centre),
                                           fov_y_deg=PREVIEW_FOV_DEG))
     return cameras
 

@@ -5,15 +5,11 @@ and the camera intrinsics. Output (``Fit``): the person's neutral mesh (the gene
 so its landmark vertices sit on the person's neutral 3D landmarks), those landmarks, a head
 pose per frame, the neutral frame, the frames to texture from, and how depth was obtained.
 
-Frames. Model space as ``models/mesh.py`` (mm, x toward the person's left, y up, z toward the
-camera). Poses are GL camera poses, ``X_cam = R X + t``, ``u = cx + fx X/d``,
-``v = cy - fy Y/d``, ``d = -Z_cam``, head at ``t_z < 0``. Internally the solvers work in
-OpenCV's camera frame (y down, z forward), ``R_gl = S R_cv``, ``t_gl = S t_cv``,
-``S = diag(1, -1, -1)``. Yaw and pitch of a pose are those of the face's forward axis
-``f = R e_z`` in the camera: ``yaw = atan2(f_x, f_z)`` (positive: the nose turns toward the
-image's right, showing more of the person's right cheek; ``models.raster.orbit_pose`` with
-camera yaw ``a`` gives face yaw ``-a``), ``pitch = atan2(f_y, hypot(f_x, f_z))`` (positive:
-chin up).
+Frames and poses are ``models.geometry``'s: model space in mm (y up, z toward the camera),
+GL camera poses ``X_cam = R X + t`` (``Pose``), head at ``t_z < 0``; the OpenCV solvers work
+in OpenCV's camera frame, converted by ``S = diag(1, -1, -1)``. Yaw and pitch are
+``Pose.yaw_deg`` and ``Pose.pitch_deg`` (``models.infra.raster.orbit_pose`` with camera yaw
+``a`` gives face yaw ``-a``).
 
 1. Scale. One camera cannot observe absolute size: a head twice as large twice as far away
    gives the same image. We fix it by assuming the person's outer eye corners (36, 45) are as
@@ -106,6 +102,7 @@ import numpy as np
 import scipy.sparse
 from scipy.optimize import least_squares
 
+from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
 from facewire.models.landmarks import N_LANDMARKS, PHANTOM_NAMES, eye_aspect_ratio
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.morph import VolumeMorph
@@ -135,36 +132,9 @@ MAX_DAMPING_STEPS = 6
 JAW_PHANTOMS = np.array([i for i, name in enumerate(PHANTOM_NAMES)
                          if name.split("_")[0] in ("cheekbone", "jaw", "under")])
 
-_S = np.diag([1.0, -1.0, -1.0])
-
 
 class FitError(FacewireError, ValueError):
     """The frames do not allow a fit; the message says what is wrong."""
-
-
-@dataclass(frozen=True)
-class Pose:
-    """A head pose in the GL camera frame: ``X_cam = rotation @ X_model + translation``.
-
-    Attributes:
-        rotation: (3, 3) float64, model to camera.
-        translation: (3,) float64, mm; the head is in front of the camera at translation[2] < 0.
-    """
-
-    rotation: np.ndarray
-    translation: np.ndarray
-
-    @property
-    def yaw_deg(self) -> float:
-        """Yaw of the face's forward axis, degrees (module docstring)."""
-        f = self.rotation[:, 2]
-        return float(np.degrees(np.arctan2(f[0], f[2])))
-
-    @property
-    def pitch_deg(self) -> float:
-        """Pitch of the face's forward axis, degrees, positive chin up."""
-        f = self.rotation[:, 2]
-        return float(np.degrees(np.arctan2(f[1], np.hypot(f[0], f[2]))))
 
 
 @dataclass(frozen=True)
@@ -192,32 +162,9 @@ class Fit:
     yaw_range_deg: tuple[float, float]
 
 
-def intrinsics_guess(width: int, height: int) -> tuple[float, float, float, float]:
-    """Intrinsics for an unknown webcam: ``fx = fy = width``, principal point at the centre.
-
-    ``fx = width`` is a 53 deg horizontal field of view, between a narrow laptop camera
-    (~45 deg) and a wide desk webcam (~70 deg, ``fx = 0.71 width``). With the face far from the
-    camera compared with its own depth, a wrong focal length mostly trades against the head's
-    distance (which the scale convention already leaves arbitrary), not against its shape.
-
-    Args:
-        width, height: image size in pixels, positive.
-
-    Returns:
-        (fx, fy, cx, cy) in pixels, cx = (width - 1) / 2, cy = (height - 1) / 2.
-    """
-    if width < 1 or height < 1:
-        raise ValueError(f"width, height: expected positive sizes, got {width} x {height}")
-    f = float(width)
-    return f, f, (width - 1) / 2.0, (height - 1) / 2.0
-
-
 def fit_person(
     points: Sequence[np.ndarray | None],
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
+    camera: Intrinsics,
     head: Mesh | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> Fit:
@@ -226,7 +173,7 @@ def fit_person(
     Args:
         points: per frame, (68, 2) float image points (pixels, origin top-left), or None when
             the frame has no face.
-        fx, fy, cx, cy: camera intrinsics in pixels (``intrinsics_guess`` when unknown).
+        camera: the camera's intrinsics (``models.geometry.intrinsics_guess`` when unknown).
         head: the generic head; ``models.head.generic_head()`` when None.
         progress: called with the percentage done (int, 0-100) after each stage.
 
@@ -235,13 +182,11 @@ def fit_person(
 
     Raises:
         FitError: no face in any frame, too few frames with a face, or too few posed frames.
-        ValueError: a bad intrinsic or a malformed points array (naming the frame).
+        ValueError: not an ``Intrinsics``, or a malformed points array (naming the frame).
     """
-    for name, value in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
-        if not np.isfinite(value):
-            raise ValueError(f"{name}: not finite ({value})")
-    if fx <= 0 or fy <= 0:
-        raise ValueError(f"fx, fy: must be positive, got {fx}, {fy}")
+    if not isinstance(camera, Intrinsics):
+        raise ValueError(f"camera: expected a models.geometry.Intrinsics, got "
+                         f"{type(camera).__name__}")
     frames = [_check_frame(i, p) for i, p in enumerate(points)]
     faces = [i for i, p in enumerate(frames) if p is not None]
     if not faces:
@@ -253,7 +198,6 @@ def fit_person(
 
         head = generic_head()
     report = progress or (lambda _: None)
-    camera = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     generic = head.vertices[head.landmarks].astype(np.float64)
     eye_mm = float(np.linalg.norm(generic[36] - generic[45]))
 
@@ -264,19 +208,7 @@ def fit_person(
                        f"{MIN_FACE_FRAMES}")
     report(20)
 
-    yaws = np.array([_yaw_pitch(poses[i])[0] for i in posed])
-    shape = generic.copy()
-    depth, depth_change = "generic", 0.0
-    if yaws.max() - yaws.min() >= SFM_MIN_YAW_RANGE_DEG:
-        costs = _neutral_costs(frames, poses, posed, generic, camera)
-        chosen = _spread_by_yaw(posed, yaws, costs["expression"], SFM_FRAMES)
-        estimate = _structure_from_motion([frames[i] for i in chosen],
-                                          [poses[i] for i in chosen], generic, camera, eye_mm)
-        shape[SFM_POINTS] = estimate
-        depth = "structure-from-motion"
-        depth_change = float(np.sqrt(np.mean((estimate[:, 2] - generic[SFM_POINTS, 2]) ** 2)))
-        poses = _pose_all(frames, shape, camera)
-        posed = [i for i in faces if poses[i] is not None]
+    shape, poses, depth, depth_change = _depth(frames, posed, poses, generic, camera, eye_mm)
     report(50)
 
     neutral = choose_neutral(frames, poses, shape, camera)
@@ -284,31 +216,57 @@ def fit_person(
     report(60)
 
     mesh = warp_head(head, targets)
-    landmarks3d = mesh.vertices[mesh.landmarks].astype(np.float64)
     report(90)
 
+    fit = _final_fit(frames, faces, mesh, neutral, camera, depth, depth_change)
+    report(100)
+    return fit
+
+
+def _depth(frames: Sequence[np.ndarray | None], posed: Sequence[int],
+           poses: list[Pose | None], generic: np.ndarray, camera: Intrinsics,
+           eye_mm: float) -> tuple[np.ndarray, list[Pose | None], str, float]:
+    """Step 4: the (68, 3) landmark shape, its frames' poses, the depth's kind and
+    ``depth_change_mm``: by structure from motion (and posed again against its result) when
+    the posed frames' yaw spans ``SFM_MIN_YAW_RANGE_DEG``, else the generic head's."""
+    yaws = np.array([poses[i].yaw_deg for i in posed])
+    if yaws.max() - yaws.min() < SFM_MIN_YAW_RANGE_DEG:
+        return generic.copy(), poses, "generic", 0.0
+    costs = _neutral_costs(frames, poses, posed, generic, camera)
+    chosen = _spread_by_yaw(posed, yaws, costs["expression"], SFM_FRAMES)
+    estimate = _structure_from_motion([frames[i] for i in chosen],
+                                      [poses[i] for i in chosen], generic, camera, eye_mm)
+    shape = generic.copy()
+    shape[SFM_POINTS] = estimate
+    depth_change = float(np.sqrt(np.mean((estimate[:, 2] - generic[SFM_POINTS, 2]) ** 2)))
+    return shape, _pose_all(frames, shape, camera), "structure-from-motion", depth_change
+
+
+def _final_fit(frames: Sequence[np.ndarray | None], faces: Sequence[int], mesh: Mesh,
+               neutral: int, camera: Intrinsics, depth: str, depth_change: float) -> Fit:
+    """Step 8: every frame posed against the fitted mesh's landmarks, the views chosen."""
+    landmarks3d = mesh.vertices[mesh.landmarks].astype(np.float64)
     poses = _pose_all(frames, landmarks3d, camera)
     if poses[neutral] is None:
         raise FitError(f"frame {neutral}: no head pose against the fitted mesh")
     posed = [i for i in faces if poses[i] is not None]
     costs = _neutral_costs(frames, poses, posed, landmarks3d, camera)
-    angles = np.array([_yaw_pitch(poses[i]) for i in posed])
+    angles = np.array([(poses[i].yaw_deg, poses[i].pitch_deg) for i in posed])
     views = _choose_views(neutral, posed, angles[:, 0], costs["expression"])
-    report(100)
     return Fit(mesh=mesh, landmarks3d=landmarks3d, poses=tuple(poses), neutral=neutral,
                views=views, depth=depth, depth_change_mm=depth_change,
                yaw_range_deg=(float(angles[:, 0].min()), float(angles[:, 0].max())))
 
 
 def choose_neutral(points: Sequence[np.ndarray | None], poses: Sequence[Pose | None],
-                   shape: np.ndarray, camera: np.ndarray) -> int:
+                   shape: np.ndarray, camera: Intrinsics) -> int:
     """The most neutral frame: frontal, eyes open, mouth closed and relaxed, least expression.
 
     Args:
         points: per frame, (68, 2) image points or None.
         poses: per frame, the pose of ``shape`` or None.
         shape: (68, 3) float64 3D landmarks the poses refer to, mm.
-        camera: (3, 3) float64 intrinsic matrix.
+        camera: the camera's intrinsics.
 
     Returns:
         Index of the frame with the lowest neutral cost (module docstring, step 3).
@@ -402,23 +360,6 @@ def flipped_triangles(before: Mesh, after: Mesh, tag: Tag | None = Tag.SKIN) -> 
     return sel[(a * b).sum(axis=1) < 0]
 
 
-def project(pose: Pose, points3d: np.ndarray, camera: np.ndarray) -> np.ndarray:
-    """Image points (pixels, origin top-left, y down) of model points under a GL pose.
-
-    Args:
-        pose: the pose.
-        points3d: (K, 3) model points, mm.
-        camera: (3, 3) intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
-
-    Returns:
-        (K, 2) float64.
-    """
-    cam = np.asarray(points3d, dtype=np.float64) @ pose.rotation.T + pose.translation
-    d = -cam[:, 2]
-    return np.column_stack([camera[0, 2] + camera[0, 0] * cam[:, 0] / d,
-                            camera[1, 2] - camera[1, 1] * cam[:, 1] / d])
-
-
 # ----------------------------------------------------------------------------------------
 
 
@@ -435,43 +376,39 @@ def _check_frame(i: int, p: np.ndarray | None) -> np.ndarray | None:
     return a.astype(np.float64)
 
 
-def _solve_pose(shape: np.ndarray, image: np.ndarray, camera: np.ndarray) -> Pose | None:
+def _solve_pose(shape: np.ndarray, image: np.ndarray, camera: Intrinsics) -> Pose | None:
     """PnP of ``shape`` (68, 3) against ``image`` (68, 2) on POSE_POINTS; None on failure."""
     obj = np.ascontiguousarray(shape[POSE_POINTS])
     img = np.ascontiguousarray(image[POSE_POINTS])
+    k = camera.matrix()
     try:
-        ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+        ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
             return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera, None, rvec, tvec)
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, None, rvec, tvec)
     except cv2.error:
         return None
-    r_cv = cv2.Rodrigues(rvec)[0]
-    t_cv = tvec.ravel()
-    if not (np.isfinite(r_cv).all() and np.isfinite(t_cv).all()):
+    if not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None
+    r_cv, t_cv = rotation_matrix(rvec.ravel()), tvec.ravel()
     if (obj @ r_cv.T + t_cv)[:, 2].min() <= 0:
         return None
-    pose = Pose(rotation=_S @ r_cv, translation=_S @ t_cv)
+    pose = Pose.from_opencv(r_cv, t_cv)
     eye_px = float(np.linalg.norm(image[36] - image[45]))
-    error = np.linalg.norm(project(pose, obj, camera) - img, axis=1)
+    error = np.linalg.norm(project(obj, pose, camera) - img, axis=1)
     if eye_px <= 0 or np.median(error) > MAX_POSE_ERROR * eye_px:
         return None
     return pose
 
 
 def _pose_all(frames: Sequence[np.ndarray | None], shape: np.ndarray,
-              camera: np.ndarray) -> list[Pose | None]:
+              camera: Intrinsics) -> list[Pose | None]:
     return [None if p is None else _solve_pose(shape, p, camera) for p in frames]
-
-
-def _yaw_pitch(pose: Pose) -> tuple[float, float]:
-    return pose.yaw_deg, pose.pitch_deg
 
 
 def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | None],
                    posed: Sequence[int], shape: np.ndarray,
-                   camera: np.ndarray) -> dict[str, np.ndarray]:
+                   camera: Intrinsics) -> dict[str, np.ndarray]:
     """Per posed frame: ``total`` and ``expression`` (total without the pose terms) costs."""
     pts = np.stack([frames[i] for i in posed])
     eye = np.linalg.norm(pts[:, 36] - pts[:, 45], axis=1)
@@ -480,10 +417,10 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
     width = np.linalg.norm(pts[:, 48] - pts[:, 54], axis=1) / eye
     stable = np.arange(17, 68)
     resid = np.array([
-        np.sqrt(np.mean(np.sum((project(poses[i], shape[stable], camera)
+        np.sqrt(np.mean(np.sum((project(shape[stable], poses[i], camera)
                                 - frames[i][stable]) ** 2, axis=1)))
         for i in posed]) / eye
-    angles = np.array([_yaw_pitch(poses[i]) for i in posed])
+    angles = np.array([(poses[i].yaw_deg, poses[i].pitch_deg) for i in posed])
     ear_ref = np.percentile(ear, 90)
     expression = (
         (np.maximum(0.0, 0.85 - ear / max(ear_ref, 1e-9)) / 0.1) ** 2
@@ -521,19 +458,19 @@ def _rotate(rvecs: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def _structure_from_motion(frames: list[np.ndarray], poses: list[Pose], generic: np.ndarray,
-                           camera: np.ndarray, eye_mm: float) -> np.ndarray:
+                           camera: Intrinsics, eye_mm: float) -> np.ndarray:
     """Rigid bundle adjustment (step 4); returns (len(SFM_POINTS), 3) aligned to ``generic``."""
     prior = generic[SFM_POINTS]
     k, f = len(SFM_POINTS), len(frames)
     obs = np.stack([p[SFM_POINTS] for p in frames])  # (F, K, 2)
     i36 = int(np.flatnonzero(SFM_POINTS == 36)[0])
     i45 = int(np.flatnonzero(SFM_POINTS == 45)[0])
-    fx, fy, cx, cy = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     start = [prior.ravel()]
     for pose in poses:
-        r_cv = _S @ pose.rotation
-        start.append(cv2.Rodrigues(r_cv)[0].ravel())
-        start.append(_S @ pose.translation)
+        r_cv, t_cv = pose.to_opencv()
+        start.append(rotation_vector(r_cv))
+        start.append(t_cv)
     x0 = np.concatenate(start)
 
     def residuals(x: np.ndarray) -> np.ndarray:
@@ -583,11 +520,11 @@ def _scale_shift(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndar
 
 
 def _neutral_landmarks(image: np.ndarray, pose: Pose, shape: np.ndarray, head: Mesh,
-                       camera: np.ndarray, eye_mm: float) -> np.ndarray:
+                       camera: Intrinsics, eye_mm: float) -> np.ndarray:
     """Step 5: back-project the neutral frame's points to their model depths; (68, 3)."""
     depth = shape[:, 2].copy()
     depth[CONTOUR] = head.vertices[head.landmarks[CONTOUR], 2]
-    fx, fy, cx, cy = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     rays = np.column_stack([(image[:, 0] - cx) / fx, -(image[:, 1] - cy) / fy,
                             -np.ones(len(image))])  # GL camera frame
     r, t = pose.rotation, pose.translation

@@ -65,6 +65,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
+from facewire.models.geometry import Intrinsics
 from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
@@ -74,7 +75,6 @@ from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.models.infra.video import read_frames, video_info
-from facewire.protocol.control import Camera
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.pipeline import SenderPipeline
 
@@ -144,9 +144,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         VideoError: the video cannot be decoded.
     """
     video = Path(video)
-    c = model.camera
-    camera = Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
-    observations = _observe(model, camera, video, frames, progress)
+    observations = _observe(model, model.camera, video, frames, progress)
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
                           f"{frames.start}:{frames.stop or ''}; appearance needs at least 2")
@@ -170,7 +168,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
                           "layers", None):
         if frame.index in by_index:
             images[by_index[frame.index]] = frame.image
-    texels = _RegionTexels(model, camera)
+    texels = _RegionTexels(model, model.camera)
     regions = []
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
@@ -188,7 +186,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     return Enrollment(tuple(regions), report)
 
 
-def _observe(model: PersonModel, camera: Camera, video: Path, frames: slice,
+def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
              progress: Progress) -> list[Observation]:
     """Run the sender over the frames (module docstring, step 1)."""
     info = video_info(video)
@@ -311,7 +309,7 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray, neutral
 class _RegionTexels:
     """Every region's texels as surface points of the model (module docstring, step 4)."""
 
-    def __init__(self, model: PersonModel, camera: Camera) -> None:
+    def __init__(self, model: PersonModel, camera: Intrinsics) -> None:
         self.model = model
         self.camera = camera
         shape = model.texture.shape[:2]
@@ -354,7 +352,7 @@ class _AreaTexels:
         self.points = SurfacePoints(mesh, rig, tri, _uv_barycentric(mesh, tri, uv))
         self.normals = surface.normals[rows, cols]
 
-    def read(self, camera: Camera, image: np.ndarray, seen: Observation
+    def read(self, camera: Intrinsics, image: np.ndarray, seen: Observation
              ) -> tuple[np.ndarray, np.ndarray]:
         """The area's texels read from ``image``: (h, w, 3) float32 RGB, and (h, w) bool,
         where they are seen (on the image, facing the camera)."""

@@ -297,19 +297,20 @@ def _sample_view(image: np.ndarray, camera: Camera, depth: np.ndarray, cos_pixel
                  points: np.ndarray, normals: np.ndarray, sharpness: float, cos_min: float,
                  feather_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Colour (K, 3) float32 BGR and weight (K,) float32 of K texel points in one view."""
-    rotation = camera.rotation.astype(np.float32)
-    cam = points @ rotation.T + camera.translation.astype(np.float32)
+    pose, k = camera.pose, camera.intrinsics
+    rotation = pose.rotation.astype(np.float32)
+    cam = points @ rotation.T + pose.translation.astype(np.float32)
     dist = -cam[:, 2]
-    centre = (-camera.rotation.T @ camera.translation).astype(np.float32)
+    centre = (-pose.rotation.T @ pose.translation).astype(np.float32)
     ray = centre - points
     cos = np.einsum("ij,ij->i", normals, ray) / np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
     h, w = depth.shape
     safe = np.maximum(dist, camera.near)
-    x = camera.cx + camera.fx * cam[:, 0] / safe
-    y = camera.cy - camera.fy * cam[:, 1] / safe
+    x = k.cx + k.fx * cam[:, 0] / safe
+    y = k.cy - k.fy * cam[:, 1] / safe
     ok = (dist > camera.near) & (cos > cos_min) & (x >= 0) & (x <= w - 1) & (y >= 0) \
         & (y <= h - 1)
-    focal = 0.5 * (camera.fx + camera.fy)
+    focal = 0.5 * (k.fx + k.fy)
     tol = _tolerance(dist, cos, focal, cos_min)
     i0 = np.clip(np.floor(x), 0, w - 1).astype(np.intp)
     j0 = np.clip(np.floor(y), 0, h - 1).astype(np.intp)
@@ -432,9 +433,9 @@ def _check_view(i: int, view: object) -> None:
         raise TextureError(f"views[{i}]: expected a tuple (image, camera)")
     image, camera = view
     if not isinstance(camera, Camera):
-        raise TextureError(f"views[{i}] camera: expected a models.raster.Camera, got "
+        raise TextureError(f"views[{i}] camera: expected a models.infra.raster.Camera, got "
                            f"{type(camera).__name__}")
-    want = (camera.height, camera.width, 3)
+    want = (camera.intrinsics.height, camera.intrinsics.width, 3)
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != want:
         raise TextureError(f"views[{i}] image: expected {want} uint8 BGR (the camera's size), "
                            f"got {_describe(image)}")
@@ -594,7 +595,7 @@ class _Gl:
                 (ctx.buffer(_welded_normals(mesh)), "3f", "in_normal")],
                 index_buffer=ctx.buffer(np.ascontiguousarray(mesh.triangles)),
                 index_element_size=4)
-        w, h = camera.width, camera.height
+        w, h = camera.intrinsics.width, camera.intrinsics.height
         fbo = ctx.framebuffer(
             color_attachments=[ctx.renderbuffer((w, h), components=4, dtype="f4")],
             depth_attachment=ctx.depth_renderbuffer((w, h)))

@@ -42,7 +42,8 @@ from conftest import free_endpoint, npy_bytes, write_zip, zip_members
 from facewire.cli import main
 from facewire.models import modelfile
 from facewire.models.head import generic_head
-from facewire.models.modelfile import Camera, ModelInfo, PersonModel, Region, save_model
+from facewire.models.geometry import Intrinsics
+from facewire.models.modelfile import ModelInfo, PersonModel, Region, save_model
 from facewire.protocol import log as fwlog
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.protocol.control import Hello
@@ -97,7 +98,7 @@ def base_model() -> PersonModel:
                     mask=np.full((8, 8), 255, np.uint8),
                     templates=rng.standard_normal((2, 16, 16)).astype(np.float32))
     return PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
-                       camera=Camera(640.0, 640.0, 319.5, 239.5, 640, 480),
+                       camera=Intrinsics(640.0, 640.0, 319.5, 239.5, 640, 480),
                        info=ModelInfo(name="base"), regions=(region,))
 
 
