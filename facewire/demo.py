@@ -63,6 +63,7 @@ from facewire.models.infra.video import read_frames, video_info
 from facewire.protocol.control import ControlError, Hello, HelloRequest, decode_message
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import PACKET_BYTES
+from facewire.protocol.rate import NOMINAL_HZ
 from facewire.protocol.transport import (WIRE_OVERHEAD, ControlClient, ControlServer, PacketPublisher,
                                 PacketSubscriber, TransportError, control_endpoint)
 from facewire.receiver.output import VideoWriter, side_by_side
@@ -78,7 +79,6 @@ BIND_TRIES = 5  # ephemeral ports tried for a free packet port whose port + 1 is
 HELLO_TIMEOUT_S = 30.0  # the receiver's wait for the sender's Hello (the sender loads first)
 SETTLE_S = 0.3  # after the Hello, before the first packet: the subscription reaches the PUB
 IDLE_S = 0.05  # the receiver's poll while waiting for packets
-NOMINAL_HZ = 30.0
 WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10
