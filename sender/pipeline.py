@@ -3,7 +3,7 @@
 Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings``, s):
 
 1. ``track``: the frame converted to grey once (the sampler reads the same grey frame),
-   ``models.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
+   ``sender.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
@@ -281,7 +281,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         model_path: the person model (``.fwm``).
         source: a video file or a folder of images (``sender.capture.open_source``).
         out_log: the ``.fwlog`` to write (replaced if it exists).
-        frames: which frames (``models.video.frame_range``); all by default.
+        frames: which frames (``models.infra.video.frame_range``); all by default.
         focal: focal length in pixels (``--focal``), else estimated.
         calib: a calibration JSON file (``--calib``).
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
