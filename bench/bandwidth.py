@@ -20,7 +20,8 @@ The judgement is on the worst second: for each record i, the records in the seco
 it, ``n_i`` = #{j : t_i - 1 s + eps <= t_j <= t_i} (times sorted; eps = ``WINDOW_EPS_S``
 absorbs the rounding of Unix times, so a regular 30 Hz log counts 30, not 31), and the ``*_max_1s``
 figures are the rates above at ``max_i n_i`` packets per second. A log that spans less than a
-second has no full window and is judged at its mean rate. The 12 kbit/s budget
+second has no full window and is judged at its mean rate (with fewer than 2 records, at the
+rate its Hello announces). The 12 kbit/s budget
 (``protocol.rate.PAYLOAD_LIMIT_KBPS``) applies to the payload, as in the paper:
 ``payload_kbps_max_1s`` >= 12 exits 1. A 30 Hz stream is 9.36 kbit/s; 39 packets in one
 second are 12.17 kbit/s and fail.
@@ -99,7 +100,8 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         "limit_applies_to": LIMIT_APPLIES_TO, "under_limit": under,
     }
     judged = (f"worst 1-s window: {worst} packets" if full_window
-              else "under 1 s of records: judged at the mean rate")
+              else "under 1 s of records: judged at the mean rate" if span > 0
+              else "fewer than 2 records: judged at the Hello's rate")
     lines = [
         f"{log}: {n} frames over {span:.2f} s ({rate:.2f} Hz; the Hello says "
         f"{data.hello.rate_hz:g} Hz), {data.lost} records lost",

@@ -52,7 +52,8 @@ Targets (printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
 ``nme_rigid_only_mean`` (issue 4); with a reference, eyelid-vs-AU45 r >= 0.6, blink F1 >=
 0.7 and forehead r >= 0.4 (issue 5, stated for openface_default.wmv with a model built from
 its first 6 s). A miss does not fail the command (exit 0): the targets are judged over the
-shared videos, not one clip.
+shared videos, not one clip, and on the evaluation clips that no tuning has seen
+(``bench.clips``; ``subset`` says which set the clip is in).
 """
 
 from __future__ import annotations

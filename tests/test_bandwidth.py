@@ -128,10 +128,14 @@ def test_one_crowded_second_fails_a_log_whose_mean_passes(encoded: Path,
 
 def test_a_log_under_a_second_is_judged_at_its_mean_rate(encoded: Path,
                                                          tmp_path: Path) -> None:
+    """... and a single record at the rate its Hello announces."""
     status, s, lines = bench(at_rate(encoded, tmp_path / "short.fwlog", 60.0, seconds=0.5))
     assert status == 1 and s["packets_max_1s"] is None
     assert s["payload_kbps_max_1s"] == pytest.approx(kbps(PACKET_BYTES, 60), rel=1e-6)
     assert any("judged at the mean rate" in line for line in lines)
+    status, s, lines = bench(relog(encoded, tmp_path / "one.fwlog", np.array([T0]), 60.0))
+    assert status == 1 and s["frames"] == 1 and s["rate_hz"] == 60
+    assert any("judged at the Hello's rate" in line for line in lines)
 
 
 def test_packets_in_last_second_counts_a_trailing_window() -> None:
