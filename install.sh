@@ -1,23 +1,58 @@
 #!/usr/bin/env bash
-# Install facewire on a Debian/Ubuntu machine: the system packages for headless OpenGL and
-# the test tools (only when missing), then a virtual environment in .venv with facewire and
-# its Python test tools.
+# Install facewire on a Debian/Ubuntu machine: the system packages for headless OpenGL (only
+# when missing), a browser for the live-view test when the system's packages have one, then a
+# virtual environment in .venv with facewire and its Python test tools.
 set -euo pipefail
 cd "$(dirname "$0")"
 
+if [ "$(id -u)" -eq 0 ]; then sudo=""; else sudo="sudo"; fi
+apt_updated=0
+
+apt_install() {  # apt_install PACKAGE...: install with apt-get, updating its lists once
+  if [ "$apt_updated" -eq 0 ]; then $sudo apt-get update -qq; apt_updated=1; fi
+  $sudo apt-get install -y -qq "$@"
+}
+
 system_packages=(libegl1 libgl1 libgl1-mesa-dri)
-# Test tools: headless Chromium, which tests/test_liveview.py drives to check the live view.
-test_packages=(chromium)
 missing=()
-for pkg in "${system_packages[@]}" "${test_packages[@]}"; do
+for pkg in "${system_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then
-  echo "install.sh: installing system packages for headless OpenGL and the tests: ${missing[*]}"
-  if [ "$(id -u)" -eq 0 ]; then sudo=""; else sudo="sudo"; fi
-  $sudo apt-get update -qq
-  $sudo apt-get install -y -qq "${missing[@]}"
+  echo "install.sh: installing system packages for headless OpenGL: ${missing[*]}"
+  apt_install "${missing[@]}"
 fi
+
+# The browser: only the live-view page test (tests/test_liveview.py) needs one, so it never
+# stops the install. Debian packages it as chromium; on Ubuntu chromium is a snap (its deb
+# only installs the snap), which a container cannot run, and apt has no candidate for it.
+browser_hint="install.sh: no Chromium could be installed with apt (on Ubuntu chromium is a \
+snap, which a container cannot run). The live-view browser test skips without one (and fails \
+under FACEWIRE_REQUIRE_REAL_DATA=1). To run it, put a Chromium or Chrome on PATH as chromium \
+or chromium-browser: e.g. snap install chromium outside a container."
+
+browser_candidate() {  # the version apt would install as chromium, or nothing
+  apt-cache policy chromium 2>/dev/null | awk '/Candidate:/ && $2 != "(none)" {print $2}'
+}
+
+install_browser() {
+  if command -v chromium >/dev/null || command -v chromium-browser >/dev/null; then
+    return 0
+  fi
+  local candidate
+  candidate=$(browser_candidate)
+  if [ -z "$candidate" ] && [ "$apt_updated" -eq 0 ]; then  # perhaps apt's lists are empty
+    $sudo apt-get update -qq && apt_updated=1 && candidate=$(browser_candidate)
+  fi
+  if [ -z "$candidate" ]; then
+    echo "$browser_hint"
+    return 0
+  fi
+  echo "install.sh: installing chromium $candidate for the live-view browser test"
+  apt_install chromium || echo "$browser_hint"
+}
+
+install_browser
 
 python=${PYTHON:-python3}
 "$python" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \

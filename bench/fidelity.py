@@ -56,7 +56,7 @@ x264 reaches on the clip, and that rate is what is reported, not the target. On
 openface_default.wmv (640x480, 15 Hz, 288 frames) the floor is 17-18 kbit/s for the file
 (16-16.5 for the stream), with face-box grey SSIM 0.70 and grey PSNR 21.2-21.3 dB (issue 6
 report). ``stream_kbps`` counts the H.264 packets alone. The file is decoded back with
-``models.video.read_frames`` to BGR frames, as many as went in. PyAV's log level is
+``models.infra.video.read_frames`` to BGR frames, as many as went in. PyAV's log level is
 process-wide: while a pass runs it is raised to WARNING (if lower) and x264's messages, from
 every thread, are captured rather than printed.
 """

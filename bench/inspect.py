@@ -9,17 +9,17 @@ from __future__ import annotations
 
 import csv
 import os
+from typing import Any
 
 import numpy as np
 
-from facewire.bench.report import report
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
 
 
-def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | None = None,
-                as_json: bool = False) -> int:
-    """Print a log's summary; optionally write its frames as CSV. Returns the exit status."""
+def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | None = None
+                ) -> tuple[dict[str, Any], list[str]]:
+    """A log's summary and report lines; optionally write its frames as CSV."""
     data = read_log(log)
     f = data.frames
     n = len(f)
@@ -48,8 +48,7 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
     if csv_path is not None:
         _write_csv(csv_path, data.times, f, data.hello.regions)
         lines.append(f"csv: {csv_path}")
-    report(summary, lines, as_json)
-    return 0
+    return summary, lines
 
 
 def _write_csv(path: str | os.PathLike[str], times: np.ndarray, f: np.ndarray,

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -62,12 +63,7 @@ def plot_q(times: np.ndarray, q: dict[str, np.ndarray], layers: dict[str, int],
         raise ValueError(f"times: expected a 1-D array of finite seconds, got {times.shape}")
     if not q:
         raise ValueError("q: no region to plot")
-    curves = {}
-    for name, v in q_series(q, times.shape).items():
-        k = layers.get(name)
-        if not isinstance(k, int) or k < 2:
-            raise ValueError(f"layers[{name!r}]: expected an int >= 2, got {k!r}")
-        curves[name] = v / (k - 1)
+    curves = _normalised(q_series(q, times.shape), layers)
     if len(thumbnails) > MAX_THUMBNAILS:
         raise ValueError(f"thumbnails: {len(thumbnails)} given, at most {MAX_THUMBNAILS} fit "
                          f"the strip")
@@ -95,24 +91,7 @@ def plot_q(times: np.ndarray, q: dict[str, np.ndarray], layers: dict[str, int],
     top = 1 if thumbs else 0
     panels = [fig.add_subplot(grid[top, :])]
     panels += [fig.add_subplot(grid[top + p, :], sharex=panels[0]) for p in range(1, n_panels)]
-    for ax, (family, names) in zip(panels, families.items(), strict=True):
-        for name in names:
-            ax.plot(times, curves[name], lw=1.2, label=name)
-        ax.set_ylim(-0.05, 1.05)
-        ax.set_yticks([0, 0.5, 1])
-        ax.set_ylabel(family, fontsize="small")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize="x-small", framealpha=0.7,
-                  title=MEANING.get(family), title_fontsize="x-small")
-        for t, _ in thumbs:
-            ax.axvline(t, color="grey", ls="--", lw=0.8)
-        if ax is not panels[-1]:
-            ax.tick_params(labelbottom=False)
-    if times.size:
-        panels[0].set_xlim(times.min(), times.max() if times.max() > times.min()
-                           else times.min() + 1)
-    panels[-1].set_xlabel("time, s")
-
+    _draw_panels(panels, families, curves, times, [t for t, _ in thumbs])
     for number, (t, rgb) in enumerate(thumbs, start=1):
         ax = fig.add_subplot(grid[0, number - 1])
         ax.imshow(rgb, cmap=None if rgb.ndim == 3 else "gray", vmin=0, vmax=255)
@@ -129,6 +108,40 @@ def plot_q(times: np.ndarray, q: dict[str, np.ndarray], layers: dict[str, int],
         fig.suptitle(title, fontsize="medium")
     fig.savefig(path, dpi=DPI, format="png")
     plt.close(fig)
+
+
+def _normalised(q: dict[str, np.ndarray], layers: dict[str, int]) -> dict[str, np.ndarray]:
+    """Each region's (F,) Q divided by its top layer, so every curve runs over [0, 1]."""
+    curves = {}
+    for name, v in q.items():
+        k = layers.get(name)
+        if not isinstance(k, int) or k < 2:
+            raise ValueError(f"layers[{name!r}]: expected an int >= 2, got {k!r}")
+        curves[name] = v / (k - 1)
+    return curves
+
+
+def _draw_panels(panels: list[Any], families: dict[str, list[str]],
+                 curves: dict[str, np.ndarray], times: np.ndarray, marks: list[float]) -> None:
+    """One panel per family of regions: their normalised Q against time, the thumbnails'
+    times marked."""
+    for ax, (family, names) in zip(panels, families.items(), strict=True):
+        for name in names:
+            ax.plot(times, curves[name], lw=1.2, label=name)
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_yticks([0, 0.5, 1])
+        ax.set_ylabel(family, fontsize="small")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize="x-small", framealpha=0.7,
+                  title=MEANING.get(family), title_fontsize="x-small")
+        for t in marks:
+            ax.axvline(t, color="grey", ls="--", lw=0.8)
+        if ax is not panels[-1]:
+            ax.tick_params(labelbottom=False)
+    if times.size:
+        panels[0].set_xlim(times.min(), times.max() if times.max() > times.min()
+                           else times.min() + 1)
+    panels[-1].set_xlabel("time, s")
 
 
 def _family(name: str) -> str:

@@ -3,33 +3,17 @@
 Geometry fidelity (docs/DESIGN.md §8, "How the benchmarks judge"). The real sender pipeline
 (``sender.pipeline.SenderPipeline``) encodes every frame of the video; the packets are then
 decoded with ``protocol.packet.decode_frames``, so the measurement goes through quantisation
-and sees only what a receiver sees. For frame f with decoded rotation vector ``w_f``
-(radians), translation ``t_f`` (mm) and tangent residuals ``r_f`` (9, 2):
-
-    D_f   = rig.from_tangent(r_f)                      (9, 3) model-space displacements
-    X_f   = rig.landmarks(D_f)                          (68, 3) morphed landmark vertices
-    C_f   = X_f R(w_f)^T + t_f                          camera frame (GL: x right, y up,
-                                                        z toward the viewer; d = -z > 0)
-    p_f,i = (cx + fx C_x / d, cy - fy C_y / d)          pixels, with the Hello's camera
-
-(``Rig`` is the model's RBF volume morph, ``models/rig.py``; R(w) is Rodrigues' formula.)
-The reconstruction is compared with the tracker's own 68 points ``q_f`` on that frame:
-
-    NME_f = mean_{i in HELD_OUT} |p_f,i - q_f,i| / |q_f,36 - q_f,45|
-
-over the 50 points the packet never carries (``models.landmarks.HELD_OUT``), normalised by
-the tracked outer-eye-corner distance (``models.landmarks.nme``). ``nme_rigid_only`` is the
-same with zero residuals (``X_f`` = the neutral landmark vertices): what the pose alone
-explains. A frame is measured when its packet says ``FACE_PRESENT`` without
-``TRACKING_LOST`` (the sender had a pose for this frame: with ``TRACKING_LOST`` the packet
-repeats the last good pose, e.g. when the tracker saw a face but its pose was rejected) and
-the tracker gave points; other frames are NaN per frame, left out of the statistics and
-counted (``pose_lost_frames``: face seen, no pose).
+and sees only what a receiver sees. ``bench.geometry`` reconstructs the 68 landmarks each
+packet describes and gives the per-frame NME of the 50 points the packet never carries
+against the tracker's, normalised by the outer-eye distance, with pose and residuals
+(held-out) and with the pose alone (rigid-only). Frames without a pose of their own
+(``FACE_PRESENT`` with ``TRACKING_LOST``: face seen, no pose) are left out of the statistics
+and counted (``pose_lost_frames``).
 
 Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldout_median``,
 ``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``; and
 ``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
-30 Hz, from the packets themselves).
+30 Hz; every packet is checked to have ``PACKET_BYTES``).
 
 Appearance fidelity. Every measured frame is rendered by the receiver's renderer
 (``receiver.render.FaceRenderer``) from the sender's camera with the decoded pose,
@@ -52,9 +36,9 @@ and the mean, standard deviation, minimum and maximum of the decoded Q over the 
 frames; ``brightness_r``, the correlation of Q with the mean grey level of the face's
 landmark box (lighting should not move Q: near 0 on a clip whose light changes); and
 ``cue_r``, the correlation of Q with the landmark or image cue that ordered the region's
-states at enrollment (``sender.enroll.layers.region_cues``: brow raise, brow convergence,
-minus the eye aspect ratio, the iris position across the eyeball sample on open-eyed
-frames, the inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
+states at enrollment (``sender.enroll.layers.region_cues``: brow raise, brow convergence, minus
+the eye aspect ratio, the iris position across the eyeball sample on open-eyed frames, the
+inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
 frames the model was not built from, ``cue_r`` says how well the appearance alone recovers
 the axis the states were laid along. With ``--reference OPENFACE.csv``, ``q_reference`` is
 the agreement of the decoded Q with OpenFace's action units on the same frames
@@ -68,36 +52,37 @@ Targets (printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
 ``nme_rigid_only_mean`` (issue 4); with a reference, eyelid-vs-AU45 r >= 0.6, blink F1 >=
 0.7 and forehead r >= 0.4 (issue 5, stated for openface_default.wmv with a model built from
 its first 6 s). A miss does not fail the command (exit 0): the targets are judged over the
-shared videos, not one clip.
+shared videos, not one clip, and on the evaluation clips that no tuning has seen
+(``bench.clips``; ``subset`` says which set the clip is in).
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 
-from facewire.bench.bandwidth import NOMINAL_HZ, kbps
+from facewire.bench.clips import subset
 from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
+from facewire.bench.geometry import GeometryNME, geometry_nme
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
-from facewire.bench.report import report
 from facewire.bench.speed import NoFaceError
-from facewire.models.landmarks import HELD_OUT, N_LANDMARKS, eye_aspect_ratio, nme
+from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.regions import REGION_NAMES
 from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.rig import N_RESIDUALS, Rig
-from facewire.models.infra.video import VideoError
-from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, Frame, decode_frames
+from facewire.models.rig import Rig
+from facewire.models.infra.video import VideoError, range_text
+from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
+from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import sender_view
-from facewire.sender.capture import open_source
+from facewire.sender.capture import Source, open_source
 from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 
@@ -106,116 +91,6 @@ TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
 THUMBNAILS = 6
 EXAMPLES = 3  # example frames in the fidelity plot
-
-
-class GeometryNME(NamedTuple):
-    """Per-frame NME (fractions of the outer-eye distance; NaN where not measured).
-
-    Attributes:
-        heldout: (F,) float64, pose and residuals.
-        rigid_only: (F,) float64, pose alone.
-    """
-
-    heldout: np.ndarray
-    rigid_only: np.ndarray
-
-
-def _intrinsics(camera: Any) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) from a camera object with those attributes or a 4-sequence."""
-    if all(hasattr(camera, k) for k in ("fx", "fy", "cx", "cy")):
-        values = (camera.fx, camera.fy, camera.cx, camera.cy)
-    else:
-        values = tuple(np.asarray(camera, np.float64).reshape(-1))
-    if len(values) != 4 or not np.isfinite(values).all() or min(values[:2]) <= 0:
-        raise ValueError(f"camera: expected finite (fx, fy, cx, cy) with fx, fy > 0, "
-                         f"got {camera!r}")
-    fx, fy, cx, cy = (float(v) for v in values)
-    return fx, fy, cx, cy
-
-
-def _records(decoded: np.ndarray | Sequence[Frame]) -> np.ndarray:
-    """(F,) ``FRAME_DTYPE`` from a decoded record array or a list of ``Frame``s."""
-    if isinstance(decoded, np.ndarray):
-        if decoded.dtype != FRAME_DTYPE or decoded.ndim != 1:
-            raise ValueError(f"decoded: expected a 1-D FRAME_DTYPE array, got "
-                             f"{decoded.shape} {decoded.dtype}")
-        return decoded
-    records = np.zeros(len(decoded), FRAME_DTYPE)
-    for i, frame in enumerate(decoded):
-        if not isinstance(frame, Frame):
-            raise ValueError(f"decoded[{i}]: expected a protocol.packet.Frame, "
-                             f"got {type(frame).__name__}")
-        records[i] = frame.to_record()
-    return records
-
-
-def project_landmarks(rig: Rig, camera: Any, rotation: np.ndarray, translation: np.ndarray,
-                      residuals: np.ndarray | None) -> np.ndarray:
-    """The model's 68 landmarks as one packet describes them, in the sender's image.
-
-    Args:
-        rig: the person model's rig.
-        camera: (fx, fy, cx, cy) pixels, or an object with those attributes (the Hello's).
-        rotation: (3,) rotation vector, radians, model -> GL camera frame.
-        translation: (3,) model origin in the camera frame, mm (z < 0).
-        residuals: (9, 2) tangent-frame residuals, mm; None for the pose alone.
-
-    Returns:
-        (68, 2) float64 pixel positions (u right, v down), iBUG order.
-
-    Raises:
-        ValueError: a landmark is not in front of the camera, or bad shapes.
-    """
-    fx, fy, cx, cy = _intrinsics(camera)
-    r = np.zeros((N_RESIDUALS, 3), np.float32) if residuals is None else \
-        rig.from_tangent(np.asarray(residuals, np.float32))
-    x = rig.landmarks(r).astype(np.float64)
-    w = np.asarray(rotation, np.float64).reshape(3, 1)
-    t = np.asarray(translation, np.float64).reshape(3)
-    cam = x @ cv2.Rodrigues(w)[0].T + t
-    depth = -cam[:, 2]
-    if not (depth > 0).all():
-        raise ValueError(f"translation {t.tolist()}: landmarks behind the camera (need z < 0)")
-    return np.column_stack([cx + fx * cam[:, 0] / depth, cy - fy * cam[:, 1] / depth])
-
-
-def geometry_nme(rig: Rig, camera: Any, decoded: np.ndarray | Sequence[Frame],
-                 tracked: Sequence[np.ndarray | None]) -> GeometryNME:
-    """Per-frame held-out NME of the packets' geometry against the tracker (module docstring).
-
-    Args:
-        rig: the person model's rig (``models.rig.Rig``).
-        camera: the sender's intrinsics (fx, fy, cx, cy), pixels, or an object with them.
-        decoded: F decoded frames: the (F,) ``FRAME_DTYPE`` array of ``decode_frames``, or a
-            list of ``protocol.packet.Frame``.
-        tracked: F tracker results: (68, 2) pixel points, or None where no face was found.
-
-    Returns:
-        ``GeometryNME``: (F,) held-out and rigid-only NME as fractions; NaN where the packet
-        has no ``FACE_PRESENT`` flag or has ``TRACKING_LOST`` (no pose of its own), or
-        ``tracked`` is None.
-
-    Raises:
-        ValueError: lengths differ, bad shapes, or a face-present pose is behind the camera.
-    """
-    records = _records(decoded)
-    if len(tracked) != len(records):
-        raise ValueError(f"tracked: {len(tracked)} entries for {len(records)} decoded frames")
-    heldout = np.full(len(records), np.nan)
-    rigid = np.full(len(records), np.nan)
-    for f, (rec, points) in enumerate(zip(records, tracked)):
-        flags = Flag(int(rec["flags"]))
-        if points is None or Flag.TRACKING_LOST in flags or Flag.FACE_PRESENT not in flags:
-            continue
-        truth = np.asarray(points, np.float64)
-        if truth.shape != (N_LANDMARKS, 2):
-            raise ValueError(f"tracked[{f}]: expected shape (68, 2), got {truth.shape}")
-        full = project_landmarks(rig, camera, rec["rotation"], rec["translation"],
-                                 rec["residuals"])
-        pose = project_landmarks(rig, camera, rec["rotation"], rec["translation"], None)
-        heldout[f] = nme(full, truth, HELD_OUT)
-        rigid[f] = nme(pose, truth, HELD_OUT)
-    return GeometryNME(heldout, rigid)
 
 
 class _Series(NamedTuple):
@@ -239,7 +114,7 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
     Args:
         model_path: the person model (``.fwm``).
         source: a video file (or a folder of images, as ``sender.capture.open_source``).
-        frames: the frame range (``models.video.frame_range``); all by default.
+        frames: the frame range (``models.infra.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         reference: an OpenFace CSV of the same video, for ``q_reference``.
 
@@ -251,7 +126,8 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``nme_rigid_only_median``, ``nme_rigid_only_p95`` (percent; None when no frame was
         measured), ``q_regions``, ``q_reference`` (with a reference), ``camera``,
         ``face_ssim_mean``, ``face_psnr_mean``, ``h264_kbps``, ``h264_face_ssim_mean``,
-        ``h264_face_psnr_mean``, ``targets``, ``met``, ``model``, ``source``.
+        ``h264_face_psnr_mean``, ``targets``, ``met``, ``model``, ``source``, ``subset``
+        (``bench.clips``: "tuning", "evaluation" or None).
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
@@ -271,67 +147,33 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     model = load_model(model_path)
     src = open_source(str(source), pace=False, frames=frames)
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
-                              rate_hz=min(max(src.rate_hz, 1e-3), 1000.0))
+                              rate_hz=stream_rate(src.rate_hz))
     camera = pipeline.hello().camera
-    indices: list[int] = []
-    times: list[float] = []
-    packets: list[bytes] = []
-    tracked: list[np.ndarray | None] = []
-    eyes: dict[int, np.ndarray] = {}
-    brightness: list[float] = []
-    images: list[np.ndarray] = []  # the frames, for the rendering and x264 comparisons
-    cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
-    cues: list[np.ndarray] = []
-    ratios: list[np.ndarray] = []
     with src:
-        for frame in progress(src, "encoding", src.frames or None):
-            out = pipeline.process(frame.image, frame.time)
-            if keep_eyes and out.points is not None:
-                eyes[len(indices)] = _eye_crop(frame.image, out.points)
-            brightness.append(np.nan if out.points is None
-                              else _face_brightness(frame.image, out.points))
-            if cued and out.samples is not None:
-                cues.append(region_cues(out.samples[:, 0], out.points, out.residuals))
-                ratios.append(eye_aspect_ratio(out.points))
-            else:
-                cues.append(np.full(len(REGION_NAMES), np.nan))
-                ratios.append(np.full(2, np.nan))
-            indices.append(frame.index)
-            times.append(frame.time)
-            images.append(frame.image)
-            packets.append(out.packet)
-            tracked.append(out.points)
-    span = f"range {frames.start}:{'' if frames.stop is None else frames.stop}"
-    if not packets:
+        run = _encode(pipeline, src, progress, keep_eyes)
+    span = f"range {range_text(frames)}"
+    if not run.packets:
         raise VideoError(f"{source}: no frames in {span}")
-    if all(p is None for p in tracked):
-        raise NoFaceError(f"{source}: no face found in any of its {len(packets)} frames ({span})")
-    sizes = {len(p) for p in packets}
-    if sizes != {PACKET_BYTES}:
-        raise ValueError(f"sender produced packets of {sorted(sizes)} bytes, "
-                         f"expected {PACKET_BYTES}")
-    decoded, errors = decode_frames(np.frombuffer(b"".join(packets), np.uint8)
-                                    .reshape(len(packets), PACKET_BYTES))
-    bad = [i for i, e in enumerate(errors) if e is not None]
-    if bad:
-        raise ValueError(f"sender packet of frame {indices[bad[0]]} does not decode: "
-                         f"{errors[bad[0]]} ({len(bad)} such packets)")
-
-    result = geometry_nme(Rig(model.mesh), camera, decoded, tracked)
+    if all(p is None for p in run.tracked):
+        raise NoFaceError(f"{source}: no face found in any of its {len(run.packets)} frames "
+                          f"({span})")
+    decoded = _decode(run.packets, run.indices)
+    result = geometry_nme(Rig(model.mesh), camera, decoded, run.tracked)
     flags = decoded["flags"].astype(np.int64)
     face = (flags & Flag.FACE_PRESENT) != 0
     posed = face & ((flags & Flag.TRACKING_LOST) == 0)
     summary: dict[str, Any] = {
         "model": str(model_path),
         "source": str(source),
-        "frames": len(packets),
+        "subset": subset(Path(source).name),
+        "frames": len(run.packets),
         "face_frames": int(face.sum()),
-        "tracked_frames": sum(p is not None for p in tracked),
+        "tracked_frames": sum(p is not None for p in run.tracked),
         "pose_lost_frames": int((face & ~posed).sum()),
         "measured_frames": int(np.isfinite(result.heldout).sum()),
         "clamped_frames": int(((flags & Flag.CLAMPED) != 0).sum()),
         "packet_bytes": PACKET_BYTES,
-        "payload_kbps": round(kbps(float(np.mean([len(p) for p in packets])), NOMINAL_HZ), 3),
+        "payload_kbps": round(payload_kbps(NOMINAL_HZ), 3),
         "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                    "width": camera.width, "height": camera.height},
         **_stats("nme_heldout", result.heldout),
@@ -344,35 +186,98 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         "nme_heldout": mean is not None and mean <= TARGET_NME_HELDOUT,
         "below_rigid_only": mean is not None and mean < rigid,
     }
-    names = pipeline.hello().regions
     layers = {r.name: int(r.layers.shape[0]) for r in model.regions}
     q = {name: np.where(posed, decoded["q"][:, k].astype(np.float64), np.nan)
-         for k, name in enumerate(names)}
-    light = np.array(brightness)
-    ratios_seen = np.array(ratios)
-    open_eyes = np.isfinite(ratios_seen).all(axis=1)
-    cue = np.full((len(packets), len(REGION_NAMES)), np.nan)
-    if open_eyes.any():
-        cue[open_eyes] = without_closed_eyes(np.array(cues)[open_eyes], ratios_seen[open_eyes])
-    summary["q_regions"] = [{"name": name, **_q_stats(q[name], layers[name], light,
-                                                      cue[:, k] if cued else None)}
-                            for k, name in enumerate(names)]
+         for k, name in enumerate(pipeline.hello().regions)}
+    summary["q_regions"] = _q_regions(q, layers, run)
     if openface is not None:
-        agreement = q_agreement(q, np.array(indices), layers, openface)
+        agreement = q_agreement(q, np.array(run.indices), layers, openface)
         summary["q_reference"] = agreement
         summary["targets"].update(TARGET_Q)
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
-    appearance = _appearance(model, camera, decoded, tracked, posed, images,
-                             src.rate_hz or NOMINAL_HZ, summary["payload_kbps"], progress,
+    appearance = _appearance(model, camera, decoded, run.tracked, posed, run.images,
+                             stream_rate(src.rate_hz), summary["payload_kbps"], progress,
                              keep_examples=keep_eyes)
     summary.update(appearance.summary)
     summary["met"]["face_ssim_above_h264"] = (
         appearance.summary["face_ssim_mean"] is not None
         and appearance.summary["h264_face_ssim_mean"] is not None
         and appearance.summary["face_ssim_mean"] > appearance.summary["h264_face_ssim_mean"])
-    return summary, _Series(np.array(indices), np.array(times), posed, result, q, layers, eyes,
-                            appearance)
+    return summary, _Series(np.array(run.indices), np.array(run.times), posed, result, q,
+                            layers, run.eyes, appearance)
+
+
+class _Run(NamedTuple):
+    """What the sender pipeline made of each frame of the range, in order (F frames)."""
+
+    indices: list[int]  # video frame indices
+    times: list[float]  # seconds
+    packets: list[bytes]
+    tracked: list[np.ndarray | None]  # (68, 2) tracker points, None without a face
+    images: list[np.ndarray]  # the frames, for the rendering and x264 comparisons
+    brightness: np.ndarray  # (F,) mean grey of the landmarks' box, NaN without a face
+    cues: np.ndarray | None  # (F, regions) enrollment cues, NaN where not sampled; None
+    #                          when the model's regions are not the ones the cues define
+    ratios: np.ndarray  # (F, 2) eye aspect ratios, NaN where not sampled
+    eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
+
+
+def _encode(pipeline: SenderPipeline, src: Source, progress: Progress,
+            keep_eyes: bool) -> _Run:
+    """Run the sender pipeline over every frame of ``src``, keeping what the measures need."""
+    cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
+    run = _Run([], [], [], [], [], np.empty(0), None, np.empty(0), {})
+    brightness: list[float] = []
+    cues: list[np.ndarray] = []
+    ratios: list[np.ndarray] = []
+    for frame in progress(src, "encoding", src.frames or None):
+        out = pipeline.process(frame.image, frame.time)
+        if keep_eyes and out.points is not None:
+            run.eyes[len(run.indices)] = _eye_crop(frame.image, out.points)
+        brightness.append(np.nan if out.points is None
+                          else _face_brightness(frame.image, out.points))
+        if cued and out.samples is not None:
+            cues.append(region_cues(out.samples[:, 0], out.points, out.residuals))
+            ratios.append(eye_aspect_ratio(out.points))
+        else:
+            cues.append(np.full(len(REGION_NAMES), np.nan))
+            ratios.append(np.full(2, np.nan))
+        run.indices.append(frame.index)
+        run.times.append(frame.time)
+        run.images.append(frame.image)
+        run.packets.append(out.packet)
+        run.tracked.append(out.points)
+    return run._replace(brightness=np.array(brightness), cues=np.array(cues) if cued else None,
+                        ratios=np.array(ratios))
+
+
+def _decode(packets: list[bytes], indices: list[int]) -> np.ndarray:
+    """The sender's packets decoded: (F,) ``FRAME_DTYPE``; every one must be whole and valid.
+    """
+    sizes = {len(p) for p in packets}
+    if sizes != {PACKET_BYTES}:
+        raise ValueError(f"sender produced packets of {sorted(sizes)} bytes, "
+                         f"expected {PACKET_BYTES}")
+    decoded, errors = decode_frames(np.frombuffer(b"".join(packets), np.uint8)
+                                    .reshape(len(packets), PACKET_BYTES))
+    bad = [i for i, e in enumerate(errors) if e is not None]
+    if bad:
+        raise ValueError(f"sender packet of frame {indices[bad[0]]} does not decode: "
+                         f"{errors[bad[0]]} ({len(bad)} such packets)")
+    return decoded
+
+
+def _q_regions(q: dict[str, np.ndarray], layers: dict[str, int], run: _Run
+               ) -> list[dict[str, Any]]:
+    """Per region in packet order, ``_q_stats`` with its cue on open-eyed frames."""
+    cue = np.full((len(run.packets), len(REGION_NAMES)), np.nan)
+    open_eyes = np.isfinite(run.ratios).all(axis=1)
+    if run.cues is not None and open_eyes.any():
+        cue[open_eyes] = without_closed_eyes(run.cues[open_eyes], run.ratios[open_eyes])
+    return [{"name": name, **_q_stats(q[name], layers[name], run.brightness,
+                                      None if run.cues is None else cue[:, k])}
+            for k, name in enumerate(q)]
 
 
 class _Appearance(NamedTuple):
@@ -515,6 +420,11 @@ def format_quality(result: dict[str, Any]) -> str:
         f"{r['measured_frames']} measured; {r['clamped_frames']} with clamped values",
         f"payload: {r['packet_bytes']} bytes a packet, {r['payload_kbps']:.2f} kbit/s at 30 Hz",
     ]
+    if r["subset"] == "tuning":
+        lines.append("clip: in the tuning subset (bench.clips): these figures show how the "
+                     "tuning fits it; judge on the evaluation clips")
+    elif r["subset"] == "evaluation":
+        lines.append("clip: in the evaluation subset (bench.clips): no tuning has seen it")
     if r["nme_heldout_mean"] is None:
         lines.append("geometry: not measured (no frame had both a face packet and tracked points)")
     else:
@@ -559,35 +469,38 @@ def format_quality(result: dict[str, Any]) -> str:
 
 
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-            frames: slice | None = None, as_json: bool = False,
-            plot: str | os.PathLike[str] | None = None,
+            frames: slice | None = None, plot: str | os.PathLike[str] | None = None,
             progress: Progress = no_progress,
-            reference: str | os.PathLike[str] | None = None) -> int:
-    """Run ``measure_quality``, print its report (JSON last with ``as_json``), optionally plot.
-
-    Returns:
-        The exit status, 0 (targets inform; see the module docstring).
-    """
+            reference: str | os.PathLike[str] | None = None
+            ) -> tuple[dict[str, Any], list[str]]:
+    """Run ``measure_quality``, optionally plot: the result and the report's lines (targets
+    inform; a miss is no failure: see the module docstring)."""
     result, series = _measure(model_path, source, frames, progress, reference,
                               keep_eyes=plot is not None)
     lines = format_quality(result).splitlines()
     if plot is not None:
-        _plot(series, result, Path(plot))
-        lines.append(f"plot: {plot}")
-        if series.q:
-            q_path = Path(plot).with_name(Path(plot).stem + "-q.png")
-            shown = sorted(series.eyes)
-            picks = [shown[int(i)] for i in np.linspace(0, len(shown) - 1, THUMBNAILS)] \
-                if len(shown) >= THUMBNAILS else shown
-            plot_q(series.times, series.q, series.layers,
-                   [(float(series.times[i]), series.eyes[i]) for i in picks], q_path,
-                   title=f"facewire appearance classification: {Path(source).name}")
-            lines.append(f"plot: {q_path}")
-        face_path = Path(plot).with_name(Path(plot).stem + "-face.png")
-        _plot_face(series, result, face_path)
-        lines.append(f"plot: {face_path}")
-    report(result, lines, as_json)
-    return 0
+        lines += _plots(series, result, Path(plot))
+    return result, lines
+
+
+def _plots(series: _Series, result: dict[str, Any], plot: Path) -> list[str]:
+    """Write the fidelity plot ``plot`` and its ``-q`` and ``-face`` companions; the report
+    lines that name them."""
+    _plot(series, result, plot)
+    lines = [f"plot: {plot}"]
+    if series.q:
+        q_path = plot.with_name(plot.stem + "-q.png")
+        shown = sorted(series.eyes)
+        picks = [shown[int(i)] for i in np.linspace(0, len(shown) - 1, THUMBNAILS)] \
+            if len(shown) >= THUMBNAILS else shown
+        plot_q(series.times, series.q, series.layers,
+               [(float(series.times[i]), series.eyes[i]) for i in picks], q_path,
+               title=f"facewire appearance classification: {Path(result['source']).name}")
+        lines.append(f"plot: {q_path}")
+    face_path = plot.with_name(plot.stem + "-face.png")
+    _plot_face(series, result, face_path)
+    lines.append(f"plot: {face_path}")
+    return lines
 
 
 def _plot_face(series: _Series, result: dict[str, Any], path: Path) -> None:

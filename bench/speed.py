@@ -79,13 +79,14 @@ from typing import Any
 import numpy as np
 
 from facewire.bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
-from facewire.bench.report import report
 from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.rig import N_RESIDUALS, Rig
-from facewire.models.infra.video import VideoError, read_frames, video_info
+from facewire.models.infra.video import (VideoError, frames_in_range, range_text, read_frames,
+                                         video_info)
 from facewire.sender.capture import estimate_intrinsics
 from facewire.protocol.packet import decode as decode_packet
+from facewire.protocol.rate import stream_rate
 from facewire.receiver.output import VideoWriter
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import sender_view
@@ -108,6 +109,11 @@ LOOPBACK_S = 30.0
 TARGET_SIZE = (640, 480)
 SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "pack")
 _FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify")
+
+TARGETS = {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K, "track_ms": TARGET_TRACK_MS,
+           "sender_fps": TARGET_SENDER_FPS, "classify_ms": TARGET_CLASSIFY_MS,
+           "receiver_fps": TARGET_RECEIVER_FPS, "receiver_fps_1280x720": TARGET_RECEIVER_FPS_HD,
+           "latency_ms_median": TARGET_LATENCY_MS, "rss_growth_mb": TARGET_GROWTH_MB}
 
 # The keys that only the loopback run measures.
 LOOPBACK_KEYS = ("latency_ms_median", "latency_ms_p95", "sender_rss_growth_mb",
@@ -133,7 +139,7 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
     Args:
         model_path: the person model (``.fwm``).
         source: a video file.
-        frames: the frame range to track (``models.video.frame_range``); all by default.
+        frames: the frame range to track (``models.infra.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         loopback_s: seconds of the live loopback run (``bench.loopback``); 0 skips it.
 
@@ -173,8 +179,6 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         loopback = measure_loopback(model_path, source, loopback_s)
     else:
         loopback = dict.fromkeys(LOOPBACK_KEYS)
-    latency, growth = loopback["latency_ms_median"], (loopback["sender_rss_growth_mb"],
-                                                      loopback["receiver_rss_growth_mb"])
     result: dict[str, Any] = {
         "model": str(model_path),
         "source": str(source),
@@ -190,24 +194,24 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         "morph_calls": MORPH_CALLS,
         "threads": threads,
         **loopback,
-        "targets": {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K,
-                    "track_ms": TARGET_TRACK_MS, "sender_fps": TARGET_SENDER_FPS,
-                    "classify_ms": TARGET_CLASSIFY_MS, "receiver_fps": TARGET_RECEIVER_FPS,
-                    "receiver_fps_1280x720": TARGET_RECEIVER_FPS_HD,
-                    "latency_ms_median": TARGET_LATENCY_MS, "rss_growth_mb": TARGET_GROWTH_MB},
-        "met": {"morph": morph_per_10k <= TARGET_MORPH_MS_PER_10K,
-                "track": (tracking["track_ms"] is not None
-                          and tracking["track_ms"] <= TARGET_TRACK_MS),
-                "sender": tracking["sender_fps"] >= TARGET_SENDER_FPS,
-                "classify": (tracking["classify_ms"] is not None
-                             and tracking["classify_ms"] <= TARGET_CLASSIFY_MS),
-                "receiver": receiver["receiver_fps"] >= TARGET_RECEIVER_FPS,
-                "receiver_1280x720": receiver_hd["receiver_fps"] >= TARGET_RECEIVER_FPS_HD,
-                "latency": latency is not None and latency <= TARGET_LATENCY_MS,
-                "memory": all(g is not None and g < TARGET_GROWTH_MB for g in growth)},
         "not_measured": [k for k in LOOPBACK_KEYS if loopback[k] is None],
     }
-    return result
+    return {**result, "targets": TARGETS, "met": _met(result)}
+
+
+def _met(r: dict[str, Any]) -> dict[str, bool]:
+    """Per target of ``TARGETS``, whether the measured ``measure_speed`` result ``r`` met it
+    (a figure not measured misses)."""
+    growth = (r["sender_rss_growth_mb"], r["receiver_rss_growth_mb"])
+    return {"morph": r["morph_ms_per_10k_vertices"] <= TARGET_MORPH_MS_PER_10K,
+            "track": r["track_ms"] is not None and r["track_ms"] <= TARGET_TRACK_MS,
+            "sender": r["sender_fps"] >= TARGET_SENDER_FPS,
+            "classify": r["classify_ms"] is not None and r["classify_ms"] <= TARGET_CLASSIFY_MS,
+            "receiver": r["receiver_fps"] >= TARGET_RECEIVER_FPS,
+            "receiver_1280x720": r["receiver_fps_1280x720"] >= TARGET_RECEIVER_FPS_HD,
+            "latency": (r["latency_ms_median"] is not None
+                        and r["latency_ms_median"] <= TARGET_LATENCY_MS),
+            "memory": all(g is not None and g < TARGET_GROWTH_MB for g in growth)}
 
 
 def format_speed(result: dict[str, Any]) -> str:
@@ -270,12 +274,12 @@ def format_speed(result: dict[str, Any]) -> str:
 
 
 def speed(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
-          as_json: bool = False, frames: slice | None = None,
-          progress: Progress = no_progress, loopback_s: float = LOOPBACK_S) -> int:
-    """Run ``measure_speed`` and print its report; the exit status is 0 (targets inform)."""
+          frames: slice | None = None, progress: Progress = no_progress,
+          loopback_s: float = LOOPBACK_S) -> tuple[dict[str, Any], list[str]]:
+    """Run ``measure_speed``: its result and the report's lines (targets inform: a miss is
+    no failure)."""
     result = measure_speed(model_path, source, frames, progress, loopback_s)
-    report(result, format_speed(result).splitlines(), as_json)
-    return 0
+    return result, format_speed(result).splitlines()
 
 
 def _verdict(met: bool) -> str:
@@ -286,12 +290,9 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
                  ) -> tuple[dict[str, Any], list[bytes], Any]:
     """Run the sender pipeline over the range: median stage times (module docstring), the
     packets it made and its Hello."""
-    total = None
-    if info.frames:
-        stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
-        total = max(stop - frames.start, 0)
+    total = frames_in_range(frames, info.frames)
     pipeline = SenderPipeline(model, estimate_intrinsics(info.width, info.height),
-                              rate_hz=min(max(info.rate_hz, 1e-3), 1000.0))
+                              rate_hz=stream_rate(info.rate_hz))
     tracked: list[float] = []
     detect: list[float] = []
     stages: dict[str, list[float]] = {k: [] for k in SENDER_STAGES}
@@ -318,10 +319,10 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
                 stages[k].append(ms[k])
             (detect if out.detected else tracked).append(ms["track"])
     if n == 0:
-        raise VideoError(f"{source}: no frames in range {frames.start}:{frames.stop or ''}")
+        raise VideoError(f"{source}: no frames in range {range_text(frames)}")
     if missing == n:
         raise NoFaceError(f"{source}: no face found in any of its {n} frames "
-                          f"(range {frames.start}:{frames.stop or ''})")
+                          f"(range {range_text(frames)})")
     sender_ms = float(np.median(totals))
     timings = {
         "frames": n,

@@ -29,7 +29,7 @@ class CommandError(FacewireError):
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.receiver.replay import replay_log
 
     s = replay_log(args.log, args.model, args.out, args.view, _size(args.size), args.side_by_side,
@@ -44,12 +44,14 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _send(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
+    from facewire.protocol.rate import over_budget_warning
     from facewire.sender.sender import send, unencrypted_warning
 
-    warning = unencrypted_warning(args.bind, args.curve_dir)
-    if warning is not None:
-        print(f"facewire send: {warning}", file=sys.stderr)
+    for warning in (unencrypted_warning(args.bind, args.curve_dir),
+                    over_budget_warning(args.rate)):
+        if warning is not None:
+            print(f"facewire send: {warning}", file=sys.stderr)
     banner = [f"facewire send: publishing on {args.bind} (control on the next port); "
               f"Ctrl-C stops"]
 
@@ -76,7 +78,7 @@ def _send(args: argparse.Namespace) -> int:
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.receiver.liveview import LiveView
     from facewire.receiver.receiver import receive
 
@@ -127,7 +129,7 @@ def _size(text: str | None) -> tuple[int, int] | None:
 
 
 def _relay(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.protocol.relay import relay
 
     print(f"facewire relay: {args.inp} -> {args.out} (control on the next ports); Ctrl-C "
@@ -159,7 +161,7 @@ class _StatusLine:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.demo import demo
 
     r = demo(args.out, args.source, args.seconds, progress=_progress,
@@ -177,14 +179,19 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _inspect(args: argparse.Namespace) -> int:
     from facewire.bench.inspect import inspect_log
+    from facewire.report import report
 
-    return inspect_log(args.log, csv_path=args.csv, as_json=args.json)
+    report(*inspect_log(args.log, csv_path=args.csv), args.json)
+    return 0
 
 
 def _bench_bandwidth(args: argparse.Namespace) -> int:
     from facewire.bench.bandwidth import bandwidth
+    from facewire.report import report
 
-    return bandwidth(args.log, as_json=args.json, plot=args.plot)
+    summary, lines = bandwidth(args.log, plot=args.plot)
+    report(summary, lines, args.json)
+    return 0 if summary["under_limit"] else 1
 
 
 def _keys_generate(args: argparse.Namespace) -> int:
@@ -214,7 +221,7 @@ def _frames(text: str | None) -> slice:
 
 
 def _model_build(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.sender.enroll.build import build_model
     from facewire.sender.enroll.layers import enroll_regions
 
@@ -239,7 +246,7 @@ def _model_build(args: argparse.Namespace) -> int:
 
 
 def _model_info(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.models.modelfile import load_model, model_summary
 
     model = load_model(args.model)
@@ -272,13 +279,15 @@ def _model_export(args: argparse.Namespace) -> int:
 
 def _bench_speed(args: argparse.Namespace) -> int:
     from facewire.bench.speed import speed
+    from facewire.report import report
 
-    return speed(args.model, args.source, as_json=args.json, progress=_progress,
-                 loopback_s=args.loopback_seconds)
+    report(*speed(args.model, args.source, progress=_progress,
+                  loopback_s=args.loopback_seconds), args.json)
+    return 0
 
 
 def _encode(args: argparse.Namespace) -> int:
-    from facewire.bench.report import report
+    from facewire.report import report
     from facewire.sender.pipeline import encode_video
 
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
@@ -294,9 +303,11 @@ def _encode(args: argparse.Namespace) -> int:
 
 def _bench_quality(args: argparse.Namespace) -> int:
     from facewire.bench.quality import quality
+    from facewire.report import report
 
-    return quality(args.model, args.source, frames=_frames(args.frames), as_json=args.json,
-                   plot=args.plot, progress=_progress, reference=args.reference)
+    report(*quality(args.model, args.source, frames=_frames(args.frames), plot=args.plot,
+                    progress=_progress, reference=args.reference), args.json)
+    return 0
 
 
 def _check(_: argparse.Namespace) -> int:
@@ -418,8 +429,8 @@ def _add_bench(sub: Commands) -> None:
     """``bench bandwidth``, ``bench speed`` and ``bench quality``."""
     b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality")
     bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
-    bb = bsub.add_parser("bandwidth", help="payload and wire bit rates of a packet log "
-                         "(exit 1 at >= 12 kbit/s at 30 Hz)")
+    bb = bsub.add_parser("bandwidth", help="payload, wire and IP bit rates of a packet log "
+                         "(exit 1 when its worst 1-s payload is >= 12 kbit/s)")
     bb.add_argument("--log", required=True, help="packet log (.fwlog)")
     _add_json(bb)
     bb.add_argument("--plot", help="write a plot of bits per frame and kbit/s over time (.png)")

@@ -62,6 +62,7 @@ from facewire.sender.enroll.build import BuildResult, build_model
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames, video_info
 from facewire.protocol.packet import PACKET_BYTES
+from facewire.protocol.rate import NOMINAL_HZ
 from facewire.protocol.transport import WIRE_OVERHEAD, free_loopback_endpoint
 from facewire.receiver.output import VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState
@@ -71,7 +72,6 @@ from facewire.sender.sender import send
 
 DEFAULT_OUT = "facewire-demo"
 QUIET_S = 2.0  # the sender done, the receiver stops when no packet came for this long
-NOMINAL_HZ = 30.0
 WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10

@@ -145,26 +145,8 @@ def read_openface_csv(path: str | os.PathLike) -> OpenFaceTrack:
     """
     text = _read_text(path, MAX_CSV_BYTES)
     reader = csv.reader(io.StringIO(text))
-    header = next(reader, None)
-    if not header:
-        raise LandmarkFileError(f"{path}: empty file, expected an OpenFace CSV header")
-    names = [h.strip() for h in header]
-    column = {name: j for j, name in enumerate(names)}
-    if len(column) != len(names):
-        raise LandmarkFileError(f"{path}:1: duplicate column names")
-    missing = [c for c in ("frame", "timestamp", "confidence", "success") if c not in column]
-    if missing:
-        raise LandmarkFileError(f"{path}:1: missing column(s) {', '.join(missing)}")
-    xs = [f"x_{i}" for i in range(N_LANDMARKS)]
-    ys = [f"y_{i}" for i in range(N_LANDMARKS)]
-    absent = [c for c in xs + ys if c not in column]
-    if absent:
-        raise LandmarkFileError(
-            f"{path}:1: no 2D landmark columns x_0..x_{N_LANDMARKS - 1}, y_0..y_{N_LANDMARKS - 1} "
-            f"({len(absent)} of {2 * N_LANDMARKS} missing, first {absent[0]!r}); "
-            "run OpenFace with -2Dfp"
-        )
-    coords = xs + ys
+    names, column = _openface_header(path, next(reader, None))
+    coords = [f"{axis}_{i}" for axis in "xy" for i in range(N_LANDMARKS)]
     needed = ["frame", "timestamp", "confidence", "success", *coords]
     needed += ["face_id"] if "face_id" in column else []
 
@@ -214,3 +196,27 @@ def read_openface_csv(path: str | os.PathLike) -> OpenFaceTrack:
         success=np.array(oks, dtype=bool),
         landmarks=np.ascontiguousarray(xy.transpose(0, 2, 1)),
     )
+
+
+def _openface_header(path: str | os.PathLike, header: list[str] | None
+                     ) -> tuple[list[str], dict[str, int]]:
+    """The CSV's column names and each name's index; every column the reader needs must be
+    there, once."""
+    if not header:
+        raise LandmarkFileError(f"{path}: empty file, expected an OpenFace CSV header")
+    names = [h.strip() for h in header]
+    column = {name: j for j, name in enumerate(names)}
+    if len(column) != len(names):
+        raise LandmarkFileError(f"{path}:1: duplicate column names")
+    missing = [c for c in ("frame", "timestamp", "confidence", "success") if c not in column]
+    if missing:
+        raise LandmarkFileError(f"{path}:1: missing column(s) {', '.join(missing)}")
+    absent = [f"{axis}_{i}" for axis in "xy" for i in range(N_LANDMARKS)
+              if f"{axis}_{i}" not in column]
+    if absent:
+        raise LandmarkFileError(
+            f"{path}:1: no 2D landmark columns x_0..x_{N_LANDMARKS - 1}, y_0..y_{N_LANDMARKS - 1} "
+            f"({len(absent)} of {2 * N_LANDMARKS} missing, first {absent[0]!r}); "
+            "run OpenFace with -2Dfp"
+        )
+    return names, column

@@ -20,8 +20,7 @@ of its own data, and the reassembled file must hash to the announced model sha25
 Decoding bounds every size before allocating (no message over ``MAX_MESSAGE_BYTES``, no
 extension types, string map keys only), then checks each field's type and range. Anything
 malformed or unknown raises ``ControlError``. A stream's rate is in [``MIN_RATE_HZ``,
-``MAX_RATE_HZ``]: a slot longer than a second is no live stream, and a rate near zero would
-put the receiver's next slot at an absurd time.
+``MAX_RATE_HZ``] (``protocol.rate``).
 
 Text from a peer is shown to people (a receiver's status line quotes the sender's ``Error``
 and what was wrong with a reply), so no text leaves this module raw: an ``Error`` message and
@@ -42,12 +41,11 @@ import msgpack
 
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import N_REGIONS, VERSION, quantiser_table
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ
 
 CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
-MIN_RATE_HZ = 1.0
-MAX_RATE_HZ = 1000.0
 MAX_TEXT_CHARS = 1000
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 

@@ -63,7 +63,9 @@ from facewire.models.rig import Rig
 from facewire.sender.tracker import LandmarkTracker
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
-from facewire.protocol.packet import N_REGIONS, PACKET_BYTES, Flag, Frame
+from facewire.protocol.packet import N_REGIONS, Flag, Frame
+from facewire.protocol.rate import (MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps,
+                                    stream_rate)
 from facewire.sender.appearance import AppearanceSampler
 from facewire.sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
                             scale_intrinsics)
@@ -72,8 +74,6 @@ from facewire.sender.heuristics import ResidualFilter
 from facewire.sender.lift import Lifter, pose_and_lift
 from facewire.sender.pack import pack
 from facewire.sender.pose import PoseFilter, PoseSolver
-
-NOMINAL_HZ = 30.0  # the contract's payload_kbps is at 30 Hz
 
 
 @dataclass(frozen=True)
@@ -128,14 +128,15 @@ class SenderPipeline:
             whose time does not advance).
     """
 
-    def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = 30.0) -> None:
+    def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
             raise ValueError(f"camera: expected a models.geometry.Intrinsics, got "
                              f"{type(camera).__name__}")
-        if not (np.isfinite(rate_hz) and 0 < rate_hz <= 1000):
-            raise ValueError(f"rate_hz: expected a number in (0, 1000], got {rate_hz!r}")
+        if not (np.isfinite(rate_hz) and MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
+            raise ValueError(f"rate_hz: expected a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
+                             f"got {rate_hz!r}")
         self.model = model
         self.camera = camera
         self.rate_hz = float(rate_hz)
@@ -308,7 +309,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
-    pipeline = SenderPipeline(model, camera, rate_hz=min(max(src.rate_hz, 1e-3), 1000.0))
+    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz))
     hello = pipeline.hello()
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
               "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0}
@@ -326,7 +327,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         raise CaptureError(f"{source}: no frames to encode")
     return {
         **counts,
-        "payload_kbps": round(PACKET_BYTES * 8 * NOMINAL_HZ / 1000, 3),
+        "payload_kbps": round(payload_kbps(NOMINAL_HZ), 3),
         "seconds": round(time.perf_counter() - start, 3),
         "rate_hz": pipeline.rate_hz,
         "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,

@@ -77,12 +77,13 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import ModelFileError, load_model
-from facewire.protocol.control import (MAX_RATE_HZ, MIN_RATE_HZ, ControlError, Error, Hello,
+from facewire.protocol.control import (ControlError, Error, Hello,
                               HelloRequest, Message, ModelChunk, ModelRequest, decode_message,
                               model_chunks)
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
 from facewire.protocol.packet import PACKET_BYTES
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
 from facewire.protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
@@ -237,7 +238,7 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
 
 
 def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BIND,
-         record: str | os.PathLike[str] | None = None, rate_hz: float = 30.0,
+         record: str | os.PathLike[str] | None = None, rate_hz: float = NOMINAL_HZ,
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
          frames: slice = slice(0, None), start: threading.Event | None = None
@@ -250,7 +251,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             (``sender.capture.open_source``; files are sent in real time).
         bind: the packet endpoint ``tcp://HOST:PORT``; control is on PORT + 1.
         record: a packet log to write (replaced if it exists), or None.
-        rate_hz: the target rate, in [1, 1000] (``protocol.control.MIN_RATE_HZ``,
+        rate_hz: the target rate, in [1, 1000] (``protocol.rate.MIN_RATE_HZ``,
             ``MAX_RATE_HZ``: what a Hello may announce); a slower file sets the stream's rate.
         curve_dir: a key folder (``facewire keys generate``) to encrypt and admit only
             authorised receivers, or None for plain TCP.

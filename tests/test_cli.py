@@ -18,7 +18,7 @@ import pytest
 from conftest import write_video
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
-from facewire.protocol.packet import FRAME_DTYPE, PACKET_BYTES, Flag, encode_frames
+from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 FACEWIRE = str(Path(sys.executable).with_name("facewire"))
 CONTRACT = ["model", "send", "receive", "encode", "replay", "bench", "inspect", "relay", "demo",
@@ -69,31 +69,6 @@ def test_network_commands_refuse_bad_arguments_in_one_line(args: list[str]) -> N
     assert out.returncode == 2
     assert "Traceback" not in out.stderr
     assert ("expected tcp://HOST:PORT" in out.stderr) or ("missing.fwm" in out.stderr)
-
-
-def test_bench_bandwidth(log: Path, tmp_path: Path) -> None:
-    plot = tmp_path / "bw.png"
-    out = run("bench", "bandwidth", "--log", str(log), "--json", "--plot", str(plot))
-    assert out.returncode == 0, out.stderr
-    summary = json.loads(out.stdout.strip().splitlines()[-1])
-    for key in ("frames", "rate_hz", "packet_bytes", "payload_kbps", "wire_kbps"):
-        assert key in summary
-    assert summary["frames"] == 294
-    assert summary["packet_bytes"] == PACKET_BYTES
-    assert summary["payload_kbps"] == pytest.approx(PACKET_BYTES * 8 * 30 / 1000)
-    assert summary["payload_kbps"] < 12
-    assert summary["wire_kbps"] == pytest.approx((PACKET_BYTES + 2) * 8 * 30 / 1000)
-    assert summary["wire_kbps_curve"] == pytest.approx((PACKET_BYTES + 35) * 8 * 30 / 1000)
-    assert summary["rate_hz"] == pytest.approx(293 / (298 / 30), rel=1e-3)
-    assert plot.stat().st_size > 10_000
-
-
-def test_bench_bandwidth_exit_status_follows_the_limit(log: Path, monkeypatch) -> None:
-    import facewire.bench.bandwidth as bw
-
-    assert bw.bandwidth(log) == 0
-    monkeypatch.setattr(bw, "LIMIT_KBPS", 9.0)  # a 39-byte packet is 9.36 kbit/s at 30 Hz
-    assert bw.bandwidth(log) == 1
 
 
 def test_inspect_summary_and_csv(log: Path, tmp_path: Path) -> None:

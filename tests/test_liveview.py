@@ -7,8 +7,9 @@ their own number as a row of black and white blocks (bit i of n is block i), and
 the page itself, the ``<img>`` of the MJPEG stream drawn into a canvas (block means, a pixel
 hash) and the statistics panel's text, several times.
 
-Chromium is found as ``chromium`` or ``chromium-browser`` on PATH; without it the browser test
-skips, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (CI), where it fails.
+Chromium is found as ``chromium`` or ``chromium-browser`` on PATH (``install.sh`` installs it
+when apt has it, and says how to get one when not); without it the browser test skips with
+that reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (CI), where it fails with it.
 """
 
 from __future__ import annotations
@@ -243,8 +244,9 @@ def chromium() -> str:
         if path := shutil.which(name):
             return path
     message = (f"headless Chromium not found (looked for {' and '.join(CHROMIUM_NAMES)} on "
-               f"PATH). On Debian/Ubuntu install it with: apt-get install -y chromium "
-               f"(./install.sh does)")
+               f"PATH): ./install.sh installs it where apt has it (Debian: apt-get install -y "
+               f"chromium); on Ubuntu chromium is a snap, which a container cannot run: put a "
+               f"Chromium or Chrome on PATH under one of those names")
     if os.environ.get("FACEWIRE_REQUIRE_REAL_DATA") == "1":
         pytest.fail(message + " (FACEWIRE_REQUIRE_REAL_DATA=1)")
     pytest.skip(message)

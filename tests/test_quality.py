@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -10,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facewire.bench.quality import (TARGET_NME_HELDOUT, format_quality, geometry_nme,
-                           project_landmarks, quality)
+from facewire.bench.geometry import geometry_nme, project_landmarks
+from facewire.bench.quality import TARGET_NME_HELDOUT, TARGET_Q, format_quality, quality
 from facewire.bench.speed import NoFaceError
 from facewire.bench.reference import OpenFaceError
 from facewire.sender.enroll.build import build_model
@@ -22,22 +21,37 @@ from facewire.models.modelfile import ModelFileError
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.rig import Rig
-from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame, decode_frames, encode_frames
+from facewire.protocol.packet import (FRAME_DTYPE, QUANTISERS, Flag, Frame, decode_frames,
+                                      encode_frames)
 
 FX, FY, CX, CY, W, H = 640.0, 640.0, 319.5, 239.5, 640, 480
-# Quantisation half-steps of protocol.packet (its docstring): rotation-vector component
-# (degrees), translation x/y and z (mm), residual coordinate (mm).
-HALF_ROTATION_DEG, HALF_SHIFT_XY, HALF_SHIFT_Z, HALF_RESIDUAL = 0.05, 0.125, 0.5, 0.125
+# Quantisation half-steps of protocol.packet: rotation-vector component (degrees),
+# translation x/y and z (mm), residual coordinate (mm): 0.05, 0.25, 0.5, 0.125.
+_HALF = {q.name: q.step / 2 for q in QUANTISERS}
+HALF_ROTATION_DEG, HALF_SHIFT_XY, HALF_SHIFT_Z, HALF_RESIDUAL = (
+    _HALF["rotation"], _HALF["shift_xy"], _HALF["shift_z"], _HALF["residuals"])
+_OFF = 0.98  # off the grid by 98 % of a half-step: near the worst rounding, never a tie
 
 # (rotation vector in degrees, translation mm, residual scale mm): frontal and neutral, then
-# turned, tilted and expressive heads at webcam distances.
+# turned, tilted and expressive heads at webcam distances, on the quantisation grid; then
+# two off it, every pose value nearly half a step from its nearest code (the residuals,
+# drawn at random, are off the grid everywhere).
 POSES = [
     ((0.0, 0.0, 0.0), (0.0, 0.0, -600.0), 0.0),
     ((-10.0, 25.0, 3.0), (20.0, -15.0, -650.0), 6.0),
     ((15.0, -8.0, 10.0), (-30.0, 10.0, -500.0), 6.0),
     ((5.0, -30.0, -6.0), (12.5, 40.0, -720.0), 4.0),
     ((-4.0, 12.0, 0.0), (-5.0, -5.0, -450.0), 8.0),
+    ((-12.0 + _OFF * HALF_ROTATION_DEG, 18.3 - _OFF * HALF_ROTATION_DEG,
+      4.1 + _OFF * HALF_ROTATION_DEG),
+     (35.5 + _OFF * HALF_SHIFT_XY, -22.0 - _OFF * HALF_SHIFT_XY, -430.0 + _OFF * HALF_SHIFT_Z),
+     8.0),
+    ((8.7 - _OFF * HALF_ROTATION_DEG, -27.2 + _OFF * HALF_ROTATION_DEG,
+      -9.9 - _OFF * HALF_ROTATION_DEG),
+     (-41.0 - _OFF * HALF_SHIFT_XY, 17.5 + _OFF * HALF_SHIFT_XY, -580.0 - _OFF * HALF_SHIFT_Z),
+     8.0),
 ]
+OFF_GRID = [5, 6]
 
 
 def _truth(rig: Rig, rotvec_deg, translation, residuals) -> np.ndarray:
@@ -63,7 +77,21 @@ def synthetic(rig: Rig) -> dict:
     assert not clamped.any()
     decoded, errors = decode_frames(packets)
     assert all(e is None for e in errors)
-    return {"decoded": decoded, "truth": truths, "residuals": residuals}
+    return {"sent": sent, "decoded": decoded, "truth": truths, "residuals": residuals}
+
+
+def test_off_grid_poses_are_off_by_nearly_half_a_step(synthetic: dict) -> None:
+    """The bound below is exercised: on the off-grid poses quantisation moves every pose
+    value by nearly its half-step (and never more), on the others by nothing."""
+    sent, decoded = synthetic["sent"], synthetic["decoded"]
+    rotation = np.degrees(np.abs(decoded["rotation"] - sent["rotation"]))
+    shift = np.abs(decoded["translation"] - sent["translation"])
+    on_grid = [f for f in range(len(POSES)) if f not in OFF_GRID]
+    assert rotation[on_grid].max() < 1e-3 and shift[on_grid].max() < 1e-3
+    for error, half in ((rotation[OFF_GRID], HALF_ROTATION_DEG),
+                        (shift[OFF_GRID, :2], HALF_SHIFT_XY),
+                        (shift[OFF_GRID, 2], HALF_SHIFT_Z)):
+        assert (error > 0.95 * half).all() and (error <= half + 1e-4).all(), (error, half)
 
 
 def _quantisation_bound(rig: Rig, pose: tuple, residuals: np.ndarray,
@@ -73,7 +101,7 @@ def _quantisation_bound(rig: Rig, pose: tuple, residuals: np.ndarray,
     Per landmark i at model position X_i and camera position C_i (depth d_i = -C_z):
     - a rotation-vector error of at most h = 0.05 deg per component is a rotation by at most
       sqrt(3) h (the exponential map does not stretch), moving X_i by <= sqrt(3) h |X_i|;
-    - the translation moves it by <= 0.125 mm in x and y, 0.5 mm in depth;
+    - the translation moves it by <= 0.25 mm in x and y, 0.5 mm in depth;
     - each residual coordinate is off by <= 0.125 mm, so point k's displacement (orthonormal
       tangents) by <= 0.125 sqrt(2), and landmark i by <= sum_k |B[i, k]| 0.125 sqrt(2).
     The lateral (x, y) and depth parts of a camera-frame error, e_xy and e_z, move the
@@ -101,12 +129,18 @@ def test_decoded_packets_rebuild_the_landmarks_within_quantisation(rig: Rig,
                        zip(POSES, synthetic["residuals"], synthetic["truth"])])
     assert np.isfinite(result.heldout).all()
     assert (result.heldout <= bounds).all(), (result.heldout, bounds)
-    assert bounds.max() < 0.0075  # the bound is tight enough to mean something: < 0.75 %
+    assert bounds.max() < 0.011  # the bound is tight enough to mean something: < 1.1 %
+    # Off the grid, quantisation costs a good part of the bound (measured: 0.59 % and 0.49 %
+    # of the eye distance against bounds of 1.06 % and 1.02 %); on it, only the residuals'
+    # rounding (at most 0.08 %).
+    assert (result.heldout[OFF_GRID] > bounds[OFF_GRID] / 3).all()
     # The neutral frontal frame carries no expression: pose alone explains it as well.
     assert result.rigid_only[0] == pytest.approx(result.heldout[0], abs=1e-12)
     # Expressive frames: the residuals explain what the pose alone cannot.
     assert (result.rigid_only[1:] > 2 * bounds[1:]).all()
-    assert (result.heldout[1:] < result.rigid_only[1:] / 10).all()
+    on_grid = [f for f in range(1, len(POSES)) if f not in OFF_GRID]
+    assert (result.heldout[on_grid] < result.rigid_only[on_grid] / 10).all()
+    assert (result.heldout[OFF_GRID] < result.rigid_only[OFF_GRID] / 4).all()
 
 
 def test_a_wrong_residual_sign_or_a_dropped_rotation_is_caught(rig: Rig,
@@ -152,7 +186,7 @@ def test_project_landmarks_matches_the_raster_camera(rig: Rig) -> None:
 
 
 def test_bad_inputs_are_refused(rig: Rig, synthetic: dict) -> None:
-    with pytest.raises(ValueError, match="tracked: 4 entries for 5"):
+    with pytest.raises(ValueError, match=f"tracked: 4 entries for {len(POSES)}"):
         geometry_nme(rig, (FX, FY, CX, CY), synthetic["decoded"], synthetic["truth"][:4])
     with pytest.raises(ValueError, match=r"tracked\[0\]: expected shape \(68, 2\)"):
         geometry_nme(rig, (FX, FY, CX, CY), synthetic["decoded"],
@@ -160,7 +194,7 @@ def test_bad_inputs_are_refused(rig: Rig, synthetic: dict) -> None:
     with pytest.raises(ValueError, match="camera"):
         geometry_nme(rig, (FX, -FY, CX, CY), synthetic["decoded"], synthetic["truth"])
     with pytest.raises(ValueError, match="decoded"):
-        geometry_nme(rig, (FX, FY, CX, CY), np.zeros(5), synthetic["truth"])
+        geometry_nme(rig, (FX, FY, CX, CY), np.zeros(len(POSES)), synthetic["truth"])
 
 
 # --- the real benchmark -------------------------------------------------------------------
@@ -174,14 +208,11 @@ def lp_d0_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     return out
 
 
-def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_path: Path,
-                                    capsys: pytest.CaptureFixture[str]) -> None:
+def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path,
+                                    tmp_path: Path) -> None:
     plot = tmp_path / "nme.png"
-    status = quality(lp_d0_model, shared_data / "video" / "lp_d0.mp4", frames=slice(40, 78),
-                     as_json=True, plot=plot)
-    assert status == 0
-    out = capsys.readouterr().out.strip().splitlines()
-    r = json.loads(out[-1])
+    r, out = quality(lp_d0_model, shared_data / "video" / "lp_d0.mp4", frames=slice(40, 78),
+                     plot=plot)
     assert r["frames"] == 38
     assert r["face_frames"] == r["tracked_frames"] >= 35
     assert r["measured_frames"] == r["face_frames"] - r["pose_lost_frames"] >= 35
@@ -192,14 +223,15 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_pa
     assert r["nme_heldout_median"] <= r["nme_heldout_p95"]
     assert r["nme_heldout_mean"] < r["nme_rigid_only_mean"]
     assert r["met"]["below_rigid_only"]
-    assert r["met"]["nme_heldout"] == (r["nme_heldout_mean"] <= TARGET_NME_HELDOUT)
+    assert r["nme_heldout_mean"] <= TARGET_NME_HELDOUT == 3.0  # the docstring's target (2.58)
+    assert r["met"]["nme_heldout"]
     # appearance fidelity: our rendering and x264 measured in the same face boxes
     for key in ("face_ssim_mean", "face_psnr_mean", "h264_kbps", "h264_face_ssim_mean",
                 "h264_face_psnr_mean"):
         assert isinstance(r[key], float) and math.isfinite(r[key]), key
     assert 0.2 < r["face_ssim_mean"] < 1 and 0.2 < r["h264_face_ssim_mean"] < 1
     assert r["met"]["face_ssim_above_h264"] == (r["face_ssim_mean"] > r["h264_face_ssim_mean"])
-    text = "\n".join(out[:-1])
+    text = "\n".join(out)
     q_plot, face_plot = tmp_path / "nme-q.png", tmp_path / "nme-face.png"
     assert text == format_quality(r) + f"\nplot: {plot}\nplot: {q_plot}\nplot: {face_plot}"
     assert face_plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -216,26 +248,44 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path, tmp_pa
     assert "q_reference" not in r  # only with --reference
 
 
-def test_agreement_with_openface(shared_data: Path, tmp_path: Path,
-                                 capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 5's measurement: openface_default, model from its first 6 s, measured on the
-    rest against OpenFace's action units (targets: eyelid r >= 0.6, blink F1 >= 0.7)."""
+@pytest.fixture(scope="module")
+def openface_default(shared_data: Path, tmp_path_factory: pytest.TempPathFactory
+                     ) -> tuple[Path, Path, dict, list[str]]:
+    """Issue 5's measurement: openface_default, model from its first 6 s (90 frames), measured
+    on the rest against OpenFace's action units: (model, video, result, report lines)."""
     video = shared_data / "video" / "openface_default.wmv"
-    model = tmp_path / "od.fwm"
+    model = tmp_path_factory.mktemp("openface_default") / "od.fwm"
     build_model(video, model, frames=slice(0, 90), appearance=enroll_regions)
     reference = shared_data / "openface" / "openface_default.openface.csv"
-    assert quality(model, video, frames=slice(90, None), as_json=True,
-                   reference=reference) == 0
-    out = capsys.readouterr().out.strip().splitlines()
-    r = json.loads(out[-1])
+    r, out = quality(model, video, frames=slice(90, None), reference=reference)
+    return model, video, r, out
+
+
+def test_agreement_with_openface(openface_default: tuple, tmp_path: Path) -> None:
+    """The targets of bench.quality's docstring: eyelid r >= 0.6 and blink F1 >= 0.7
+    (measured: 0.78 and 0.80)."""
+    model, video, r, out = openface_default
     a = r["q_reference"]
     assert a["frames_compared"] >= 190
-    assert a["eyelid_au45"]["r"] >= 0.6
-    assert a["blink_f1"] >= 0.6 and a["blink_events_reference"] == 7
-    assert r["met"]["eyelid_au45"] and r["met"]["blink_f1"] == (a["blink_f1"] >= 0.7)
+    assert a["eyelid_au45"]["r"] >= TARGET_Q["eyelid_au45"] == 0.6
+    assert a["blink_f1"] >= TARGET_Q["blink_f1"] == 0.7
+    assert a["blink_events_reference"] == 7
+    assert r["met"]["eyelid_au45"] and r["met"]["blink_f1"]
     assert any(line.startswith("blinks: F1") for line in out)
     with pytest.raises(OpenFaceError, match="absent.csv"):
         quality(model, video, frames=slice(90, 100), reference=tmp_path / "absent.csv")
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="measured r = -0.17 against OpenFace's AU01 + AU02: on these "
+                   "frames the forehead's Q does not follow even the brow-raise cue its "
+                   "states were ordered by at enrollment (cue r 0.09), so the forehead "
+                   "classifier, not the reference, misses; strict, so that a fix shows")
+def test_forehead_agreement_with_openface(openface_default: tuple) -> None:
+    """The forehead target of bench.quality's docstring: r >= 0.4 with AU01 + AU02."""
+    _, _, r, _ = openface_default
+    forehead = r["q_reference"]["forehead_au01_au02"]["r"]
+    assert forehead is not None and forehead >= TARGET_Q["forehead_au01_au02"] == 0.4
 
 
 def test_missing_or_corrupt_model(tmp_path: Path) -> None:

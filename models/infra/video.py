@@ -62,6 +62,20 @@ def frame_range(text: str | None) -> slice:
     return slice(a, b)
 
 
+def range_text(frames: slice) -> str:
+    """A frame range as ``--frames`` writes it: ``A:B``, or ``A:`` when it runs to the end."""
+    return f"{frames.start or 0}:{'' if frames.stop is None else frames.stop}"
+
+
+def frames_in_range(frames: slice, count: int) -> int | None:
+    """How many of a video's ``count`` frames the range selects; None when the count is
+    unknown (0: the container does not say)."""
+    if not count:
+        return None
+    stop = count if frames.stop is None else min(frames.stop, count)
+    return max(stop - (frames.start or 0), 0)
+
+
 def video_info(path: str | os.PathLike[str]) -> VideoInfo:
     """Size, rate and frame count of a video file."""
     with _open(Path(path)) as container:

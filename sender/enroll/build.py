@@ -50,7 +50,7 @@ from facewire.models.infra.raster import MeshRenderer, orbit_pose
 from facewire.models.regions import texel_rect
 from facewire.sender.enroll.texture import fill_holes, project_views, uv_surface
 from facewire.sender.tracker import LandmarkTracker
-from facewire.models.infra.video import read_frames, video_info
+from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480
@@ -136,10 +136,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     start = time.perf_counter()
     video = Path(video)
     info = video_info(video)
-    total = None
-    if info.frames:
-        stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
-        total = max(stop - frames.start, 0)
+    total = frames_in_range(frames, info.frames)
 
     tracker = LandmarkTracker()
     indices: list[int] = []
@@ -148,7 +145,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         indices.append(frame.index)
         points.append(tracker.track(frame.image).points)
     if not indices:
-        raise BuildError(f"{video}: no frames in range {frames.start}:{frames.stop or ''}")
+        raise BuildError(f"{video}: no frames in range {range_text(frames)}")
     face_frames = sum(p is not None for p in points)
     if face_frames == 0:
         raise BuildError(f"{video}: no face found in frames {indices[0]}..{indices[-1]}")

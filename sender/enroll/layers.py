@@ -74,7 +74,8 @@ from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ra
 from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.texture import UVSurface, uv_surface
-from facewire.models.infra.video import read_frames, video_info
+from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
+from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.pipeline import SenderPipeline
 
@@ -147,7 +148,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     observations = _observe(model, model.camera, video, frames, progress)
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
-                          f"{frames.start}:{frames.stop or ''}; appearance needs at least 2")
+                          f"{range_text(frames)}; appearance needs at least 2")
     cues = without_closed_eyes(np.array([o.cues for o in observations]),
                                np.array([o.eye_ratio for o in observations]))
     yaw = np.array([abs(o.yaw_deg) for o in observations])
@@ -190,13 +191,10 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
              progress: Progress) -> list[Observation]:
     """Run the sender over the frames (module docstring, step 1)."""
     info = video_info(video)
-    pipeline = SenderPipeline(model, camera, rate_hz=info.rate_hz or 30.0)
+    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(info.rate_hz))
     names = tuple(r.name for r in REGIONS)
     sampler = AppearanceSampler(model.mesh, pipeline.rig, camera, names)
-    total = None
-    if info.frames:
-        stop = info.frames if frames.stop is None else min(frames.stop, info.frames)
-        total = max(stop - frames.start, 0)
+    total = frames_in_range(frames, info.frames)
     out = []
     for frame in progress(read_frames(video, frames), "appearance", total):
         sent = pipeline.process(frame.image, frame.time)
