@@ -961,8 +961,9 @@ def _cavity(lip_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     design = [(-1.2, 21.0, 3.0), (-7.0, 23.0, 8.0), (-15.0, 24.0, 13.0), (-25.0, 22.0, 15.0),
               (-35.0, 17.0, 12.0), (-42.0, 9.0, 7.0)]
     rings = [lip_points]
-    for k, (dz, a, b) in enumerate(design):
-        ring = np.column_stack([a * np.cos(alpha), yc + b * np.sin(alpha), np.full(n, z0 + dz)])
+    for k, (dz, half_w, half_h) in enumerate(design):
+        ring = np.column_stack([half_w * np.cos(alpha), yc + half_h * np.sin(alpha),
+                                np.full(n, z0 + dz)])
         if k == 0:
             ring = 0.8 * lip_points + 0.2 * ring
         ring[[0, -1], 0] = 0.0
@@ -1064,7 +1065,12 @@ def _assemble() -> _Built:
     half = _half_skin()
     seam = half.midline & (half.dirs[:, 2] < 0.0)
 
-    pts, uvs, axis, shared, tris, tags = [], [], [], [], [], []
+    pts: list[np.ndarray] = []
+    uvs: list[np.ndarray] = []
+    axis: list[np.ndarray] = []
+    shared: list[np.ndarray] = []
+    tris: list[np.ndarray] = []
+    tags: list[np.ndarray] = []
 
     def add(p, uv, a, sh):
         start = sum(len(x) for x in pts)
