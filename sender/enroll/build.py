@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -162,6 +163,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     views = []
     for k in fit.views:
         pose = fit.poses[k]
+        assert pose is not None  # fit_person chooses views among the posed frames
         views.append((images[indices[k]], ViewCamera(fx, fy, cx, cy, info.width, info.height,
                                                      pose.rotation, pose.translation)))
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)

@@ -100,6 +100,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -263,14 +264,15 @@ def fit_person(
                        f"{MIN_FACE_FRAMES}")
     report(20)
 
-    yaws = np.array([_yaw_pitch(poses[i])[0] for i in posed])
+    yaws = np.array([_yaw_pitch(_present(poses, i))[0] for i in posed])
     shape = generic.copy()
     depth, depth_change = "generic", 0.0
     if yaws.max() - yaws.min() >= SFM_MIN_YAW_RANGE_DEG:
         costs = _neutral_costs(frames, poses, posed, generic, camera)
         chosen = _spread_by_yaw(posed, yaws, costs["expression"], SFM_FRAMES)
-        estimate = _structure_from_motion([frames[i] for i in chosen],
-                                          [poses[i] for i in chosen], generic, camera, eye_mm)
+        estimate = _structure_from_motion([_present(frames, i) for i in chosen],
+                                          [_present(poses, i) for i in chosen], generic,
+                                          camera, eye_mm)
         shape[SFM_POINTS] = estimate
         depth = "structure-from-motion"
         depth_change = float(np.sqrt(np.mean((estimate[:, 2] - generic[SFM_POINTS, 2]) ** 2)))
@@ -279,7 +281,8 @@ def fit_person(
     report(50)
 
     neutral = choose_neutral(frames, poses, shape, camera)
-    targets = _neutral_landmarks(frames[neutral], poses[neutral], shape, head, camera, eye_mm)
+    targets = _neutral_landmarks(_present(frames, neutral), _present(poses, neutral), shape,
+                                 head, camera, eye_mm)
     report(60)
 
     mesh = warp_head(head, targets)
@@ -291,7 +294,7 @@ def fit_person(
         raise FitError(f"frame {neutral}: no head pose against the fitted mesh")
     posed = [i for i in faces if poses[i] is not None]
     costs = _neutral_costs(frames, poses, posed, landmarks3d, camera)
-    angles = np.array([_yaw_pitch(poses[i]) for i in posed])
+    angles = np.array([_yaw_pitch(_present(poses, i)) for i in posed])
     views = _choose_views(neutral, posed, angles[:, 0], costs["expression"])
     report(100)
     return Fit(mesh=mesh, landmarks3d=landmarks3d, poses=tuple(poses), neutral=neutral,
@@ -468,21 +471,31 @@ def _yaw_pitch(pose: Pose) -> tuple[float, float]:
     return pose.yaw_deg, pose.pitch_deg
 
 
+_T = TypeVar("_T")
+
+
+def _present(items: Sequence[_T | None], i: int) -> _T:
+    """``items[i]`` of a frame known to have it (points, or a pose: ``posed``)."""
+    item = items[i]
+    assert item is not None, f"frame {i}: expected a value"
+    return item
+
+
 def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | None],
                    posed: Sequence[int], shape: np.ndarray,
                    camera: np.ndarray) -> dict[str, np.ndarray]:
     """Per posed frame: ``total`` and ``expression`` (total without the pose terms) costs."""
-    pts = np.stack([frames[i] for i in posed])
+    pts = np.stack([_present(frames, i) for i in posed])
     eye = np.linalg.norm(pts[:, 36] - pts[:, 45], axis=1)
     ear = np.array([eye_aspect_ratio(p).mean() for p in pts])
     gap = np.linalg.norm(pts[:, [61, 62, 63]] - pts[:, [67, 66, 65]], axis=2).mean(axis=1) / eye
     width = np.linalg.norm(pts[:, 48] - pts[:, 54], axis=1) / eye
     stable = np.arange(17, 68)
     resid = np.array([
-        np.sqrt(np.mean(np.sum((project(poses[i], shape[stable], camera)
-                                - frames[i][stable]) ** 2, axis=1)))
+        np.sqrt(np.mean(np.sum((project(_present(poses, i), shape[stable], camera)
+                                - _present(frames, i)[stable]) ** 2, axis=1)))
         for i in posed]) / eye
-    angles = np.array([_yaw_pitch(poses[i]) for i in posed])
+    angles = np.array([_yaw_pitch(_present(poses, i)) for i in posed])
     ear_ref = np.percentile(ear, 90)
     expression = (
         (np.maximum(0.0, 0.85 - ear / max(ear_ref, 1e-9)) / 0.1) ** 2
