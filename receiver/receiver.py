@@ -119,7 +119,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 import os
 import threading
 import time
@@ -220,17 +219,17 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
                            f"{type(view).__name__}")
     if size is not None:
         if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(
-                isinstance(v, numbers.Integral) and 0 < v <= MAX_SIZE for v in size):
+                isinstance(v, (int, np.integer)) and 0 < v <= MAX_SIZE for v in size):
             raise ReceiveError(f"size: expected a width and height in [1, {MAX_SIZE}], "
                                f"got {size!r}")
         size = (int(size[0]), int(size[1]))
     if max_frames is not None and (isinstance(max_frames, bool) or
-                                   not isinstance(max_frames, numbers.Integral)
+                                   not isinstance(max_frames, (int, np.integer))
                                    or max_frames < 1):
         raise ReceiveError(f"max_frames: expected an integer >= 1, got {max_frames!r}")
-    if idle_timeout_s is not None and not (isinstance(idle_timeout_s, numbers.Real)
-                                           and math.isfinite(idle_timeout_s)
-                                           and idle_timeout_s > 0):
+    if idle_timeout_s is not None and not (
+            isinstance(idle_timeout_s, (int, float, np.integer, np.floating))
+            and math.isfinite(idle_timeout_s) and idle_timeout_s > 0):
         raise ReceiveError(f"idle_timeout_s: expected a number > 0, got {idle_timeout_s!r}")
     local = load_model(model_path) if model_path is not None else None
     curve = client_keys(curve_dir) if curve_dir is not None else None

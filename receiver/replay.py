@@ -33,7 +33,7 @@ import numpy as np
 
 from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.video import read_frames
+from facewire.models.infra.video import VideoFrame, read_frames
 from facewire.protocol.log import read_log
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
 from facewire.receiver.playout import Playout, replay_states
@@ -123,10 +123,11 @@ class _SourceFrames:
 
     def __init__(self, source: str | os.PathLike[str]) -> None:
         self._frames = read_frames(source)
-        self._current = next(self._frames, None)
-        self._next = next(self._frames, None)
-        if self._current is None:
+        current = next(self._frames, None)
+        if current is None:
             raise ReplayError(f"{source}: no frames to put beside the rendering")
+        self._current: VideoFrame = current
+        self._next = next(self._frames, None)
 
     def width(self, height: int) -> int:
         h, w = self._current.image.shape[:2]
