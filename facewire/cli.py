@@ -70,6 +70,8 @@ def _send(args: argparse.Namespace) -> int:
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
+    import numpy as np
+
     from facewire.bench.report import report
     from facewire.receiver.liveview import LiveView
     from facewire.receiver.receiver import receive
@@ -79,7 +81,7 @@ def _receive(args: argparse.Namespace) -> int:
         if live is not None:
             print(f"facewire receive: live view at {live.url}", file=sys.stderr)
 
-            def view(frame: object, stats: dict) -> None:
+            def view(frame: np.ndarray, stats: dict) -> None:
                 played = stats["received"] + stats["lost"]
                 live.publish(frame, {**stats, "loss_pct": 100 * stats["lost"] / played
                                      if played else None})
