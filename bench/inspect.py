@@ -24,7 +24,7 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
     f = data.frames
     n = len(f)
     span = float(data.times[-1] - data.times[0]) if n > 1 else 0.0
-    steps = np.diff(f["seq"].astype(np.int64)) % SEQ_MODULO
+    steps = np.mod(np.diff(f["seq"].astype(np.int64)), SEQ_MODULO)  # numpy's stub lacks % int
     summary = {
         "log": str(log),
         "frames": n,

@@ -303,15 +303,16 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     rendered_faces: dict[int, np.ndarray] = {}
     with FaceRenderer(model, camera.width, camera.height) as renderer:
         for k, image in enumerate(progress(images, "rendering", len(images))):
-            if not posed[k] or tracked[k] is None:
+            points = tracked[k]
+            if not posed[k] or points is None:
                 continue
             record = decoded[k]
             vertices = rig.morph(rig.from_tangent(record["residuals"]))
             view = sender_view(camera, record["rotation"], record["translation"],
                                camera.width, camera.height)
             rendered = renderer.render(vertices, record["q"], view)[..., ::-1]
-            boxes[k] = x0, y0, x1, y1 = face_box(tracked[k], camera.width, camera.height)
-            masks[k] = mask = face_mask(tracked[k], boxes[k])
+            boxes[k] = x0, y0, x1, y1 = face_box(points, camera.width, camera.height)
+            masks[k] = mask = face_mask(points, boxes[k])
             real, ours = image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
             ssim[k] = gray_ssim(real, ours, mask)
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
@@ -320,6 +321,7 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_kbps = None
+    triples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # real, ours, x264
     even = [f[:f.shape[0] // 2 * 2, :f.shape[1] // 2 * 2] for f in images]
     if boxes:
         with tempfile.TemporaryDirectory() as work:
@@ -332,11 +334,11 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             h264_ssim[k] = gray_ssim(real, coded, masks[k])
             h264_peak[k] = psnr(_grey(real)[masks[k]], _grey(coded)[masks[k]])
             if k in rendered_faces:
-                rendered_faces[k] = (real, rendered_faces[k], coded.copy())
-    measured = sorted(k for k, v in rendered_faces.items() if isinstance(v, tuple))
+                triples[k] = (real, rendered_faces[k], coded.copy())
+    measured = sorted(triples)
     picks = {measured[int(i)] for i in np.linspace(0, len(measured) - 1, EXAMPLES)} \
         if len(measured) >= EXAMPLES else set(measured)
-    examples = {k: rendered_faces[k] for k in sorted(picks)}
+    examples = {k: triples[k] for k in sorted(picks)}
     summary = {"face_ssim_mean": _mean(ssim), "face_psnr_mean": _mean(peak),
                "h264_kbps": h264_kbps, "h264_face_ssim_mean": _mean(h264_ssim),
                "h264_face_psnr_mean": _mean(h264_peak)}

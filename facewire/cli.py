@@ -87,7 +87,7 @@ def _receive(args: argparse.Namespace) -> int:
         if live is not None:
             print(f"facewire receive: live view at {live.url}", file=sys.stderr)
 
-            def view(frame: object, stats: dict) -> None:
+            def view(frame: np.ndarray, stats: dict) -> None:
                 played = stats["received"] + stats["lost"]
                 live.publish(frame, {**stats, "loss_pct": 100 * stats["lost"] / played
                                      if played else None})

@@ -517,7 +517,7 @@ def _face_mask(points: np.ndarray, width: int, height: int) -> np.ndarray:
     lift = FOREHEAD * max(eyes - float(brows[:, 1].mean()), 1.0)
     brows[:, 1] -= lift
     polygon = np.rint(np.concatenate([jaw, brows]) * 8).astype(np.int32)
-    mask = np.zeros((height, width), np.uint8)
+    mask: np.ndarray = np.zeros((height, width), np.uint8)
     cv2.fillPoly(mask, [polygon], 255, lineType=cv2.LINE_AA, shift=3)
     mask = cv2.erode(mask, np.ones((3, 3), np.uint8), iterations=FEATHER_PX // 2)
     size = 2 * FEATHER_PX + 1
@@ -532,7 +532,7 @@ def _head_mask(points: np.ndarray, chin_y: float, width: int, height: int) -> np
     centre = (lo + hi) / 2
     axes = HEAD_MASK_SCALE * (hi - lo) / 2
     centre[1] -= 0.2 * axes[1]
-    mask = np.zeros((height, width), np.float32)
+    mask: np.ndarray = np.zeros((height, width), np.float32)
     cv2.ellipse(mask, (int(centre[0]), int(centre[1])), (int(axes[0]), int(axes[1])), 0.0,
                 0.0, 360.0, 1.0, -1)
     size = int(0.25 * axes[0]) * 2 + 1

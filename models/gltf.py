@@ -256,7 +256,7 @@ class _Reader:
 
     def mesh(self, mm_per_unit: float) -> GltfMesh:
         """Merge every triangle primitive of every mesh instance in the default scene."""
-        parts = []
+        parts: list[dict] = []
         for mesh_index, world in self._instances():
             mesh = self._item("meshes", mesh_index, "node.mesh")
             primitives = self._get(mesh, "primitives", list, f"meshes[{mesh_index}].primitives")

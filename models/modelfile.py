@@ -431,7 +431,7 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
                                   arrays[f"{main}/mask.png"], arrays[f"{main}/templates.npy"],
                                   r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
-                           regions, hashlib.sha256(data).hexdigest(), len(data))
+                           tuple(regions), hashlib.sha256(data).hexdigest(), len(data))
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -637,7 +637,7 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         raise ModelError(f"regions: expected a list, got {_kind(doc['regions'])}")
     if len(doc["regions"]) > MAX_REGIONS:
         raise ModelError(f"regions: {len(doc['regions'])} regions, at most {MAX_REGIONS}")
-    regions = []
+    regions: list[_RegionEntry] = []
     for i, entry in enumerate(doc["regions"]):
         field = f"regions[{i}]"
         keys = {"name", "uv_rect", "template_rect", "layers"}
@@ -673,8 +673,11 @@ def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
             raise ModelFileError(f"{where}: {name}: missing")
         if name not in manifest.members:
             raise ModelFileError(f"{where}: {name}: not listed in model.json's members")
-    decoded = sum(math.prod(shape) * np.dtype(_spec(name).dtype).itemsize
-                  for name, shape in manifest.members.items())
+    decoded = 0
+    for name, shape in manifest.members.items():
+        spec = _spec(name)
+        assert spec is not None  # _parse_manifest refuses a member without one
+        decoded += math.prod(shape) * np.dtype(spec.dtype).itemsize
     if decoded > MAX_DECODED_BYTES:
         raise ModelFileError(f"{where}: {MANIFEST_MEMBER}: members: declare arrays of "
                              f"{decoded} bytes in all, more than the {MAX_DECODED_BYTES} a "

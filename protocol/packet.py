@@ -115,7 +115,7 @@ _LAYOUT: tuple[tuple[str, int, int], ...] = (
     *((q.name, q.count, q.bits) for q in QUANTISERS),
 )
 _WIDTHS = np.array([bits for _, count, bits in _LAYOUT for _ in range(count)])
-_SLOT = {}  # name -> slice of slots
+_SLOT: dict[str, slice] = {}  # name -> slice of slots
 for _name, _count, _ in _LAYOUT:
     _start = sum(s.stop - s.start for s in _SLOT.values())
     _SLOT[_name] = slice(_start, _start + _count)

@@ -132,7 +132,7 @@ class _Socket:
         except zmq.ZMQError as exc:
             self.close()
             raise TransportError(f"cannot bind {endpoint}: {exc}") from None
-        return self.socket.last_endpoint.decode()
+        return self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
 
     def _connect(self, endpoint: str, curve: CurveClient | None) -> None:
         if curve is not None:

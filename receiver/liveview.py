@@ -234,6 +234,7 @@ class LiveView:
             seq, rgb = self._seq, self._rgb
         with self._encode_lock:
             if seq > self._jpeg_seq:  # an older frame is never cached over a newer one
+                assert rgb is not None  # seq > 0: a frame was published
                 ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                                        [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
                 if not ok:

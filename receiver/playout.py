@@ -128,7 +128,6 @@ per slot from the first sequence number to the last, concealed where packets are
 from __future__ import annotations
 
 import math
-import numbers
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -240,13 +239,16 @@ class Playout:
     def __init__(self, rate_hz: float, depth: int = DEFAULT_DEPTH, hold_s: float = HOLD_S,
                  ease_s: float = EASE_S, rest_q: np.ndarray | None = None,
                  skip: bool = True) -> None:
-        if not (isinstance(rate_hz, numbers.Real) and 0 < rate_hz <= MAX_RATE_HZ):
+        # numbers.Real, spelled so that mypy follows it (it takes float and Real as disjoint)
+        if not (isinstance(rate_hz, (int, float, np.integer, np.floating))
+                and 0 < rate_hz <= MAX_RATE_HZ):
             raise ValueError(f"rate_hz: expected a number in (0, {MAX_RATE_HZ}], got {rate_hz!r}")
         if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) \
                 or not 1 <= depth <= MAX_DEPTH:
             raise ValueError(f"depth: expected an integer in [1, {MAX_DEPTH}], got {depth!r}")
         for name, value in (("hold_s", hold_s), ("ease_s", ease_s)):
-            if not (isinstance(value, numbers.Real) and math.isfinite(value) and value >= 0):
+            if not (isinstance(value, (int, float, np.integer, np.floating))
+                    and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         self.rate_hz = float(rate_hz)
         self.depth = int(depth)
@@ -345,7 +347,8 @@ class Playout:
         Raises:
             ValueError: ``arrival_s`` is not a finite number.
         """
-        if not (isinstance(arrival_s, numbers.Real) and math.isfinite(arrival_s)):
+        if not (isinstance(arrival_s, (int, float, np.integer, np.floating))
+                and math.isfinite(arrival_s)):
             raise ValueError(f"arrival_s: expected a finite number, got {arrival_s!r}")
         packet, raw = self._decode(data, float(arrival_s))
         if packet is None:

@@ -94,7 +94,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 import os
 import threading
 import time
@@ -217,12 +216,12 @@ def _check_options(out: str | os.PathLike[str] | None,
         raise ReceiveError(f"ready: expected a threading.Event or None, got "
                            f"{type(ready).__name__}")
     if max_frames is not None and (isinstance(max_frames, bool) or
-                                   not isinstance(max_frames, numbers.Integral)
+                                   not isinstance(max_frames, (int, np.integer))
                                    or max_frames < 1):
         raise ReceiveError(f"max_frames: expected an integer >= 1, got {max_frames!r}")
-    if idle_timeout_s is not None and not (isinstance(idle_timeout_s, numbers.Real)
-                                           and math.isfinite(idle_timeout_s)
-                                           and idle_timeout_s > 0):
+    if idle_timeout_s is not None and not (
+            isinstance(idle_timeout_s, (int, float, np.integer, np.floating))
+            and math.isfinite(idle_timeout_s) and idle_timeout_s > 0):
         raise ReceiveError(f"idle_timeout_s: expected a number > 0, got {idle_timeout_s!r}")
     if size is None:
         return None

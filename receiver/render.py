@@ -206,7 +206,8 @@ class FaceRenderer(ContextOwner):
         self.width, self.height = width, height
         self.n_vertices = len(model.mesh.vertices)
         self.layers = tuple(len(r.layers) for r in model.regions)
-        self.background = tuple(c / 255.0 for c in background)
+        r, g, b = background
+        self.background = (r / 255.0, g / 255.0, b / 255.0)
         self._ctx = create_context()
         try:
             self._setup(model, samples)

@@ -124,10 +124,11 @@ class _SourceFrames:
 
     def __init__(self, source: str | os.PathLike[str]) -> None:
         self._frames = read_frames(source)
-        self._current = next(self._frames, None)
-        self._next = next(self._frames, None)
-        if self._current is None:
+        current = next(self._frames, None)
+        if current is None:
             raise ReplayError(f"{source}: no frames to put beside the rendering")
+        self._current: VideoFrame = current
+        self._next = next(self._frames, None)
 
     def width(self, height: int) -> int:
         h, w = self._current.image.shape[:2]

@@ -66,7 +66,7 @@ MAX_CALIBRATION_BYTES = 64 * 1024
 ASPECT_TOLERANCE = 0.01
 
 Clock = Callable[[], float]
-Sleep = Callable[[float], None]
+Sleep = Callable[[float], object]  # what it returns is ignored (Event.wait's bool)
 
 
 class CaptureError(FacewireError, ValueError):

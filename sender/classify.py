@@ -281,8 +281,8 @@ class RegionClassifiers:
                 or a ready ``TemplateClassifier``; at least one region.
             n_keep: coefficients kept per template for regions given as arrays.
         """
-        if isinstance(regions, np.ndarray) or not isinstance(regions, Sequence) \
-                or len(regions) == 0:
+        if (isinstance(regions, np.ndarray)  # type: ignore[unreachable]  # untyped callers
+                or not isinstance(regions, Sequence) or len(regions) == 0):
             raise ValueError("regions: expected a non-empty sequence of template arrays")
         built = []
         for r, region in enumerate(regions):

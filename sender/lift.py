@@ -100,7 +100,7 @@ class Lifter:
         response = rig.weights[rig.mesh.landmarks[NONRIGID]].astype(np.float64)  # M (9, 9)
         gram = np.einsum("kj,kai,jbi->kajb", response, t, t).reshape(18, 18)
         # d (27,) -> residuals (27,): to_tangent, G^-1, from_tangent, as one matrix
-        basis = np.zeros((N_RESIDUALS, 2, N_RESIDUALS, 3))
+        basis: np.ndarray = np.zeros((N_RESIDUALS, 2, N_RESIDUALS, 3))
         basis[np.arange(N_RESIDUALS), :, np.arange(N_RESIDUALS)] = t
         basis = basis.reshape(2 * N_RESIDUALS, 3 * N_RESIDUALS)  # T: (18, 27)
         self._compensate = basis.T @ np.linalg.inv(gram) @ basis  # T^T G^-1 T

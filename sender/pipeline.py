@@ -211,6 +211,7 @@ class SenderPipeline:
                                             None)
             self._raw = raw
             if raw is not None:
+                assert lifted is not None  # pose_and_lift returns both or neither
                 self._expression = lifted.residuals
                 pose = self.pose_filter.step(raw, dt)
         if pose is None:
@@ -218,7 +219,10 @@ class SenderPipeline:
             self._expression = None
             self.pose_filter.reset()
         t2 = clock()
-        lifted = self.lifter.lift(points, pose) if pose is not None else None
+        lifted = None
+        if pose is not None:
+            assert points is not None  # a pose comes from tracked points
+            lifted = self.lifter.lift(points, pose)
         t3 = clock()
         if lifted is None:
             out = self.residual_filter.step(None, None, dt)

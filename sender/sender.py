@@ -231,6 +231,7 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
         if not loop:
             break
         offset += last + 1.0 / source.rate_hz
+    assert held is not None  # the source held frames (above)
     while t0 + (slot - 0.25) * period <= offset + last:  # the slots of the last frame
         pacer.wait(t0 + slot * period)
         yield held, t0 + slot * period
@@ -306,7 +307,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         except CaptureError:
             if log is not None and log.records == 0:
                 log.close()
-                Path(record).unlink(missing_ok=True)
+                log.path.unlink(missing_ok=True)
             raise
     return {**_rates(counts), "log": None if record is None else str(record),
             "model_sha256": hello.model_sha256, "model_bytes": len(data),

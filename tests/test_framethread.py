@@ -42,8 +42,7 @@ def test_latest_hands_a_slow_consumer_the_newest_item_and_counts_the_dropped() -
     go = threading.Event()
 
     def camera():
-        for i in range(10):
-            yield i
+        yield from range(10)
         go.set()
         yield 10
 

@@ -548,7 +548,7 @@ def test_without_skip_every_slot_plays_however_far_behind() -> None:
     packets = {s: encode(make_frame(s, rng)) for s in range(20) if s != 3}
     for skip, expected in ((False, list(range(20))), (True, None)):
         playout = Playout(RATE, depth=DEPTH, skip=skip)
-        for s, data in packets.items():
+        for data in packets.values():
             playout.push(data, 0.0)
         seqs = [state.seq for state in (playout.pop() for _ in range(DEPTH + 20))
                 if state.seq is not None]

@@ -45,7 +45,8 @@ def check_egl() -> str:
     import moderngl
 
     try:
-        ctx = moderngl.create_standalone_context(backend="egl")
+        ctx = moderngl.create_standalone_context(
+            backend="egl")  # type: ignore[arg-type]  # stub: **settings: dict
     except Exception as exc:  # moderngl raises plain Exception for context failures
         raise EGLUnavailable(
             f"could not create an EGL OpenGL context ({exc}). On Debian/Ubuntu install "
@@ -66,7 +67,8 @@ def create_context() -> Any:
     import moderngl
 
     try:
-        return moderngl.create_standalone_context(backend="egl", require=330)
+        return moderngl.create_standalone_context(
+            backend="egl", require=330)  # type: ignore[arg-type]  # stub: **settings: dict
     except Exception as exc:  # moderngl raises plain Exception for context failures
         check_egl()  # raises EGLUnavailable naming the missing system packages
         raise EGLUnavailable(f"could not create an OpenGL 3.3 context through EGL "

@@ -284,7 +284,8 @@ class MeshRenderer(ContextOwner):
         ctx = create_context()
         self._ctx = ctx
         self.width, self.height = width, height
-        self.background = tuple(c / 255.0 for c in background)
+        r, g, b = background
+        self.background = (r / 255.0, g / 255.0, b / 255.0)
         self._frame = OffscreenTarget(ctx, width, height, samples)
         self.samples = self._frame.samples
         ctx.enable(moderngl.DEPTH_TEST)
@@ -294,8 +295,14 @@ class MeshRenderer(ContextOwner):
                                    fragment_shader=_FRAGMENT_SHADED)
         self._n_vertices = 0
         self._triangles: np.ndarray | None = None
-        self._positions = self._normals = self._uv = self._indices = None
-        self._vao_textured = self._vao_shaded = self._texture = None
+        # moderngl's Buffer, VertexArray and Texture objects (set_mesh, set_texture)
+        self._positions: Any = None
+        self._normals: Any = None
+        self._uv: Any = None
+        self._indices: Any = None
+        self._vao_textured: Any = None
+        self._vao_shaded: Any = None
+        self._texture: Any = None
 
     @in_context
     def set_mesh(self, n_vertices: int, triangles: np.ndarray,

@@ -96,6 +96,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -212,7 +213,8 @@ def fit_person(
     report(50)
 
     neutral = choose_neutral(frames, poses, shape, camera)
-    targets = _neutral_landmarks(frames[neutral], poses[neutral], shape, head, camera, eye_mm)
+    targets = _neutral_landmarks(_present(frames, neutral), _present(poses, neutral), shape,
+                                 head, camera, eye_mm)
     report(60)
 
     mesh = warp_head(head, targets)
@@ -410,7 +412,7 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
                    posed: Sequence[int], shape: np.ndarray,
                    camera: Intrinsics) -> dict[str, np.ndarray]:
     """Per posed frame: ``total`` and ``expression`` (total without the pose terms) costs."""
-    pts = np.stack([frames[i] for i in posed])
+    pts = np.stack([_present(frames, i) for i in posed])
     eye = np.linalg.norm(pts[:, 36] - pts[:, 45], axis=1)
     ear = np.array([eye_aspect_ratio(p).mean() for p in pts])
     gap = np.linalg.norm(pts[:, [61, 62, 63]] - pts[:, [67, 66, 65]], axis=2).mean(axis=1) / eye

@@ -198,7 +198,7 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
     out = []
     for frame in progress(read_frames(video, frames), "appearance", total):
         sent = pipeline.process(frame.image, frame.time)
-        if sent.rotation is None or sent.points is None:
+        if sent.rotation is None or sent.translation is None or sent.points is None:
             continue
         gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
         samples = sampler.sample(gray, sent.rotation, sent.translation, sent.residuals)

@@ -75,6 +75,7 @@ centre at ``u = (c + 1/2) / W``, ``v = 1 - (r + 1/2) / H``, where OpenGL samples
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -150,7 +151,7 @@ def uv_surface(mesh: Mesh, size: tuple[int, int] = DEFAULT_SIZE) -> UVSurface:
         positions, normal_id, layers = gl.uv_pass(mesh, normals, width, height)
     triangles = np.rint(normal_id[..., 3]).astype(np.int32) - 1
     covered = triangles >= 0
-    overlap = np.count_nonzero(layers > 1.5) / max(1, np.count_nonzero(covered))
+    overlap = np.count_nonzero(layers > 1.5) / max(1, int(np.count_nonzero(covered)))
     if overlap > MAX_OVERLAP:
         raise TextureError(f"mesh.uv: triangles overlap on {100 * overlap:.1f} % of the "
                            f"covered texels (at most {100 * MAX_OVERLAP:g} %); a texture needs "
@@ -535,7 +536,7 @@ class _Gl:
         self._count = self._ctx.program(vertex_shader=_VERTEX_COUNT,
                                         fragment_shader=_FRAGMENT_COUNT)
         self._mesh: Mesh | None = None
-        self._depth_vao = None
+        self._depth_vao: Any = None  # moderngl.VertexArray, made by depth_pass
 
     def __enter__(self) -> _Gl:
         return self
