@@ -75,8 +75,8 @@ import av.logging
 import cv2
 import numpy as np
 
-from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.infra.video import read_frames
+from facewire.models.landmarks import N_LANDMARKS
 
 MARGIN = 0.1
 FOREHEAD = 0.3

@@ -72,12 +72,12 @@ from facewire.bench.geometry import GeometryNME, geometry_nme
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
 from facewire.bench.speed import NoFaceError
-from facewire.models.landmarks import eye_aspect_ratio
-from facewire.models.regions import REGION_NAMES
-from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.rig import Rig
 from facewire.models.infra.video import VideoError, range_text
+from facewire.models.landmarks import eye_aspect_ratio
+from facewire.models.modelfile import load_model
+from facewire.models.regions import REGION_NAMES
+from facewire.models.rig import Rig
 from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
 from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.receiver.render import FaceRenderer
@@ -85,7 +85,6 @@ from facewire.receiver.views import sender_view
 from facewire.sender.capture import Source, open_source
 from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
-
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}

@@ -79,19 +79,23 @@ from typing import Any
 import numpy as np
 
 from facewire.bench.loopback import TARGET_GROWTH_MB, TARGET_LATENCY_MS, measure_loopback
-from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.video import (
+    VideoError,
+    frames_in_range,
+    range_text,
+    read_frames,
+    video_info,
+)
+from facewire.models.modelfile import load_model
 from facewire.models.rig import N_RESIDUALS, Rig
-from facewire.models.infra.video import (VideoError, frames_in_range, range_text, read_frames,
-                                         video_info)
-from facewire.sender.capture import estimate_intrinsics
 from facewire.protocol.packet import decode as decode_packet
 from facewire.protocol.rate import stream_rate
 from facewire.receiver.output import VideoWriter
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import sender_view
+from facewire.sender.capture import estimate_intrinsics
 from facewire.sender.pipeline import SenderPipeline
-
 
 MORPH_CALLS = 300
 MORPH_WARMUP = 30

@@ -29,8 +29,8 @@ class CommandError(FacewireError):
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from facewire.report import report
     from facewire.receiver.replay import replay_log
+    from facewire.report import report
 
     s = replay_log(args.log, args.model, args.out, args.view, _size(args.size), args.side_by_side,
                    progress=_progress)
@@ -44,8 +44,8 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _send(args: argparse.Namespace) -> int:
-    from facewire.report import report
     from facewire.protocol.rate import over_budget_warning
+    from facewire.report import report
     from facewire.sender.sender import send, unencrypted_warning
 
     for warning in (unencrypted_warning(args.bind, args.curve_dir),
@@ -78,9 +78,11 @@ def _send(args: argparse.Namespace) -> int:
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
-    from facewire.report import report
+    import numpy as np
+
     from facewire.receiver.liveview import LiveView
     from facewire.receiver.receiver import receive
+    from facewire.report import report
 
     with LiveView(args.view_port) if args.view else nullcontext() as live:
         view = None
@@ -129,8 +131,8 @@ def _size(text: str | None) -> tuple[int, int] | None:
 
 
 def _relay(args: argparse.Namespace) -> int:
-    from facewire.report import report
     from facewire.protocol.relay import relay
+    from facewire.report import report
 
     print(f"facewire relay: {args.inp} -> {args.out} (control on the next ports); Ctrl-C "
           f"stops", file=sys.stderr)
@@ -161,8 +163,8 @@ class _StatusLine:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from facewire.report import report
     from facewire.demo import demo
+    from facewire.report import report
 
     r = demo(args.out, args.source, args.seconds, progress=_progress,
              status=lambda line: print(f"facewire demo: {line}", file=sys.stderr))
@@ -246,8 +248,8 @@ def _model_build(args: argparse.Namespace) -> int:
 
 
 def _model_info(args: argparse.Namespace) -> int:
-    from facewire.report import report
     from facewire.models.modelfile import load_model, model_summary
+    from facewire.report import report
 
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,

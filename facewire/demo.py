@@ -56,17 +56,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.performer import ENROLL_S, PerformanceResult, perform
-from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.build import BuildResult, build_model
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames, video_info
+from facewire.performer import ENROLL_S, PerformanceResult, perform
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.rate import NOMINAL_HZ
 from facewire.protocol.transport import WIRE_OVERHEAD, free_loopback_endpoint
 from facewire.receiver.output import VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState
 from facewire.receiver.receiver import receive
+from facewire.sender.enroll.build import BuildResult, build_model
 from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.sender import send
 

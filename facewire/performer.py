@@ -66,17 +66,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.build import BuildError, BuildResult, build_model
 from facewire.models.geometry import Intrinsics, Pose
+from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.raster import Camera, MeshRenderer
+from facewire.models.infra.video import VideoError
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import PersonModel
 from facewire.models.morph import VolumeMorph
-from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.raster import Camera, MeshRenderer
 from facewire.models.rig import Rig
-from facewire.models.infra.video import VideoError
+from facewire.protocol.errors import FacewireError
 from facewire.receiver.output import VideoWriter
+from facewire.sender.enroll.build import BuildError, BuildResult, build_model
 
 PORTRAIT = "grace_hopper.jpg"  # matplotlib's sample data: public domain (U.S. Navy photo)
 RATE_HZ = 30.0

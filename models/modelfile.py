@@ -113,8 +113,16 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from facewire.models.archive import (ZipRules, decode_npy, decode_png, npy_bytes, open_zip,
-                                     png_bytes, read_member, zip_bytes)
+from facewire.models.archive import (
+    ZipRules,
+    decode_npy,
+    decode_png,
+    npy_bytes,
+    open_zip,
+    png_bytes,
+    read_member,
+    zip_bytes,
+)
 from facewire.models.geometry import Intrinsics
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.mesh import Mesh, MeshError

@@ -43,8 +43,14 @@ import zmq
 import zmq.auth.thread
 
 from facewire.protocol.keys import CurveClient, CurveServer, client_keys, server_keys
-from facewire.protocol.transport import (CONTROL_HWM, MAX_CONTROL_FRAME, MAX_PACKET_FRAME, PACKET_HWM,
-                                TransportError, control_endpoint)
+from facewire.protocol.transport import (
+    CONTROL_HWM,
+    MAX_CONTROL_FRAME,
+    MAX_PACKET_FRAME,
+    PACKET_HWM,
+    TransportError,
+    control_endpoint,
+)
 
 WAIT_S = 0.1
 STATISTICS_TIMEOUT_MS = 2000

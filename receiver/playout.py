@@ -135,8 +135,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from facewire.models.geometry import rotation_matrix
-from facewire.protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, PACKET_BYTES, SEQ_MODULO, Flag, Frame,
-                             PacketError, decode)
+from facewire.protocol.packet import (
+    N_REGIONS,
+    N_RESIDUAL_POINTS,
+    PACKET_BYTES,
+    SEQ_MODULO,
+    Flag,
+    Frame,
+    PacketError,
+    decode,
+)
 
 DEFAULT_DEPTH = 3
 HOLD_S = 0.2

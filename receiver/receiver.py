@@ -226,7 +226,7 @@ def _check_options(out: str | os.PathLike[str] | None,
     if size is None:
         return None
     if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(
-            isinstance(v, numbers.Integral) and 0 < v <= MAX_SIZE for v in size):
+            isinstance(v, (int, np.integer)) and 0 < v <= MAX_SIZE for v in size):
         raise ReceiveError(f"size: expected a width and height in [1, {MAX_SIZE}], "
                            f"got {size!r}")
     return int(size[0]), int(size[1])

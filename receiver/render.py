@@ -77,7 +77,6 @@ import numpy as np
 
 from facewire.models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
 from facewire.models.infra.egl import create_context, in_context
-from facewire.models.modelfile import Area, PersonModel
 from facewire.models.infra.raster import (
     VERTEX_TEXTURED,
     Camera,
@@ -86,6 +85,7 @@ from facewire.models.infra.raster import (
     RenderError,
     check_output,
 )
+from facewire.models.modelfile import Area, PersonModel
 from facewire.protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)

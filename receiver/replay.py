@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from facewire.models.modelfile import load_model
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.video import read_frames
+from facewire.models.infra.video import VideoFrame, read_frames
+from facewire.models.modelfile import load_model
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.log import read_log
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side

@@ -16,8 +16,8 @@ from typing import Self
 
 import numpy as np
 
-from facewire.models.modelfile import PersonModel
 from facewire.models.infra.raster import RenderError
+from facewire.models.modelfile import PersonModel
 from facewire.models.rig import Rig
 from facewire.protocol import control as ctl
 from facewire.protocol.packet import N_REGIONS

@@ -28,9 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from facewire.models.geometry import Intrinsics, Pose, rotation_matrix
+from facewire.models.infra.raster import Camera, RenderError, orbit_pose
 from facewire.models.landmarks import N_LANDMARKS, outer_eye_distance
 from facewire.models.mesh import Mesh
-from facewire.models.infra.raster import Camera, RenderError, orbit_pose
 from facewire.protocol import control
 
 FOV_DEG = 25.0  # as sender.enroll.build.PREVIEW_FOV_DEG

@@ -55,8 +55,8 @@ import cv2
 import numpy as np
 
 from facewire.models.geometry import MAX_FOCAL_PX, Intrinsics, intrinsics_guess
-from facewire.protocol.errors import FacewireError
 from facewire.models.infra.video import VideoError, VideoFrame, read_frames, video_info
+from facewire.protocol.errors import FacewireError
 
 __all__ = ["CaptureError", "Source", "VideoFrame", "open_source", "estimate_intrinsics",
            "read_calibration", "scale_intrinsics", "Pacer", "RateLimiter", "IMAGE_SUFFIXES"]

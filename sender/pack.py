@@ -26,8 +26,15 @@ import numpy as np
 
 from facewire.models.geometry import Pose, rotation_matrix, rotation_vector
 from facewire.models.rig import Rig
-from facewire.protocol.packet import (N_REGIONS, N_RESIDUAL_POINTS, SEQ_MODULO, Flag, Frame, decode,
-                                      encode_frames)
+from facewire.protocol.packet import (
+    N_REGIONS,
+    N_RESIDUAL_POINTS,
+    SEQ_MODULO,
+    Flag,
+    Frame,
+    decode,
+    encode_frames,
+)
 
 
 @dataclass(frozen=True)

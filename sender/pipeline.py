@@ -56,24 +56,28 @@ import cv2
 import numpy as np
 
 from facewire.models.geometry import Intrinsics, Pose
+from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
-from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.rig import Rig
-from facewire.sender.tracker import LandmarkTracker
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import N_REGIONS, Flag, Frame
-from facewire.protocol.rate import (MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps,
-                                    stream_rate)
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.sender.appearance import AppearanceSampler
-from facewire.sender.capture import (CaptureError, estimate_intrinsics, open_source, read_calibration,
-                            scale_intrinsics)
+from facewire.sender.capture import (
+    CaptureError,
+    estimate_intrinsics,
+    open_source,
+    read_calibration,
+    scale_intrinsics,
+)
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.heuristics import ResidualFilter
 from facewire.sender.lift import Lifter, pose_and_lift
 from facewire.sender.pack import pack
 from facewire.sender.pose import PoseFilter, PoseSolver
+from facewire.sender.tracker import LandmarkTracker
 
 
 @dataclass(frozen=True)

@@ -77,14 +77,27 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import ModelFileError, load_model
-from facewire.protocol.control import (ControlError, Error, Hello,
-                              HelloRequest, Message, ModelChunk, ModelRequest, decode_message,
-                              model_chunks)
+from facewire.protocol.control import (
+    ControlError,
+    Error,
+    Hello,
+    HelloRequest,
+    Message,
+    ModelChunk,
+    ModelRequest,
+    decode_message,
+    model_chunks,
+)
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
 from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
-from facewire.protocol.transport import ControlServer, PacketPublisher, PeerCounter, control_endpoint
+from facewire.protocol.transport import (
+    ControlServer,
+    PacketPublisher,
+    PeerCounter,
+    control_endpoint,
+)
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
 from facewire.sender.pipeline import SenderPipeline, sender_camera

@@ -53,8 +53,8 @@ def rig():
 @pytest.fixture(scope="session")
 def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generic head with a flat grey texture, saved as a model file."""
-    from facewire.models.head import generic_head
     from facewire.models.geometry import Intrinsics
+    from facewire.models.head import generic_head
     from facewire.models.modelfile import ModelInfo, PersonModel, save_model
 
     model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),

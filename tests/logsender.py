@@ -19,10 +19,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-
 from conftest import free_endpoint
+
 from facewire.models.modelfile import load_model
-from facewire.protocol.control import Error, Hello, HelloRequest, ModelRequest, decode_message, model_chunks
+from facewire.protocol.control import (
+    Error,
+    Hello,
+    HelloRequest,
+    ModelRequest,
+    decode_message,
+    model_chunks,
+)
 from facewire.protocol.keys import CurveServer
 from facewire.protocol.log import PacketLog, read_log
 from facewire.protocol.packet import decode, encode

@@ -15,19 +15,26 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from conftest import EXPRESSION_UV, SYNTH_FX
-from facewire.models.head import generic_head
-from facewire.models.mesh import Mesh, Tag
+
 from facewire.models.geometry import Intrinsics
+from facewire.models.head import generic_head
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer, orbit_pose
-from facewire.models.regions import (OFFSETS, REGIONS, SUPERSAMPLE, TEMPLATE_SIZE, RegionError, spec,
-                            template_samples)
+from facewire.models.mesh import Mesh, Tag
+from facewire.models.regions import (
+    OFFSETS,
+    REGIONS,
+    SUPERSAMPLE,
+    TEMPLATE_SIZE,
+    RegionError,
+    spec,
+    template_samples,
+)
 from facewire.models.rig import Rig
-from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.classify import RegionClassifiers
+from facewire.sender.enroll.texture import UVSurface, uv_surface
 
 WIDTH, HEIGHT = 640, 480
 INTRINSICS = Intrinsics(SYNTH_FX, SYNTH_FX, 319.5, 239.5, WIDTH, HEIGHT)

@@ -9,12 +9,17 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
-from facewire.sender.enroll.build import PREVIEW_HEIGHT, REGION_ROW_HEIGHT, TEXTURE_SIZE, build_model
 from facewire.models.gltf import read_glb
 from facewire.models.head import generic_head
 from facewire.models.modelfile import load_model
 from facewire.models.regions import REGION_NAMES, spec
 from facewire.sender.classify import RegionClassifiers
+from facewire.sender.enroll.build import (
+    PREVIEW_HEIGHT,
+    REGION_ROW_HEIGHT,
+    TEXTURE_SIZE,
+    build_model,
+)
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,14 @@ import numpy as np
 import pytest
 import pywt
 
-from facewire.sender.classify import (ETA, HAAR_MATRIX, SCALE_INDEX, RegionClassifiers,
-                             TemplateClassifier, haar_pyramid)
+from facewire.sender.classify import (
+    ETA,
+    HAAR_MATRIX,
+    SCALE_INDEX,
+    RegionClassifiers,
+    TemplateClassifier,
+    haar_pyramid,
+)
 
 N = 16
 _Y, _X = (np.mgrid[0:N, 0:N] + 0.5) / N * 2 - 1  # pixel centres in [-1, 1], y down

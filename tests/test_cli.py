@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import write_video
+
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames

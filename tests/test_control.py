@@ -9,8 +9,19 @@ import numpy as np
 import pytest
 
 from facewire.protocol.control import (
-    CHUNK_BYTES, MAX_MESSAGE_BYTES, Camera, ControlError, Error, Hello, HelloRequest,
-    ModelAssembler, ModelChunk, ModelRequest, decode_message, encode_message, model_chunks,
+    CHUNK_BYTES,
+    MAX_MESSAGE_BYTES,
+    Camera,
+    ControlError,
+    Error,
+    Hello,
+    HelloRequest,
+    ModelAssembler,
+    ModelChunk,
+    ModelRequest,
+    decode_message,
+    encode_message,
+    model_chunks,
 )
 
 SHA = "ab" * 32

@@ -21,12 +21,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import write_video
+
 from facewire.demo import DemoError, demo, plot_bandwidth
-from facewire.performer import (CHANNELS, ENROLL_S, LENGTH_S, RATE_HZ, SCRIPT, Cue, bump,
-                                close_eyes, script_values)
 from facewire.models.infra.video import video_info
+from facewire.performer import (
+    CHANNELS,
+    ENROLL_S,
+    LENGTH_S,
+    RATE_HZ,
+    SCRIPT,
+    Cue,
+    bump,
+    close_eyes,
+    script_values,
+)
 from facewire.protocol.log import read_log
 
 LIMIT_S = 120.0  # the issue: under 2 minutes on this machine

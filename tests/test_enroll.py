@@ -9,8 +9,14 @@ import pytest
 
 from facewire.models.modelfile import load_model
 from facewire.models.regions import REGION_NAMES, ramp_mask, spec
-from facewire.sender.enroll.layers import (EnrollError, _choose_states, _iris_position, enroll_regions,
-                           region_cues, without_closed_eyes)
+from facewire.sender.enroll.layers import (
+    EnrollError,
+    _choose_states,
+    _iris_position,
+    enroll_regions,
+    region_cues,
+    without_closed_eyes,
+)
 
 
 def test_states_span_the_cue_at_even_levels() -> None:

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from facewire.models.geometry import Intrinsics, Pose, intrinsics_guess, project
-from facewire.sender.enroll.fit import FitError, fit_person, flipped_triangles
 from facewire.models.head import generic_head
-from facewire.models.mesh import Tag
 from facewire.models.infra.raster import orbit_pose
+from facewire.models.mesh import Tag
+from facewire.sender.enroll.fit import FitError, fit_person, flipped_triangles
 
 W, H = 640, 480
 CAMERA = Intrinsics(640.0, 640.0, 319.5, 239.5, W, H)
@@ -180,8 +180,8 @@ def test_errors(head):
 
 
 def test_real_video(shared_data, head):
-    from facewire.sender.tracker import LandmarkTracker
     from facewire.models.infra.video import read_frames, video_info
+    from facewire.sender.tracker import LandmarkTracker
 
     path = shared_data / "video" / "openface_default.wmv"
     info = video_info(path)

@@ -5,8 +5,15 @@ import math
 import numpy as np
 import pytest
 
-from facewire.models.geometry import (OPENCV_FLIP, Intrinsics, Pose, intrinsics_guess, project,
-                                      rotation_matrix, rotation_vector)
+from facewire.models.geometry import (
+    OPENCV_FLIP,
+    Intrinsics,
+    Pose,
+    intrinsics_guess,
+    project,
+    rotation_matrix,
+    rotation_vector,
+)
 from facewire.protocol.control import Camera, ControlError
 
 

@@ -9,8 +9,14 @@ from scipy.sparse.csgraph import connected_components
 
 from facewire.models.head import generic_head, mirror_map
 from facewire.models.head.anatomy import EYE_RADIUS
-from facewire.models.head.uvlayout import (EYE_BACK_UV, EYE_BACK_UV_RADIUS, EYE_UV, EYE_UV_RADIUS, MOUTH_UV,
-                                           SKIN_U_MAX)
+from facewire.models.head.uvlayout import (
+    EYE_BACK_UV,
+    EYE_BACK_UV_RADIUS,
+    EYE_UV,
+    EYE_UV_RADIUS,
+    MOUTH_UV,
+    SKIN_U_MAX,
+)
 from facewire.models.landmarks import FEATURES, MIRROR, PHANTOM_MIRROR, PHANTOM_NAMES
 from facewire.models.mesh import Mesh, Tag
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import EXPRESSION_UV, SYNTH_FX
+
+from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
 from facewire.models.rig import Rig
 from facewire.sender.lift import GRAZING_COS, Lifter, pose_and_lift
-from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
 from facewire.sender.pose import PoseSolver
 
 CAMERA = Intrinsics(SYNTH_FX, SYNTH_FX, 319.5, 239.5, 640, 480)  # the 640x480 intrinsics guess

@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 import av
-
 from conftest import free_endpoint
+
 from facewire.protocol.log import read_log
 
 WAIT_S = 120  # at most, for a process to end (a loaded 2-core machine is slow to start)

@@ -12,14 +12,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import npy_bytes, write_zip, zip_members
+
 from facewire.models import modelfile
-from facewire.models.mesh import Mesh
 from facewire.models.geometry import Intrinsics
-from facewire.models.modelfile import (Area, ModelError, ModelFileError, ModelInfo, PersonModel,
-                              Region, load_model, load_model_bytes, model_sha256, model_summary,
-                              save_model)
+from facewire.models.mesh import Mesh
+from facewire.models.modelfile import (
+    Area,
+    ModelError,
+    ModelFileError,
+    ModelInfo,
+    PersonModel,
+    Region,
+    load_model,
+    load_model_bytes,
+    model_sha256,
+    model_summary,
+    save_model,
+)
 
 
 def _grid_mesh(g: int = 12) -> Mesh:

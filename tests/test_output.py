@@ -10,8 +10,14 @@ import numpy as np
 import pytest
 
 from facewire.models.infra.video import read_frames, video_info
-from facewire.receiver.output import (FRAME_PATTERN, QUEUE_FRAMES, FrameFolderWriter, OutputError,
-                             VideoWriter, side_by_side)
+from facewire.receiver.output import (
+    FRAME_PATTERN,
+    QUEUE_FRAMES,
+    FrameFolderWriter,
+    OutputError,
+    VideoWriter,
+    side_by_side,
+)
 
 W, H, RATE = 160, 120, 30
 

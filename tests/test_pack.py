@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facewire.models.geometry import Pose, rotation_matrix, rotation_vector
 from facewire.models.rig import Rig
 from facewire.protocol.packet import PACKET_BYTES, QUANTISERS, Flag, PacketError
 from facewire.sender.pack import pack, unpack_geometry
-from facewire.models.geometry import Pose, rotation_matrix, rotation_vector
 
 # Half steps of the quantisers (protocol.packet): rotation, shift_xy, shift_z, residuals.
 ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])

@@ -10,8 +10,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from facewire.protocol.packet import (
-    FRAME_DTYPE, PACKET_BYTES, QUANTISERS, Flag, Frame, PacketError, crc16, decode,
-    decode_frames, encode, encode_frames,
+    FRAME_DTYPE,
+    PACKET_BYTES,
+    QUANTISERS,
+    Flag,
+    Frame,
+    PacketError,
+    crc16,
+    decode,
+    decode_frames,
+    encode,
+    encode_frames,
 )
 
 Q = {q.name: q for q in QUANTISERS}

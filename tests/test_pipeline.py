@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from facewire.models.geometry import rotation_vector
+from facewire.models.infra.video import frame_range, read_frames
 from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.modelfile import ModelFileError
-from facewire.sender.tracker import LandmarkTracker
-from facewire.models.infra.video import frame_range, read_frames
 from facewire.protocol.control import Camera, decode_message, encode_message
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import QUANTISERS, Flag
 from facewire.sender.capture import CaptureError, estimate_intrinsics
 from facewire.sender.pack import unpack_geometry
 from facewire.sender.pipeline import SenderPipeline, encode_video
-from facewire.models.geometry import rotation_vector
+from facewire.sender.tracker import LandmarkTracker
 
 ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL = (q.step / 2 for q in QUANTISERS[:4])
 

@@ -10,9 +10,17 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.protocol.packet import (PACKET_BYTES, QUANTISERS, SEQ_MODULO, Flag, Frame, PacketError,
-                             decode, encode)
 from facewire.models.geometry import rotation_matrix
+from facewire.protocol.packet import (
+    PACKET_BYTES,
+    QUANTISERS,
+    SEQ_MODULO,
+    Flag,
+    Frame,
+    PacketError,
+    decode,
+    encode,
+)
 from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_states
 
 RATE = 30.0

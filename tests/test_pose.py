@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import EXPRESSION_UV, SYNTH_FX
+
 from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
 from facewire.models.landmarks import NONRIGID, RIGID
 from facewire.models.rig import FRONTAL_POINTS, Rig

@@ -11,18 +11,24 @@ from scipy.spatial.transform import Rotation
 
 from facewire.bench.geometry import geometry_nme, project_landmarks
 from facewire.bench.quality import TARGET_NME_HELDOUT, TARGET_Q, format_quality, quality
-from facewire.bench.speed import NoFaceError
 from facewire.bench.reference import OpenFaceError
-from facewire.sender.enroll.build import build_model
-from facewire.models.regions import REGION_NAMES
-from facewire.sender.enroll.layers import enroll_regions
-from facewire.models.landmarks import HELD_OUT, outer_eye_distance
-from facewire.models.modelfile import ModelFileError
+from facewire.bench.speed import NoFaceError
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera as ViewCamera
+from facewire.models.landmarks import HELD_OUT, outer_eye_distance
+from facewire.models.modelfile import ModelFileError
+from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
-from facewire.protocol.packet import (FRAME_DTYPE, QUANTISERS, Flag, Frame, decode_frames,
-                                      encode_frames)
+from facewire.protocol.packet import (
+    FRAME_DTYPE,
+    QUANTISERS,
+    Flag,
+    Frame,
+    decode_frames,
+    encode_frames,
+)
+from facewire.sender.enroll.build import build_model
+from facewire.sender.enroll.layers import enroll_regions
 
 FX, FY, CX, CY, W, H = 640.0, 640.0, 319.5, 239.5, 640, 480
 # Quantisation half-steps of protocol.packet: rotation-vector component (degrees),

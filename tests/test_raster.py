@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.models.infra.egl import EGLUnavailable
-from facewire.models.gltf import read_glb
 from facewire.models.geometry import Intrinsics, Pose
+from facewire.models.gltf import read_glb
+from facewire.models.infra.egl import EGLUnavailable
 from facewire.models.infra.raster import Camera, MeshRenderer, RenderError, orbit_pose
 
 W, H = 160, 120  # not square, so a swapped width and height shows

@@ -20,12 +20,12 @@ import av
 import cv2
 import numpy as np
 import pytest
-
 from conftest import start
 from logsender import LogSender
 from logsender import free_port_pair as _free_port_pair
 from logsender import hello_for as _hello_for
 from logsender import ready as _ready
+
 from facewire.models.modelfile import ModelFileError
 from facewire.protocol.keys import generate_keys, server_keys
 from facewire.protocol.log import read_log

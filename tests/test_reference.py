@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 
 from facewire.bench.qplot import DPI, FIG_WIDTH_IN, HEADER_IN, PANEL_IN, STRIP_IN, plot_q
-from facewire.bench.reference import (OpenFaceReference, OpenFaceError, match_events, q_agreement,
-                             read_openface)
+from facewire.bench.reference import (
+    OpenFaceError,
+    OpenFaceReference,
+    match_events,
+    q_agreement,
+    read_openface,
+)
 
 LAYERS = {"eyelid_left": 4, "eyelid_right": 4, "forehead": 3, "mouth": 5, "eyeball_left": 3,
           "eyeball_right": 3}

@@ -11,11 +11,29 @@ import numpy as np
 import pytest
 
 from facewire.models.head import generic_head
-from facewire.models.head.uvlayout import EYE_UV, EYE_UV_RADIUS, MOUTH_UV, MOUTH_UV_RADIUS, SKIN_U_MAX
+from facewire.models.head.uvlayout import (
+    EYE_UV,
+    EYE_UV_RADIUS,
+    MOUTH_UV,
+    MOUTH_UV_RADIUS,
+    SKIN_U_MAX,
+)
 from facewire.models.mesh import Mesh, Tag
-from facewire.models.regions import (OFFSETS, RAMP_TEXELS, REGION_NAMES, REGIONS, SUPERSAMPLE,
-                            TEMPLATE_SIZE, RegionError, RegionSpec, place, ramp_mask, spec,
-                            template_samples, texel_rect)
+from facewire.models.regions import (
+    OFFSETS,
+    RAMP_TEXELS,
+    REGION_NAMES,
+    REGIONS,
+    SUPERSAMPLE,
+    TEMPLATE_SIZE,
+    RegionError,
+    RegionSpec,
+    place,
+    ramp_mask,
+    spec,
+    template_samples,
+    texel_rect,
+)
 
 MODEL_TEXTURE = (1024, 2048)  # (H, W) the model's texture
 S = TEMPLATE_SIZE * SUPERSAMPLE

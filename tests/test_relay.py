@@ -7,16 +7,28 @@ import threading
 import time
 from pathlib import Path
 
-from facewire.protocol.control import (Camera, Hello, HelloRequest, ModelAssembler, ModelChunk,
-                              ModelRequest, decode_message)
+from conftest import free_endpoint, start
+
+from facewire.protocol.control import (
+    Camera,
+    Hello,
+    HelloRequest,
+    ModelAssembler,
+    ModelChunk,
+    ModelRequest,
+    decode_message,
+)
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import Frame, decode, encode
 from facewire.protocol.relay import relay
-from facewire.protocol.transport import (ControlClient, ControlServer, PacketPublisher,
-                                PacketSubscriber, control_endpoint)
+from facewire.protocol.transport import (
+    ControlClient,
+    ControlServer,
+    PacketPublisher,
+    PacketSubscriber,
+    control_endpoint,
+)
 from facewire.sender.sender import send
-
-from conftest import free_endpoint, start
 
 SETTLE_S = 5.0
 

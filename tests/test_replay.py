@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
-from facewire.models.modelfile import load_model
 from facewire.models.infra.video import read_frames, video_info
+from facewire.models.modelfile import load_model
 from facewire.protocol.log import LogWriter, read_log
 from facewire.receiver.replay import ReplayError, replay_log
 from facewire.sender.pipeline import encode_video
@@ -122,11 +122,16 @@ def test_inspect_names_the_q_columns_by_region(log: Path, person_model: Path,
 def test_a_neutral_packet_renders_the_models_own_preview(person_model: Path) -> None:
     """Neutral geometry and every region at its rest state (what the playout gives for a
     face at rest or lost) render pixel-identical to the preview's model panels."""
-    from facewire.sender.enroll.build import (PREVIEW_BACKGROUND, PREVIEW_HEIGHT, PREVIEW_SAMPLES,
-                              preview_cameras, render_preview)
     from facewire.protocol.packet import N_REGIONS
     from facewire.receiver.playout import Playout
     from facewire.receiver.render import FaceRenderer
+    from facewire.sender.enroll.build import (
+        PREVIEW_BACKGROUND,
+        PREVIEW_HEIGHT,
+        PREVIEW_SAMPLES,
+        preview_cameras,
+        render_preview,
+    )
 
     model = load_model(person_model)
     rest = np.zeros(N_REGIONS, np.float32)

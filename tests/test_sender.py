@@ -15,17 +15,29 @@ import av
 import numpy as np
 import pytest
 import zmq
+from conftest import free_endpoint, start
 
-from facewire.protocol.control import (Error, Hello, HelloRequest, ModelAssembler, ModelChunk,
-                              ModelRequest, decode_message)
+from facewire.protocol.control import (
+    Error,
+    Hello,
+    HelloRequest,
+    ModelAssembler,
+    ModelChunk,
+    ModelRequest,
+    decode_message,
+)
 from facewire.protocol.keys import client_keys, generate_keys
 from facewire.protocol.log import LogError, read_log
 from facewire.protocol.packet import decode
-from facewire.protocol.transport import (ControlClient, ControlServer, PacketPublisher,
-                                PacketSubscriber, control_endpoint)
+from facewire.protocol.transport import (
+    ControlClient,
+    ControlServer,
+    PacketPublisher,
+    PacketSubscriber,
+    control_endpoint,
+)
 from facewire.sender.capture import CaptureError, open_source
 from facewire.sender.sender import _frames, send, unencrypted_warning
-from conftest import free_endpoint, start
 
 TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model and the tracker
 

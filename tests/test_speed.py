@@ -7,11 +7,17 @@ from pathlib import Path
 
 import pytest
 
-from facewire.bench.speed import (LOOPBACK_KEYS, NoFaceError, _one_blas_thread, format_speed,
-                         measure_speed, speed)
+from facewire.bench.speed import (
+    LOOPBACK_KEYS,
+    NoFaceError,
+    _one_blas_thread,
+    format_speed,
+    measure_speed,
+    speed,
+)
 from facewire.models.head import generic_head
-from facewire.models.modelfile import ModelFileError
 from facewire.models.infra.video import VideoError, frame_range
+from facewire.models.modelfile import ModelFileError
 
 
 @pytest.fixture(scope="module")

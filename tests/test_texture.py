@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from facewire.models.gltf import read_glb
-from facewire.models.mesh import Mesh
 from facewire.models.infra.raster import Camera, MeshRenderer, orbit_pose
+from facewire.models.mesh import Mesh
 from facewire.sender.enroll.texture import TextureError, fill_holes, project_views, uv_surface
 
 TEX_H, TEX_W = 128, 256

@@ -14,8 +14,14 @@ from facewire.protocol.control import Error, HelloRequest, decode_message
 from facewire.protocol.keys import KeyFileError, client_keys, generate_keys, server_keys
 from facewire.protocol.packet import PACKET_BYTES, Frame, decode, encode
 from facewire.protocol.transport import (
-    WIRE_OVERHEAD, ControlClient, ControlServer, PacketPublisher, PacketSubscriber,
-    TransportError, control_endpoint, free_loopback_endpoint,
+    WIRE_OVERHEAD,
+    ControlClient,
+    ControlServer,
+    PacketPublisher,
+    PacketSubscriber,
+    TransportError,
+    control_endpoint,
+    free_loopback_endpoint,
 )
 
 ANY_PORT = "tcp://127.0.0.1:*"

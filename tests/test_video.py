@@ -7,8 +7,8 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
-
 from conftest import write_video
+
 from facewire.models.infra.video import VideoError, VideoFrame, frame_range, read_frames, video_info
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 # Eyes. The eyeball looks along +z. The margin is the fissure outline (corners, lid heights)
 # as seen from the front, on the eyelid shell of ``skin``.
 EYE_CENTRE = np.array([31.5, 1.0, 73.0])

@@ -21,9 +21,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.models.head.anatomy import (FRONT_LANDMARKS, LIP_LANDMARK_STEP, LIP_STEPS,
-                                          MARGIN_LANDMARKS, PHANTOM_POINTS, eyelid_margin_xy,
-                                          lip_lines, outer_lip_xy)
+from facewire.models.head.anatomy import (
+    FRONT_LANDMARKS,
+    LIP_LANDMARK_STEP,
+    LIP_STEPS,
+    MARGIN_LANDMARKS,
+    PHANTOM_POINTS,
+    eyelid_margin_xy,
+    lip_lines,
+    outer_lip_xy,
+)
 from facewire.models.head.primitives import unit
 from facewire.models.head.rays import directions_to, front_directions, seen_from_front
 from facewire.models.head.skin import face_field

@@ -18,8 +18,13 @@ from facewire.models.head.anatomy import LIP_STEPS
 from facewire.models.head.features import fixed_samples
 from facewire.models.head.primitives import unit
 from facewire.models.head.rays import raycast
-from facewire.models.head.sampling import (RELAXATIONS, RayLengths, midline_samples, poisson_samples,
-                                           relax)
+from facewire.models.head.sampling import (
+    RELAXATIONS,
+    RayLengths,
+    midline_samples,
+    poisson_samples,
+    relax,
+)
 from facewire.models.head.sphere import in_hole, recover_edges, spherical_delaunay
 
 

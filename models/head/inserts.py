@@ -22,11 +22,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from facewire.models.head.anatomy import (CORNEA_BULGE, EYE_CENTRE, EYE_RADIUS, IRIS_ANGLE_DEG,
-                                          MOUTH_Y)
+from facewire.models.head.anatomy import (
+    CORNEA_BULGE,
+    EYE_CENTRE,
+    EYE_RADIUS,
+    IRIS_ANGLE_DEG,
+    MOUTH_Y,
+)
 from facewire.models.head.primitives import unit
 from facewire.models.head.uvlayout import EYE_BACK_UV, EYE_BACK_UV_RADIUS, EYE_UV, EYE_UV_RADIUS
-
 
 _SOCKET_GAP = 0.35  # socket cup radius minus eyeball radius
 

@@ -21,7 +21,6 @@ import numpy as np
 from facewire.models.head.primitives import sstep, unit
 from facewire.models.head.skin import skin_field
 
-
 # Rays start on the vertical axis x = 0, z = -5: at y = -40 for directions above 40 degrees
 # below the horizon, lower (down to y = -120) for steeper ones, so that they meet the neck
 # at a good angle. The origin height never decreases with the elevation, so no two rays

@@ -31,7 +31,6 @@ from facewire.models.head.primitives import sstep, unit
 from facewire.models.head.rays import az_el, directions_to, from_az_el, ray_origins, raycast
 from facewire.models.head.sphere import gabriel_conflicts, in_hole, spherical_delaunay, uniform_cap
 
-
 _EDGE_PER_RADIUS = 1.8  # mean Delaunay edge length of our Poisson-disk sets, in disk radii
 _CANDIDATES_PER_DISK = 5.0
 

@@ -22,7 +22,6 @@ from scipy.interpolate import PchipInterpolator
 from facewire.models.head.anatomy import EYE_CENTRE, MOUTH_CORNER_X, mouth_line, vermilion
 from facewire.models.head.primitives import bump, ellipsoid, rot_y, smax, smin, sstep
 
-
 # Loft: at height y, the section is |x/W|^n + |(z - z0)/(F - z0)|^n <= 1 in front of z0
 # (n = NF) and the same with B and NB behind it.
 _Y_TOP = 119.0

@@ -15,7 +15,6 @@ from facewire.models.head.rays import RAY_AXIS_Z
 from facewire.models.head.skin import ear_field
 from facewire.models.mesh import Tag
 
-
 # Hairline: height (mm) against the azimuth about the vertical axis x = 0, z = -5 (0 at the
 # front): the forehead, the temples, the sideburns in front of the ears, down behind them.
 _HAIRLINE_AZ = np.radians([0.0, 30.0, 50.0, 65.0, 78.0, 90.0, 100.0, 180.0])

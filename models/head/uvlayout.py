@@ -22,7 +22,6 @@ import numpy as np
 from facewire.models.head.primitives import sstep
 from facewire.models.head.rays import az_el
 
-
 SKIN_U_MAX = 0.8
 EYE_UV = {"left": (0.95, 0.9), "right": (0.85, 0.9)}
 EYE_UV_RADIUS = 0.047  # in u; the v radius is twice as large (square texels on a 2:1 image)

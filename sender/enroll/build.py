@@ -38,20 +38,27 @@ import cv2
 import numpy as np
 
 from facewire.models.draworder import region_areas, triangle_groups
-from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.fit import Fit, FitError, fit_person
-from facewire.models.head import generic_head
-from facewire.models.landmarks import outer_eye_distance
-from facewire.models.mesh import Mesh
 from facewire.models.geometry import intrinsics_guess
-from facewire.models.modelfile import Area, ModelInfo, PersonModel, Region, model_summary, save_model
+from facewire.models.head import generic_head
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer, orbit_pose
+from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
+from facewire.models.landmarks import outer_eye_distance
+from facewire.models.mesh import Mesh
+from facewire.models.modelfile import (
+    Area,
+    ModelInfo,
+    PersonModel,
+    Region,
+    model_summary,
+    save_model,
+)
 from facewire.models.regions import texel_rect
+from facewire.protocol.errors import FacewireError
+from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.texture import fill_holes, project_views, uv_surface
 from facewire.sender.tracker import LandmarkTracker
-from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480

@@ -593,3 +593,13 @@ def _choose_views(neutral: int, posed: Sequence[int], yaws: np.ndarray,
                 views.append(posed[k])
                 taken.append(yaws[k])
     return tuple(views)
+
+
+_T = TypeVar("_T")
+
+
+def _present(items: Sequence[_T | None], i: int) -> _T:
+    """``items[i]`` of a frame known to have it (points, or a pose: ``posed``)."""
+    item = items[i]
+    assert item is not None, f"frame {i}: expected a value"
+    return item

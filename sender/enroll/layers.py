@@ -66,17 +66,17 @@ import cv2
 import numpy as np
 
 from facewire.models.geometry import Intrinsics
+from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
-from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
 from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
-from facewire.sender.enroll.texture import UVSurface, uv_surface
-from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open

@@ -81,8 +81,8 @@ import cv2
 import numpy as np
 
 from facewire.models.infra.egl import create_context, in_context
-from facewire.models.mesh import Mesh
 from facewire.models.infra.raster import Camera
+from facewire.models.mesh import Mesh
 from facewire.protocol.errors import FacewireError
 
 DEFAULT_SIZE = (512, 1024)

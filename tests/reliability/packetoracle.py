@@ -12,7 +12,6 @@ import binascii
 import random
 
 import numpy as np
-
 from fuzzbudget import WHY
 
 PACKET, BODY, BITS = 39, 37, 312

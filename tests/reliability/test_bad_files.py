@@ -37,12 +37,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import free_endpoint, npy_bytes, write_zip, zip_members
+
 from facewire.cli import main
 from facewire.models import modelfile
-from facewire.models.head import generic_head
 from facewire.models.geometry import Intrinsics
+from facewire.models.head import generic_head
 from facewire.models.modelfile import ModelInfo, PersonModel, Region, save_model
 from facewire.protocol import log as fwlog
 from facewire.protocol.control import Camera as HelloCamera

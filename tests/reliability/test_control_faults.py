@@ -38,15 +38,29 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-
 from conftest import free_endpoint, start
 from rawzmtp import connect_as_dealer, declare_a_gigabyte
-from facewire.protocol.control import (CHUNK_BYTES, Camera, Error, Hello, HelloRequest, Message,
-                              ModelChunk, ModelRequest, decode_message, encode_message,
-                              model_chunks)
+
+from facewire.protocol.control import (
+    CHUNK_BYTES,
+    Camera,
+    Error,
+    Hello,
+    HelloRequest,
+    Message,
+    ModelChunk,
+    ModelRequest,
+    decode_message,
+    encode_message,
+    model_chunks,
+)
 from facewire.protocol.packet import Flag, Frame, decode, encode
-from facewire.protocol.transport import (MAX_CONTROL_FRAME, ControlServer, PacketSubscriber,
-                                control_endpoint)
+from facewire.protocol.transport import (
+    MAX_CONTROL_FRAME,
+    ControlServer,
+    PacketSubscriber,
+    control_endpoint,
+)
 from facewire.receiver.acquire import CHUNK_ATTEMPTS, MODEL_ATTEMPTS
 from facewire.receiver.receiver import ReceiveError, receive
 from facewire.sender.sender import send

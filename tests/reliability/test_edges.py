@@ -34,13 +34,13 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
-
 from conftest import free_endpoint, write_video
+from test_bad_files import refusal, run_cli, snapshot
+
 from facewire.cli import main
 from facewire.models.infra.video import read_frames
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import Flag
-from test_bad_files import refusal, run_cli, snapshot
 
 STEP_PX = 40  # most a tracked head's image position moves between frames at 30 Hz
 

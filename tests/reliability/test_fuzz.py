@@ -51,8 +51,21 @@ if __name__ == "__main__":  # run as a script: the budget from the command line,
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fuzzbudget import DEFAULT_PACKETS, PACKETS, SHARES, WHY, rng_for, share
-from packetoracle import (BITS, PACKET, RESERVED, TOP, Garbage, check_decoded, flip, pack,
-                          random_fields, reason, reasons, unpack)
+from packetoracle import (
+    BITS,
+    PACKET,
+    RESERVED,
+    TOP,
+    Garbage,
+    check_decoded,
+    flip,
+    pack,
+    random_fields,
+    reason,
+    reasons,
+    unpack,
+)
+
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter, read_log
 from facewire.protocol.packet import PacketError, decode, decode_frames

@@ -44,11 +44,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-
 from cliprocess import Facewire
 from conftest import free_endpoint
 from logsender import LogSender, encoded_log, free_port_pair
 from lossy import Faults, LossyRelay, Record
+
 from facewire.models.modelfile import load_model
 from facewire.protocol.control import Hello
 from facewire.protocol.packet import encode

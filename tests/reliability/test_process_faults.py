@@ -29,10 +29,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from cliprocess import Facewire
 from conftest import free_endpoint
 from lossy import LossyRelay, Record
+
 from facewire.protocol.log import read_log
 from facewire.receiver.playout import EASE_S, HOLD_S
 

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from logsender import encoded_log
+
 from facewire.protocol.packet import FRAME_DTYPE, SEQ_MODULO, Flag, encode_frames
 from facewire.receiver.playout import DEFAULT_DEPTH, FrameState, Playout
 

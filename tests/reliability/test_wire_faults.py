@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zmq
-
 from conftest import free_endpoint, start
 from fuzzbudget import rng_for
 from packetoracle import Garbage, pack, random_fields
 from rawzmtp import accept_as_pub, declare_a_gigabyte
+
 from facewire.protocol.control import Camera, Error, Hello, HelloRequest, decode_message
 from facewire.protocol.relay import relay
 from facewire.protocol.transport import ControlServer, PacketSubscriber, control_endpoint
