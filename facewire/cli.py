@@ -225,11 +225,9 @@ def _frames(text: str | None) -> slice:
 def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.enroll.build import build_model
-    from facewire.sender.enroll.layers import enroll_regions
 
     frames = _frames(args.frames)
-    result = build_model(args.video, args.output, frames, progress=_progress,
-                         appearance=enroll_regions)
+    result = build_model(args.video, args.output, frames, progress=_progress)
     s = result.summary()
     regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
                + (" (weak: the video barely shows it)" if r["weak"] else "")

@@ -6,8 +6,8 @@ Steps (``demo``):
    public-domain portrait into a video of a scripted performance (head turns, brow raises,
    mouth opening, blinks; what is synthetic is said there): ``demo-performer.mp4``. With
    ``--source VIDEO`` that video is the performer.
-2. Model. ``sender.enroll.build.build_model`` with ``sender.enroll.layers.enroll_regions`` (what
-   ``facewire model build`` does) on the performer's first ``ENROLL_S`` seconds:
+2. Model. ``sender.enroll.build.build_model`` (what ``facewire model build`` does: geometry,
+   texture and appearance regions) on the performer's first ``ENROLL_S`` seconds:
    ``demo.fwm`` and its preview ``demo.preview.png``. The built-in script shows each
    movement once in those seconds, so enrollment sees brows up, an open mouth, a blink and
    head turns.
@@ -67,7 +67,6 @@ from facewire.receiver.output import VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState
 from facewire.receiver.receiver import receive
 from facewire.sender.enroll.build import BuildResult, build_model
-from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.sender import send
 
 DEFAULT_OUT = "facewire-demo"
@@ -238,7 +237,7 @@ def demo(out_dir: str | os.PathLike[str] = DEFAULT_OUT,
     tick = time.perf_counter()
     model_path = out / "demo.fwm"
     build = build_model(video, model_path, slice(0, enroll), name=video.stem,
-                        progress=progress, appearance=enroll_regions)
+                        progress=progress)
     timings["build"] = time.perf_counter() - tick
 
     say("stream: facewire send -> ZeroMQ on 127.0.0.1 -> facewire receive (model by sha256)")

@@ -411,7 +411,8 @@ class Performer:
             for _ in range(STILL_FRAMES):
                 writer.write(rgb)
         try:
-            return build_model(still, folder / "still.fwm", name="portrait", progress=progress)
+            return build_model(still, folder / "still.fwm", name="portrait", progress=progress,
+                               appearance=False)
         except (BuildError, VideoError) as exc:
             raise PerformerError(f"the portrait cannot be modelled: {exc}") from None
 

@@ -70,10 +70,9 @@ def person_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) ->
     """A full model (geometry, texture, appearance regions) built from lp_d0.mp4's 78 frames
     (gaze left and right, a smile, eyes closed), as ``facewire model build`` makes it."""
     from facewire.sender.enroll.build import build_model
-    from facewire.sender.enroll.layers import enroll_regions
 
     path = tmp_path_factory.mktemp("person") / "lp_d0.fwm"
-    build_model(shared_data / "video" / "lp_d0.mp4", path, appearance=enroll_regions)
+    build_model(shared_data / "video" / "lp_d0.mp4", path)
     return path
 
 

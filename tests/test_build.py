@@ -119,7 +119,7 @@ def test_bad_frame_range(shared_data, tmp_path, capsys):
 def test_corrupt_model_refused(built, tmp_path, capsys, damage):
     out, video = built
     if not out.exists():
-        build_model(video, out)
+        build_model(video, out, appearance=False)
     data = bytearray(out.read_bytes())
     if damage == "truncate":
         data = data[: len(data) // 2]

@@ -11,7 +11,6 @@ from facewire.bench.clips import EVALUATION_CLIPS, TUNING_CLIPS, split_frames, s
 from facewire.bench.quality import TARGET_NME_HELDOUT, format_quality, quality
 from facewire.models.infra.video import read_frames
 from facewire.sender.enroll.build import build_model
-from facewire.sender.enroll.layers import enroll_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 TUNED = ("models", "sender", "receiver", "protocol")  # the code whose settings were tuned
@@ -51,7 +50,7 @@ def test_the_system_on_an_evaluation_clip(shared_data: Path, tmp_path: Path) -> 
     video = shared_data / "video" / "openface_lighting.wmv"
     enrol, scored = split_frames(sum(1 for _ in read_frames(video)))  # 88: the file says 0
     model = tmp_path / "lighting.fwm"
-    build_model(video, model, frames=enrol, appearance=enroll_regions)
+    build_model(video, model, frames=enrol)
     r, lines = quality(model, video, frames=scored)
     assert r["subset"] == "evaluation" and r["measured_frames"] == 53
     assert r["nme_heldout_mean"] <= TARGET_NME_HELDOUT

@@ -28,7 +28,6 @@ from facewire.protocol.packet import (
     encode_frames,
 )
 from facewire.sender.enroll.build import build_model
-from facewire.sender.enroll.layers import enroll_regions
 
 FX, FY, CX, CY, W, H = 640.0, 640.0, 319.5, 239.5, 640, 480
 # Quantisation half-steps of protocol.packet: rotation-vector component (degrees),
@@ -209,8 +208,7 @@ def test_bad_inputs_are_refused(rig: Rig, synthetic: dict) -> None:
 def lp_d0_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A model of lp_d0 built from its frames 0:40 (about 6 s), appearance included."""
     out = tmp_path_factory.mktemp("quality") / "lp_d0.fwm"
-    build_model(shared_data / "video" / "lp_d0.mp4", out, frames=slice(0, 40),
-                appearance=enroll_regions)
+    build_model(shared_data / "video" / "lp_d0.mp4", out, frames=slice(0, 40))
     return out
 
 
@@ -261,7 +259,7 @@ def openface_default(shared_data: Path, tmp_path_factory: pytest.TempPathFactory
     on the rest against OpenFace's action units: (model, video, result, report lines)."""
     video = shared_data / "video" / "openface_default.wmv"
     model = tmp_path_factory.mktemp("openface_default") / "od.fwm"
-    build_model(video, model, frames=slice(0, 90), appearance=enroll_regions)
+    build_model(video, model, frames=slice(0, 90))
     reference = shared_data / "openface" / "openface_default.openface.csv"
     r, out = quality(model, video, frames=slice(90, None), reference=reference)
     return model, video, r, out

@@ -11,10 +11,10 @@ The steps, in order (``build_model``):
    project them onto the fitted mesh's UV layout (``sender.enroll.texture``) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
    angle.
-4. Appearance (when an ``appearance`` step is given; ``facewire model build`` gives
-   ``sender.enroll.layers.enroll_regions``): the texture regions' layers and classification
-   templates. It runs the sender's own pose, lift and sampler on the video, which ``models``
-   may not import, so the caller hands it in.
+4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
+   texture regions' layers and classification templates, from the same frames. It runs the
+   sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
+   templates are what the sender will sample at run time.
 5. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
    the front and from three-quarter view, beside the neutral frame cropped to the face, so a
    user can see at a glance whether the model is that person; below, one row per region
@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -57,6 +56,7 @@ from facewire.models.modelfile import (
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
+from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.enroll.texture import fill_holes, project_views, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
@@ -70,11 +70,6 @@ CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye dista
 CREATOR = "facewire 0.1.0"
 REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
 REGION_LABEL_WIDTH = 150
-
-# The appearance step: (geometry model, video, frame range, progress) -> (regions, report).
-Appearance = Callable[[PersonModel, Path, slice, Progress],
-                      tuple[tuple[Region, ...], dict[str, Any]]]
-
 
 class BuildError(FacewireError, ValueError):
     """The video cannot give a model; the message names the video and says why."""
@@ -92,7 +87,7 @@ class BuildResult:
         frames: video frame indices tracked, in order.
         face_frames: how many of them had a face.
         seconds: wall time of the whole build.
-        appearance: the appearance step's report per region ({} without one).
+        appearance: the appearance step's report per region ({} when it was not run).
     """
 
     model: PersonModel
@@ -124,21 +119,23 @@ def preview_path(model_path: str | os.PathLike[str]) -> Path:
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
                 progress: Progress = no_progress,
-                appearance: Appearance | None = None) -> BuildResult:
+                appearance: bool = True) -> BuildResult:
     """Build a person's model from a video and save it with its preview.
 
     Args:
         video: the enrollment video: one person (the largest face is taken), some seconds of
             neutral face and expressions, ideally some head turns (for depth and side texture).
         out: the ``.fwm`` file to write; the preview goes to ``preview_path(out)``.
-        frames: the frame range to use (``models.video.frame_range``).
+        frames: the frame range to use (``models.infra.video.frame_range``).
         name: the person's name; the video's file name without extension by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
-        appearance: the appearance step (module docstring, 4); None builds geometry and the
-            neutral texture only (a model without regions).
+        appearance: run the appearance step (module docstring, 4); False builds geometry and
+            the neutral texture only, a model without regions (the demo's bootstrap model of
+            a still portrait, which has no expressions to choose states from).
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
+        EnrollError: the appearance step found fewer than 2 frames with a head pose.
         VideoError: the video cannot be opened or decoded.
     """
     start = time.perf_counter()
@@ -181,8 +178,8 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                        frames_used=tuple(sorted(indices[k] for k in fit.views)),
                        neutral_frame=indices[fit.neutral], creator=CREATOR))
     report: dict[str, Any] = {}
-    if appearance is not None:
-        regions, report = appearance(model, video, frames, progress)
+    if appearance:
+        regions, report = enroll_regions(model, video, frames, progress)
         model = at_rest(replace(model, regions=regions))
     out = Path(out)
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
