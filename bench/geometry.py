@@ -1,7 +1,8 @@
 """Geometry fidelity: the 68 landmarks one packet describes, against the tracker's.
 
-DESIGN.md, "How we judge the result". For frame f with decoded rotation vector ``w_f``
-(radians), translation ``t_f`` (mm) and tangent residuals ``r_f`` (9, 2):
+The user's card (``../shared/DESIGN.md``), "How we judge the result"; docs/DESIGN.md §8.
+For frame f with decoded rotation vector ``w_f`` (radians), translation ``t_f`` (mm) and
+tangent residuals ``r_f`` (9, 2):
 
     D_f   = rig.from_tangent(r_f)                      (9, 3) model-space displacements
     X_f   = rig.landmarks(D_f)                          (68, 3) morphed landmark vertices

@@ -5,7 +5,7 @@ composites only the region areas the group meets (on a CPU rasterizer every frag
 for every region its shader samples), so it draws the triangles group by group, not in the
 mesh's order. Where two surfaces meet at equal depth (the lid margins, the eye sockets and
 the eyeballs at the corners of the eyes), the one drawn first wins the depth test, so the
-order decides a few pixels. The model's preview (``models.build.render_preview``) draws its
+order decides a few pixels. The model's preview (``sender.enroll.build.render_preview``) draws its
 triangles in this same order, so a face at rest renders pixel-identical on both.
 
 Areas. Each region's ``parts()`` (its main area, then its further ones), the regions in

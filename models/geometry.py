@@ -4,7 +4,7 @@ Frames
 ------
 - Model space: millimetres, right-handed, x toward the person's left, y up, z toward the
   camera (out of the face).
-- GL camera frame (DESIGN.md): x right, y up, the camera looking along -z. A pose (R, t)
+- GL camera frame (docs/DESIGN.md §2): x right, y up, the camera looking along -z. A pose (R, t)
   maps model to camera, ``X_cam = R X + t``; a head in front of the camera has depth
   ``d = -Z_cam > 0`` (``t_z < 0``).
 - Image: pixels, origin top-left, rows down, pixel centres at integers (as dlib and OpenCV).

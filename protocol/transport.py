@@ -23,7 +23,8 @@ allocate whatever a frame header declares. libzmq takes the oversized frame for 
 error, after which the socket that *connected* does not connect to that address again
 (libzmq issue 4196): a bound socket (the sender's) just loses that peer, which is free to
 connect again; a receiver's control socket is opened anew after the timeout
-(``receiver.receiver``); a receiver's packet socket stays silent until it is opened anew.
+(``receiver.acquire.ControlChannel``); a receiver's packet socket stays silent until it is
+opened anew.
 
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
@@ -275,7 +276,8 @@ class ControlClient(_Socket):
         The timeout covers the send too (a full queue). A DEALER with no peer yet queues the
         request and delivers it when a server appears, so a reply can come after its request
         timed out: a caller that asks again after a timeout must use a new socket, or it may
-        take that late reply for the answer to its next request (``receiver.receiver`` does).
+        take that late reply for the answer to its next request
+        (``receiver.acquire.ControlChannel`` does).
 
         Raises:
             ControlError: the reply is malformed.

@@ -32,7 +32,7 @@ premultiplied colour: a transparent state (opacity 0, the eyelids' open state) h
 and interpolating it with an opaque neighbour never leaks its colour. Storing d relative to B
 (rather than a L) makes a layer equal to the texture under it contribute exactly nothing,
 whatever the filtering: Q = 0 on a model whose first layers are its neutral texture renders
-bit for bit what ``models.raster.MeshRenderer`` draws with the texture alone, and in the
+bit for bit what ``models.infra.raster.MeshRenderer`` draws with the texture alone, and in the
 alpha ramp the separately filtered a L and a cannot disagree with the filtered B.
 
 Minification. The model's texture is typically 3-5 times finer than the face on screen (a

@@ -14,7 +14,7 @@ Each frame, for each point, in this order:
 
 1. Extreme (``extreme_mm`` = 40): a measured residual longer than this is outside a face's
    range and counts as missing. Measured on the 12 shared clips (tracked by
-   ``models.tracker``, non-rigid points after a 2D similarity fit of the 9 rigid points to
+   ``sender.tracker``, non-rigid points after a 2D similarity fit of the 9 rigid points to
    the generic head's, in mm, minus each clip's median): the largest genuine excursion was
    33.6 mm (lower lip 57, mouth wide open; chin 8: 29.2 mm, mouth corners 27.0 mm, brows
    21.2 mm).

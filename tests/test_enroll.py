@@ -1,4 +1,4 @@
-"""Appearance enrollment (sender.enroll): cues, the choice of states, layers and failures."""
+"""Appearance enrollment (sender.enroll.layers): cues, the choice of states, layers and failures."""
 
 from __future__ import annotations
 

@@ -81,7 +81,8 @@ def neutral_model(textured: np.ndarray) -> PersonModel:
 
 def _preview(model: PersonModel, vertices: np.ndarray, camera: Camera, samples: int,
              background: tuple[int, int, int]) -> np.ndarray:
-    """What ``models.build.render_preview`` draws: the mesh with the neutral texture alone."""
+    """What ``sender.enroll.build.render_preview`` draws: the mesh with the neutral texture
+    alone."""
     mesh = model.mesh
     with MeshRenderer(camera.intrinsics.width, camera.intrinsics.height, samples=samples,
                       background=background) as renderer:

@@ -1,4 +1,4 @@
-"""Tests for models.video: frame ranges, container info and frame-by-frame decoding."""
+"""Tests for models.infra.video: frame ranges, container info and frame-by-frame decoding."""
 
 from __future__ import annotations
 

@@ -201,7 +201,7 @@ def at_rest(model: PersonModel) -> PersonModel:
     renders exactly as the model's preview, and the base texture carries the person's eyes
     and mouth as the enrollment camera saw them at rest (the neutral view alone sees the
     eyeball and the mouth's interior badly, through the lids and lips, with the occlusion
-    test of ``models.texture``).
+    test of ``sender.enroll.texture``).
 
     Args:
         model: a model whose regions' ``rest`` are layer indices.

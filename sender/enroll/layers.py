@@ -1,7 +1,7 @@
 """Appearance enrollment: a person's region layers and classification templates from video.
 
-``facewire model build`` first fits the geometry and the neutral texture
-(``models.build``), then calls ``enroll_regions`` on the same frames. The templates must be
+``facewire model build`` (``sender.enroll.build.build_model``) first fits the geometry and
+the neutral texture, then calls ``enroll_regions`` on the same frames. The templates must be
 what the sender will sample at run time, so enrollment runs the sender itself: the real
 ``SenderPipeline`` (tracker, pose, lift, filters) on the model being built and the real
 ``AppearanceSampler``. That is also why it lives in ``sender``: ``models`` may not import
@@ -31,14 +31,14 @@ the sender's pose and lift.
    is rare); forehead and brow furrow from the median to the 98th percentile; mouth from
    the 5th to the 98th percentile; gaze from the 5th to the 95th percentile. The level
    nearest to the neutral frame's own cue is the region's *rest* state and takes the
-   neutral frame itself (``models.build`` chose it, and paints the rest layers into the
+   neutral frame itself (``sender.enroll.build`` chose it, and paints the rest layers into the
    base texture). Every other level takes the frame whose cue is nearest to it (ties broken
    toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
    once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
 4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
    of its further areas, the eyelids' lid skin, the same way): every texel's
-   surface point (its triangle and barycentric weights, from ``models.texture.uv_surface``
+   surface point (its triangle and barycentric weights, from ``sender.enroll.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there). Texels off the image or
@@ -118,7 +118,7 @@ class Observation:
 
 class Enrollment(NamedTuple):
     """What ``enroll_regions`` made: the regions and, per region, how they were chosen (the
-    ``models.build.Appearance`` result)."""
+    report is ``BuildResult.appearance``, ``sender.enroll.build``)."""
 
     regions: tuple[Region, ...]
     report: dict[str, dict[str, Any]]

@@ -16,14 +16,15 @@ centre at ``u = (c + 1/2) / W``, ``v = 1 - (r + 1/2) / H``, where OpenGL samples
    more than 1 % of covered texels under two or more (a mirrored or stacked layout) is
    refused, since one texel cannot hold two surface points' colours.
 
-2. One view (``project_views``): a BGR image and a ``raster.Camera`` (intrinsics and the head
-   pose, ``X_cam = R P + t``, pixel centres at integers). A depth pass renders the camera's
-   depth map ``D = -Z_cam`` (mm) and the cosine of the view angle at each pixel. Each texel's
-   P projects to ``(x, y) = (cx + fx X / d, cy - fy Y / d)`` with ``d = -Z_cam``; its view
-   angle is ``cos a = n . (C - P) / |C - P|`` with ``C = -R^T t`` the camera centre. With the
-   pixel size ``s = d / f`` (mm, ``f = (fx + fy) / 2``) a surface turned by ``a`` changes depth
-   by ``s tan a`` per pixel, so the texel is *visible* when ``cos a > cos_min``, ``d > near``,
-   (x, y) lies in the image, and all four pixels of its bilinear footprint hold depth within
+2. One view (``project_views``): a BGR image and a ``models.infra.raster.Camera``
+   (intrinsics and the head pose, ``X_cam = R P + t``, pixel centres at integers). A depth
+   pass renders the camera's depth map ``D = -Z_cam`` (mm) and the cosine of the view angle
+   at each pixel. Each texel's P projects to ``(x, y) = (cx + fx X / d, cy - fy Y / d)``
+   with ``d = -Z_cam``; its view angle is ``cos a = n . (C - P) / |C - P|`` with
+   ``C = -R^T t`` the camera centre. With the pixel size ``s = d / f`` (mm,
+   ``f = (fx + fy) / 2``) a surface turned by ``a`` changes depth by ``s tan a`` per pixel,
+   so the texel is *visible* when ``cos a > cos_min``, ``d > near``, (x, y) lies in the
+   image, and all four pixels of its bilinear footprint hold depth within
 
        tol = s (1 + 1.5 tan a)            (the footprint reaches sqrt(2) pixels away)
 
@@ -524,7 +525,7 @@ void main() {
 class _Gl:
     """An EGL OpenGL context with the two passes: UV-space surface, camera depth.
 
-    Each pass makes the context current (``models.egl.in_context``), so a caller's own
+    Each pass makes the context current (``models.infra.egl.in_context``), so a caller's own
     contexts, e.g. a ``MeshRenderer``, are not disturbed.
     """
 

@@ -1,18 +1,19 @@
 """Bad control messages (issue 8, reliability item 4), to a real receiver and a real sender.
 
 Receiver side: ``receiver.receiver.receive`` runs in a thread against ``FakeSender``, a
-malicious sender of test code (an XPUB for packets, a ROUTER with ``ControlServer``'s framing
-for control) that answers requests from a script of faults before it answers them honestly:
-malformed msgpack, wrong types, sizes declared far beyond the data, a frame over the control
-channel's limit, an ``Error`` carrying terminal escape sequences, replies of the wrong kind,
-a late reply, chunks of the wrong index, total or model, chunks whose data do not match their
-hash, and a whole transfer whose chunks do not hash to the announced sha256. Each is refused
-and counted (``control_errors``; ``control_timeouts`` for a reply that never comes in time,
-``receiver.receiver``'s "lazy pirate" rule), no status line carries a raw control character,
-and once the fake sender answers honestly the receiver fetches the right model and plays
-every packet. A model whose chunks never hash right ends ``receive`` with ``ReceiveError``
-after ``MODEL_ATTEMPTS`` transfers, and nothing is cached. Chunks that never match the Hello
-(another size) end it too, after ``MODEL_ATTEMPTS`` attempts.
+malicious sender of test code (an XPUB for packets, a ROUTER with ``ControlServer``'s
+framing for control) that answers requests from a script of faults before it answers them
+honestly: malformed msgpack, wrong types, sizes declared far beyond the data, a frame over
+the control channel's limit, an ``Error`` carrying terminal escape sequences, replies of the
+wrong kind, a late reply, chunks of the wrong index, total or model, chunks whose data do
+not match their hash, and a whole transfer whose chunks do not hash to the announced sha256.
+Each is refused and counted (``control_errors``; ``control_timeouts`` for a reply that never
+comes in time, ``receiver.acquire.ControlChannel``'s "lazy pirate" rule), no status line
+carries a raw control character, and once the fake sender answers honestly the receiver
+fetches the right model and plays every packet. A model whose chunks never hash right ends
+``receive`` with ``ReceiveError`` after ``MODEL_ATTEMPTS`` transfers, and nothing is cached.
+Chunks that never match the Hello (another size) end it too, after ``MODEL_ATTEMPTS``
+attempts.
 
 Sender side: ``sender.sender.send`` runs in a thread on a short grey clip, looping; a raw
 DEALER sends garbage, random bytes, huge declared lengths, wrong types, indices out of range,

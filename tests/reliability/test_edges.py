@@ -10,12 +10,12 @@
   every frame; frames without a face have FACE_PRESENT clear and TRACKING_LOST set; the
   first face frame after a loss is REACQUIRED.
 - ``openface_multi_face.avi`` (three people): the tracker holds one face; it moves to
-  another only to take a larger one (``models.tracker``: the largest face wins), so the
+  another only to take a larger one (``sender.tracker``: the largest face wins), so the
   head never jumps back and forth between people.
 - A camera that is not there, a port already in use, a malformed ``--connect`` address:
   one line naming the camera or the address, exit status 2, no traceback.
 
-Frame ranges on the shared clips (``models.tracker`` on every frame; the assertions keep a
+Frame ranges on the shared clips (``sender.tracker`` on every frame; the assertions keep a
 few frames of margin at each edge): hamilton_short.mp4 has the performer in profile, not
 found, in frames 0-81, found in 82-210, a cut to the audience at 211 with no face found in
 211-216, a face in the audience found in 217-251. openface_multi_face.avi frames 0-29: the
