@@ -1,1 +1,4 @@
-"""Benchmarks behind ``facewire bench``: bandwidth, speed, quality."""
+"""Benchmarks behind ``facewire bench``: bandwidth (``bandwidth``), speed (``speed``, its live
+part ``loopback``), quality (``quality``, with ``geometry``, ``fidelity``, ``reference`` and
+``qplot``) on the tuning or evaluation clips (``clips``); and ``facewire inspect``
+(``inspect``)."""

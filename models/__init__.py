@@ -1,2 +1,6 @@
-"""The person model shared by both hosts: landmarks, generic head, volume morph, texture
-regions, file format; infra/ holds what is not the model (EGL, rasteriser, video files)."""
+"""The person model shared by both hosts: the geometry vocabulary (``geometry``), landmarks and
+their files (``landmarks``, ``landmark_files``), the generic head (``head/``), the mesh
+(``mesh``), the volume morph and the rig (``morph``, ``rig``), texture regions and their draw
+order (``regions``, ``draworder``), the ``.fwm`` file (``modelfile``, its zip container
+``archive``, array checks ``arrays``) and glTF (``gltf``). ``infra/`` holds what is not the
+model: EGL, the rasteriser, video files, atomic writes, progress."""
