@@ -138,7 +138,7 @@ def _plot(times: np.ndarray, path: Path) -> None:
     top.plot(t, np.full(len(t), PACKET_BYTES * 8), ".", ms=2)
     top.set_ylabel("bits per frame")
     top.set_ylim(0, PACKET_BYTES * 8 * 1.5)
-    payload = kbps(PACKET_BYTES, per_second)
+    payload = np.array([kbps(PACKET_BYTES, n) for n in per_second], np.float64)
     bottom.plot(t, payload, lw=1, label="payload, 1 s window")
     bottom.axhline(PAYLOAD_LIMIT_KBPS, color="red", ls="--",
                    label=f"{PAYLOAD_LIMIT_KBPS:g} kbit/s budget")

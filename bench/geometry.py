@@ -51,7 +51,7 @@ class GeometryNME(NamedTuple):
 def _intrinsics(camera: Any) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) from a camera object with those attributes or a 4-sequence."""
     if all(hasattr(camera, k) for k in ("fx", "fy", "cx", "cy")):
-        values = (camera.fx, camera.fy, camera.cx, camera.cy)
+        values: tuple[Any, ...] = (camera.fx, camera.fy, camera.cx, camera.cy)
     else:
         values = tuple(np.asarray(camera, np.float64).reshape(-1))
     if len(values) != 4 or not np.isfinite(values).all() or min(values[:2]) <= 0:

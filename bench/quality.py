@@ -236,7 +236,7 @@ def _encode(pipeline: SenderPipeline, src: Source, progress: Progress,
             run.eyes[len(run.indices)] = _eye_crop(frame.image, out.points)
         brightness.append(np.nan if out.points is None
                           else _face_brightness(frame.image, out.points))
-        if cued and out.samples is not None:
+        if cued and out.samples is not None and out.points is not None:
             cues.append(region_cues(out.samples[:, 0], out.points, out.residuals))
             ratios.append(eye_aspect_ratio(out.points))
         else:

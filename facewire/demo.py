@@ -328,9 +328,10 @@ class _Performer:
     def __init__(self, video: str | os.PathLike[str], frames: slice, rate_hz: float) -> None:
         self._video = video
         self._frames: Iterator[VideoFrame] = read_frames(video, frames)
-        self._held = next(self._frames, None)
-        if self._held is None:
+        first = next(self._frames, None)
+        if first is None:
             raise DemoError(f"{video}: no frame in {frames.start}:{frames.stop or ''}")
+        self._held = first
         self._next = next(self._frames, None)
         self._t0 = self._held.time
         self._period = 1.0 / rate_hz
@@ -369,10 +370,11 @@ class _Recorder:
     def frame(self, image: np.ndarray, state: FrameState) -> None:
         """Write one output frame ((H, W, 3) uint8 RGB) beside the performer's; the sender
         numbers its slots from 0."""
-        self._ext = state.seq if self._ext is None else \
-            self._ext + (state.seq - self._last_seq) % 65536
-        self._last_seq = state.seq
-        performer = self._performer.at(self._ext)
+        seq = state.seq
+        assert seq is not None  # the receiver outputs the slots it plays
+        ext = seq if self._ext is None else self._ext + (seq - self._last_seq) % 65536
+        self._ext, self._last_seq = ext, seq
+        performer = self._performer.at(ext)
         left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
                       "performer (sender's camera)")
         right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
@@ -382,7 +384,7 @@ class _Recorder:
                                        crf=DEMO_CRF, preset=DEMO_PRESET)
         self._writer.write(both)
         self.frames.append(performer.index)
-        self.seq.append(state.seq)
+        self.seq.append(seq)
         self.status.append(state.status)
         self.rotation.append(state.rotation)
         self.q.append(state.q.copy())

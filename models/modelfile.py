@@ -712,8 +712,10 @@ def _read_array(archive: zipfile.ZipFile, entry: zipfile.ZipInfo, manifest: _Man
                 where: str) -> np.ndarray:
     """One member read and decoded to its declared array; raises ``ModelFileError``."""
     raw = _member_bytes(archive, entry, where)
+    spec = _spec(entry.filename)
+    assert spec is not None  # _parse_manifest refuses a member without one
     try:
-        return _decode(raw, _spec(entry.filename), manifest.members[entry.filename])
+        return _decode(raw, spec, manifest.members[entry.filename])
     except ValueError as e:
         raise ModelFileError(f"{where}: {entry.filename}: {e}") from e
 

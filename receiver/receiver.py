@@ -325,10 +325,7 @@ class _Session:
         self.say = status or (lambda _: None)
         self.stop = stop if stop is not None else threading.Event()
         self.max_frames, self.idle_timeout_s = max_frames, idle_timeout_s
-        self.reader: _PacketReader | None = None
-        self.control: ControlChannel | None = None
-        self.acquirer: ModelAcquirer | None = None
-        # what is played
+        # what is played: set by _adopt, before anything is played
         self.hello: Hello | None = None
         self.scene: StateRenderer | None = None
         self.playout: Playout | None = None
@@ -342,18 +339,21 @@ class _Session:
         self.playing_since = 0.0  # when the current playout was set up
         self.last_contact = time.monotonic()  # the last control reply or ready loop
         self.stats = ReceiveStats()
+        self.started = time.monotonic()
+        # the links to the sender: open from here, closed by run() (at once if one fails)
+        with contextlib.ExitStack() as links:
+            self.reader = _PacketReader(lambda: PacketSubscriber(self.connect, self.curve))
+            links.callback(self.reader.close)
+            self.control = ControlChannel(self.control_endpoint, self.curve)
+            links.callback(self.control.close)
+            self._links = links.pop_all()
+        self.acquirer = ModelAcquirer(self.connect, self.control, self.cache, self.local,
+                                      self.say, self._check_end, self._touch)
 
     # -- the session -----------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
-        start = time.monotonic()
-        with contextlib.ExitStack() as stack:
-            self.reader = _PacketReader(lambda: PacketSubscriber(self.connect, self.curve))
-            stack.callback(self.reader.close)
-            self.control = ControlChannel(self.control_endpoint, self.curve)
-            stack.callback(self.control.close)
-            self.acquirer = ModelAcquirer(self.connect, self.control, self.cache, self.local,
-                                          self.say, self._check_end, self._touch)
+        with self._links as stack:
             stack.callback(self._release)
             try:
                 while True:  # until _End: _play returns only by raising it
@@ -366,7 +366,7 @@ class _Session:
                 ended = end.reason
             if self.writer is not None:
                 self.writer.close()
-        return self._summary(ended, time.monotonic() - start)
+        return self._summary(ended, time.monotonic() - self.started)
 
     def _release(self) -> None:
         if self.writer is not None:
@@ -446,6 +446,7 @@ class _Session:
     def _play(self) -> None:
         """Play until the session ends: raises ``_End``, after playing what was received
         (not after ``max_frames``)."""
+        assert self.playout is not None  # _adopt came first
         try:
             while True:
                 self._check_end()
@@ -484,6 +485,7 @@ class _Session:
         """Move the queued packets into the playout, in arrival order (without a view only
         while it holds less than half its window ahead: module docstring), and notice a
         restarted stream."""
+        assert self.playout is not None  # _adopt came first
         limit = None if self.view is not None else self.playout.window // 2
         while limit is None or self.playout.ahead < limit:
             item = self.reader.take()
@@ -502,6 +504,7 @@ class _Session:
     def _tick(self, live: bool) -> None:
         """Check the Hello if due (only ``live``: not while draining), pop one state and
         show it. A changed Hello adopted (a new playout) ends the tick without a pop."""
+        assert self.hello is not None and self.scene is not None and self.playout is not None
         if live and self.hello_due and time.monotonic() >= self.next_check \
                 and self._recheck():
             return
@@ -534,6 +537,7 @@ class _Session:
     def _recheck(self) -> bool:
         """Ask for the Hello again (a restart, or a stream resumed); True when a changed one
         was adopted."""
+        assert self.hello is not None and self.scene is not None  # _adopt came first
         hello = self.control.ask(HelloRequest(), Hello, RECHECK_TIMEOUT_S)
         if hello is None:
             self.next_check = time.monotonic() + RECHECK_EVERY_S
@@ -567,17 +571,19 @@ class _Session:
               latency: float | None) -> None:
         """One output frame: written if there is a file and handed to ``on_frame`` (rendered
         now if ``image`` is None), counted, and the end of the session at ``max_frames``."""
-        if image is None and (self.out is not None or self.frames_dir is not None
-                              or self.on_frame is not None):
-            image = self.scene.render(state)
-        if self.out is not None or self.frames_dir is not None:
-            if self.writer is None:
+        assert self.hello is not None and self.scene is not None and self.size is not None
+        if self.out is not None or self.frames_dir is not None or self.on_frame is not None:
+            if image is None:
+                image = self.scene.render(state)
+            if self.writer is None and self.out is not None:
                 width, height = self.size
-                self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz) \
-                    if self.out is not None else FrameFolderWriter(self.frames_dir)
-            self.writer.write(image)
-        if self.on_frame is not None:
-            self.on_frame(image, state)
+                self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz)
+            elif self.writer is None and self.frames_dir is not None:
+                self.writer = FrameFolderWriter(self.frames_dir)
+            if self.writer is not None:
+                self.writer.write(image)
+            if self.on_frame is not None:
+                self.on_frame(image, state)
         frames = self.stats.frame(time.monotonic(), latency)
         if self.max_frames is not None and frames >= self.max_frames:
             raise _End("max_frames")

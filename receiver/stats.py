@@ -160,8 +160,13 @@ class ReceiveStats:
         """
         counts = self.playout_counts(playout)
         frames = self.counts["frames"]
-        span = (self.last_frame - self.first_frame) if frames > 1 else 0.0
-        packet_span = (self.last_packet - self.first_packet[0]) if self.first_packet else 0.0
+        span = packet_span = 0.0
+        if frames > 1 and self.first_frame is not None and self.last_frame is not None:
+            span = self.last_frame - self.first_frame
+        first_bytes = 0
+        if self.first_packet is not None and self.last_packet is not None:
+            packet_span = self.last_packet - self.first_packet[0]
+            first_bytes = self.first_packet[1]
         latencies = np.asarray(self.latencies) * 1000
         renders = np.asarray(list(render_seconds)) * 1000
 
@@ -179,7 +184,7 @@ class ReceiveStats:
             "hellos": self.counts["hellos"], "control_timeouts": control_timeouts,
             "control_errors": control_errors,
             "fps": round((frames - 1) / span, 1) if span > 0 else None,
-            "kbps": round((self.bytes_total - self.first_packet[1]) * 8 / 1000 / packet_span, 3)
+            "kbps": round((self.bytes_total - first_bytes) * 8 / 1000 / packet_span, 3)
             if packet_span > 0 else None,
             "latency_ms_median": ms(latencies, 50), "latency_ms_p95": ms(latencies, 95),
             "render_ms_median": round(float(np.median(renders)), 2) if len(renders) else None,

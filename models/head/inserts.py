@@ -98,9 +98,9 @@ def mouth_cavity(lip_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     angle = np.concatenate([np.tile(alpha, len(rings)), [0.0]])
     tri = []
     for k in range(len(rings) - 1):
-        a = np.arange(n - 1) + k * n
-        b = a + n
-        tri += [np.column_stack([a, b + 1, a + 1]), np.column_stack([a, b, b + 1])]
+        i = np.arange(n - 1) + k * n  # ring k's vertices, bar the last
+        j = i + n  # the same on ring k + 1
+        tri += [np.column_stack([i, j + 1, i + 1]), np.column_stack([i, j, j + 1])]
     last = np.arange(n - 1) + (len(rings) - 1) * n
     tri.append(np.column_stack([last, np.full(n - 1, len(points) - 1), last + 1]))
     return points, np.column_stack([radius, angle]), np.concatenate(tri)

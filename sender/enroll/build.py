@@ -166,7 +166,9 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         video, slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
     views = []
     for k in fit.views:
-        views.append((images[indices[k]], ViewCamera(camera, fit.poses[k])))
+        pose = fit.poses[k]
+        assert pose is not None  # fit_person chooses views among the posed frames
+        views.append((images[indices[k]], ViewCamera(camera, pose)))
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
     texture, weight = project_views(fit.mesh, surface, views)
     texture = fill_holes(texture, weight > 0)

@@ -231,13 +231,14 @@ def _depth(frames: Sequence[np.ndarray | None], posed: Sequence[int],
     """Step 4: the (68, 3) landmark shape, its frames' poses, the depth's kind and
     ``depth_change_mm``: by structure from motion (and posed again against its result) when
     the posed frames' yaw spans ``SFM_MIN_YAW_RANGE_DEG``, else the generic head's."""
-    yaws = np.array([poses[i].yaw_deg for i in posed])
+    yaws = np.array([_present(poses, i).yaw_deg for i in posed])
     if yaws.max() - yaws.min() < SFM_MIN_YAW_RANGE_DEG:
         return generic.copy(), poses, "generic", 0.0
     costs = _neutral_costs(frames, poses, posed, generic, camera)
     chosen = _spread_by_yaw(posed, yaws, costs["expression"], SFM_FRAMES)
-    estimate = _structure_from_motion([frames[i] for i in chosen],
-                                      [poses[i] for i in chosen], generic, camera, eye_mm)
+    estimate = _structure_from_motion([_present(frames, i) for i in chosen],
+                                      [_present(poses, i) for i in chosen], generic, camera,
+                                      eye_mm)
     shape = generic.copy()
     shape[SFM_POINTS] = estimate
     depth_change = float(np.sqrt(np.mean((estimate[:, 2] - generic[SFM_POINTS, 2]) ** 2)))
@@ -253,7 +254,7 @@ def _final_fit(frames: Sequence[np.ndarray | None], faces: Sequence[int], mesh: 
         raise FitError(f"frame {neutral}: no head pose against the fitted mesh")
     posed = [i for i in faces if poses[i] is not None]
     costs = _neutral_costs(frames, poses, posed, landmarks3d, camera)
-    angles = np.array([(poses[i].yaw_deg, poses[i].pitch_deg) for i in posed])
+    angles = np.array([(p.yaw_deg, p.pitch_deg) for p in (_present(poses, i) for i in posed)])
     views = _choose_views(neutral, posed, angles[:, 0], costs["expression"])
     return Fit(mesh=mesh, landmarks3d=landmarks3d, poses=tuple(poses), neutral=neutral,
                views=views, depth=depth, depth_change_mm=depth_change,
@@ -378,6 +379,16 @@ def _check_frame(i: int, p: np.ndarray | None) -> np.ndarray | None:
     return a.astype(np.float64)
 
 
+_T = TypeVar("_T")
+
+
+def _present(items: Sequence[_T | None], i: int) -> _T:
+    """``items[i]`` of a frame known to have it (points, or a pose: ``posed``)."""
+    item = items[i]
+    assert item is not None, f"frame {i}: expected a value"
+    return item
+
+
 def _solve_pose(shape: np.ndarray, image: np.ndarray, camera: Intrinsics) -> Pose | None:
     """PnP of ``shape`` (68, 3) against ``image`` (68, 2) on POSE_POINTS; None on failure."""
     obj = np.ascontiguousarray(shape[POSE_POINTS])
@@ -419,10 +430,10 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
     width = np.linalg.norm(pts[:, 48] - pts[:, 54], axis=1) / eye
     stable = np.arange(17, 68)
     resid = np.array([
-        np.sqrt(np.mean(np.sum((project(shape[stable], poses[i], camera)
-                                - frames[i][stable]) ** 2, axis=1)))
+        np.sqrt(np.mean(np.sum((project(shape[stable], _present(poses, i), camera)
+                                - _present(frames, i)[stable]) ** 2, axis=1)))
         for i in posed]) / eye
-    angles = np.array([(poses[i].yaw_deg, poses[i].pitch_deg) for i in posed])
+    angles = np.array([(p.yaw_deg, p.pitch_deg) for p in (_present(poses, i) for i in posed)])
     ear_ref = np.percentile(ear, 90)
     expression = (
         (np.maximum(0.0, 0.85 - ear / max(ear_ref, 1e-9)) / 0.1) ** 2
@@ -593,13 +604,3 @@ def _choose_views(neutral: int, posed: Sequence[int], yaws: np.ndarray,
                 views.append(posed[k])
                 taken.append(yaws[k])
     return tuple(views)
-
-
-_T = TypeVar("_T")
-
-
-def _present(items: Sequence[_T | None], i: int) -> _T:
-    """``items[i]`` of a frame known to have it (points, or a pose: ``posed``)."""
-    item = items[i]
-    assert item is not None, f"frame {i}: expected a value"
-    return item
