@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, TypeAlias, TypeVar
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.rate import NOMINAL_HZ
 
 EXIT_USAGE = 2
 # The failures a user can cause: reported as one line, no traceback.
@@ -367,7 +368,7 @@ def _add_send_receive(sub: Commands) -> None:
     s.add_argument("--source", required=True, help="camera:N or a video file")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ address to publish on")
     s.add_argument("--record", help="also write the packets to this log (.fwlog)")
-    s.add_argument("--rate", type=float, default=30.0, help="target frame rate in Hz")
+    s.add_argument("--rate", type=float, default=NOMINAL_HZ, help="target frame rate in Hz")
     s.add_argument("--loop", action="store_true", help="play a video file over and over, "
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "

@@ -61,7 +61,7 @@ from facewire.models.infra.video import VideoFrame, read_frames, video_info
 from facewire.performer import ENROLL_S, PerformanceResult, perform
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES
-from facewire.protocol.rate import NOMINAL_HZ
+from facewire.protocol.rate import NOMINAL_HZ, kbps, stream_rate
 from facewire.protocol.transport import WIRE_OVERHEAD, free_loopback_endpoint
 from facewire.receiver.output import VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState
@@ -224,7 +224,7 @@ def demo(out_dir: str | os.PathLike[str] = DEFAULT_OUT,
         if not video.is_file():
             raise DemoError(f"{video}: no such video file")
     info = video_info(video)
-    rate = info.rate_hz or NOMINAL_HZ
+    rate = stream_rate(info.rate_hz)
     enroll = int(round(enroll_s * rate))
     stop = None if seconds is None else enroll + int(round(seconds * rate))
     available = info.frames - enroll if info.frames else None
@@ -452,4 +452,4 @@ def _label(image: np.ndarray, text: str) -> np.ndarray:
 
 
 def _kbps(message_bytes: float, rate_hz: float) -> float:
-    return round(message_bytes * 8 * rate_hz / 1000, 3)
+    return round(kbps(message_bytes, rate_hz), 3)

@@ -145,6 +145,7 @@ from facewire.protocol.packet import (
     PacketError,
     decode,
 )
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ
 
 DEFAULT_DEPTH = 3
 HOLD_S = 0.2
@@ -154,7 +155,6 @@ JITTER_PACKETS = 64
 MIN_JITTER_PACKETS = 8
 GUARD_S = 0.005
 MAX_DEPTH = 1024
-MAX_RATE_HZ = 1000.0
 MAX_REPLAY_SLOTS = 1 << 24  # about 6 days at 30 Hz
 STATUSES = ("received", "held", "easing", "neutral", "face_lost")
 _HALF = SEQ_MODULO // 2
@@ -249,8 +249,9 @@ class Playout:
                  skip: bool = True) -> None:
         # numbers.Real, spelled so that mypy follows it (it takes float and Real as disjoint)
         if not (isinstance(rate_hz, (int, float, np.integer, np.floating))
-                and 0 < rate_hz <= MAX_RATE_HZ):
-            raise ValueError(f"rate_hz: expected a number in (0, {MAX_RATE_HZ}], got {rate_hz!r}")
+                and MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ):
+            raise ValueError(f"rate_hz: expected a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
+                             f"got {rate_hz!r}")
         if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) \
                 or not 1 <= depth <= MAX_DEPTH:
             raise ValueError(f"depth: expected an integer in [1, {MAX_DEPTH}], got {depth!r}")
