@@ -74,8 +74,8 @@ from facewire.sender.capture import (
 )
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.heuristics import ResidualFilter
-from facewire.sender.lift import Lifter, pose_and_lift
-from facewire.sender.pack import pack
+from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
+from facewire.sender.pack import Packed, pack
 from facewire.sender.pose import PoseFilter, PoseSolver
 from facewire.sender.tracker import LandmarkTracker
 
@@ -181,7 +181,7 @@ class SenderPipeline:
         self._q = np.zeros(len(self.sampler.names), np.float32)
 
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
-        """Process one frame.
+        """Process one frame: the module docstring's seven stages, each timed.
 
         Args:
             image: (H, W, 3) uint8 BGR frame.
@@ -190,20 +190,66 @@ class SenderPipeline:
         Returns:
             The packet and what went into it.
         """
-        if not np.isfinite(time_s):
-            raise ValueError(f"time_s: expected a finite time in seconds, got {time_s!r}")
-        dt = 1.0 / self.rate_hz
-        if self._time is not None and time_s > self._time:
-            dt = float(time_s - self._time)
-        self._time = float(time_s)
+        dt = self._time_step(time_s)
         clock = time.perf_counter
         t0 = clock()
         gray = _gray(image)
         tracked = self.tracker.track(gray)
         points = tracked.points
         t1 = clock()
+        pose = self._pose(tracked.acquired, points, dt)
+        t2 = clock()
+        lifted = None
+        if pose is not None:
+            assert points is not None  # a pose comes from tracked points
+            lifted = self.lifter.lift(points, pose)
+        t3 = clock()
+        tangent, residuals, flags = self._heuristics(lifted, points is not None, dt)
+        t4 = clock()
+        offsets = samples = None
+        t5 = t4
+        if pose is not None:
+            self._sent = pose
+            if self.classifiers is not None:
+                samples = self.sampler.sample(gray, pose.rotation, pose.translation,
+                                              residuals)
+                t5 = clock()
+                result = self.classifiers.classify(samples)
+                self._q, offsets = result.q, result.offset
+        t6 = clock()
+        packed = self._pack(flags, tangent)
+        t7 = clock()
+        return SenderOutput(
+            frame=packed.frame, packet=packed.packet,
+            points=None if points is None else np.asarray(points, np.float64).reshape(
+                N_LANDMARKS, 2),
+            rotation=None if pose is None else pose.rotation.copy(),
+            translation=None if pose is None else pose.translation.copy(),
+            residuals=residuals, q=self._q.copy(), offsets=offsets, samples=samples,
+            timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
+                     "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
+                     "pack": t7 - t6},
+            detected=bool(tracked.detected), clamped=packed.clamped,
+            grazing=0 if lifted is None else int(lifted.grazing.sum()))
+
+    def _time_step(self, time_s: float) -> float:
+        """This frame's time step, s: since the last frame, or 1 / rate when time stood still."""
+        if not np.isfinite(time_s):
+            raise ValueError(f"time_s: expected a finite time in seconds, got {time_s!r}")
+        dt = 1.0 / self.rate_hz
+        if self._time is not None and time_s > self._time:
+            dt = float(time_s - self._time)
+        self._time = float(time_s)
+        return dt
+
+    def _pose(self, acquired: bool, points: np.ndarray | None, dt: float) -> Pose | None:
+        """Stage 2: the filtered pose of the tracked points, or None (no face, or no fit).
+
+        A newly acquired face starts from scratch; so does a fit that failed from the last
+        frame's raw pose and expression. Without a pose the pose filter restarts.
+        """
         pose = None
-        if tracked.acquired and self._raw is not None:  # another face than the last frame's
+        if acquired and self._raw is not None:  # another face than the last frame's
             self._raw = self._expression = None
             self.pose_filter.reset()
             self.residual_filter.restart()
@@ -222,48 +268,32 @@ class SenderPipeline:
             self._raw = None
             self._expression = None
             self.pose_filter.reset()
-        t2 = clock()
-        lifted = None
-        if pose is not None:
-            assert points is not None  # a pose comes from tracked points
-            lifted = self.lifter.lift(points, pose)
-        t3 = clock()
+        return pose
+
+    def _heuristics(self, lifted: LiftResult | None, face: bool,
+                    dt: float) -> tuple[np.ndarray, np.ndarray, Flag]:
+        """Stage 4: the residual filter, then the tangent projection the packet carries.
+
+        Returns:
+            The (9, 2) tangent coordinates, the (9, 3) model-space residuals they stand for,
+            and the packet's flags (``FACE_PRESENT`` when the tracker saw a face).
+        """
         if lifted is None:
             out = self.residual_filter.step(None, None, dt)
         else:
             out = self.residual_filter.step(lifted.residuals, lifted.valid, dt)
         tangent = self.rig.to_tangent(out.residuals)
         residuals = self.rig.from_tangent(tangent)
-        flags = out.flags | (Flag.FACE_PRESENT if points is not None else Flag(0))
-        t4 = clock()
-        offsets = samples = None
-        t5 = t4
-        if pose is not None:
-            self._sent = pose
-            if self.classifiers is not None:
-                samples = self.sampler.sample(gray, pose.rotation, pose.translation,
-                                              residuals)
-                t5 = clock()
-                result = self.classifiers.classify(samples)
-                self._q, offsets = result.q, result.offset
-        t6 = clock()
+        flags = out.flags | (Flag.FACE_PRESENT if face else Flag(0))
+        return tangent, residuals, flags
+
+    def _pack(self, flags: Flag, tangent: np.ndarray) -> Packed:
+        """Stage 7: the packet of the last sent pose and Q, and the next sequence number."""
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
         packed = pack(self._seq, flags, self._sent, tangent, q)
-        t7 = clock()
         self._seq = (self._seq + 1) % (1 << 16)
-        return SenderOutput(
-            frame=packed.frame, packet=packed.packet,
-            points=None if points is None else np.asarray(points, np.float64).reshape(
-                N_LANDMARKS, 2),
-            rotation=None if pose is None else pose.rotation.copy(),
-            translation=None if pose is None else pose.translation.copy(),
-            residuals=residuals, q=self._q.copy(), offsets=offsets, samples=samples,
-            timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
-                     "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
-                     "pack": t7 - t6},
-            detected=bool(tracked.detected), clamped=packed.clamped,
-            grazing=0 if lifted is None else int(lifted.grazing.sum()))
+        return packed
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
