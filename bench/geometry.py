@@ -10,7 +10,8 @@ tangent residuals ``r_f`` (9, 2):
                                                         z toward the viewer; d = -z > 0)
     p_f,i = (cx + fx C_x / d, cy - fy C_y / d)          pixels, with the Hello's camera
 
-(``Rig`` is the model's RBF volume morph, ``models/rig.py``; R(w) is Rodrigues' formula.)
+(``Rig`` is the model's RBF volume morph, ``models/rig.py``; R(w) is Rodrigues' formula,
+``models.geometry.rotation_matrix``.)
 The reconstruction is compared with the tracker's own 68 points ``q_f`` on that frame:
 
     NME_f = mean_{i in HELD_OUT} |p_f,i - q_f,i| / |q_f,36 - q_f,45|
@@ -28,9 +29,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
-import cv2
 import numpy as np
 
+from facewire.models.geometry import rotation_matrix
 from facewire.models.landmarks import HELD_OUT, N_LANDMARKS, nme
 from facewire.models.rig import N_RESIDUALS, Rig
 from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame
@@ -98,9 +99,8 @@ def project_landmarks(rig: Rig, camera: Any, rotation: np.ndarray, translation: 
     r = np.zeros((N_RESIDUALS, 3), np.float32) if residuals is None else \
         rig.from_tangent(np.asarray(residuals, np.float32))
     x = rig.landmarks(r).astype(np.float64)
-    w = np.asarray(rotation, np.float64).reshape(3, 1)
     t = np.asarray(translation, np.float64).reshape(3)
-    cam = x @ cv2.Rodrigues(w)[0].T + t
+    cam = x @ rotation_matrix(rotation).T + t
     depth = -cam[:, 2]
     if not (depth > 0).all():
         raise ValueError(f"translation {t.tolist()}: landmarks behind the camera (need z < 0)")

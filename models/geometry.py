@@ -23,7 +23,12 @@ A rotation vector r is axis times angle (radians). ``rotation_matrix`` is Rodrig
 formula, ``R = I + sin(a) [k]_x + (1 - cos(a)) [k]_x^2`` with ``a = |r|``, ``k = r / a``;
 ``rotation_vector`` is its inverse with the angle in [0, pi]. Both are OpenCV's
 ``cv2.Rodrigues`` (the one implementation: the sender's packets were made with it, and its
-results are bit-exact with those packets).
+results are bit-exact with those packets). ``rotation_matrices`` is the same formula for many
+vectors at once in numpy (the enrollment's structure-from-motion evaluates it for every
+frame at every solver step), written with the unnormalised ``[r]_x`` so that it is stable
+near the identity: ``R = I + s [r]_x + c [r]_x^2``, ``s = sin(a) / a``,
+``c = (1 - cos(a)) / a^2 = 2 sin^2(a / 2) / a^2`` (``s = 1``, ``c = 1/2`` at ``a = 0``); it
+agrees with ``rotation_matrix`` within float round-off, not to the bit.
 
 Intrinsics
 ----------
@@ -144,6 +149,32 @@ def rotation_matrix(rvec: np.ndarray) -> np.ndarray:
     if r.size != 3 or not _finite(r):
         raise ValueError(f"rvec: expected a finite (3,) rotation vector, got shape {r.shape}")
     return cv2.Rodrigues(r.reshape(3, 1))[0]
+
+
+def rotation_matrices(rvecs: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for many rotation vectors at once (module docstring).
+
+    No checks: it serves inner loops (a solver's residuals), whose callers hold their
+    vectors' shape.
+
+    Args:
+        rvecs: (F, 3) float rotation vectors, radians.
+
+    Returns:
+        (F, 3, 3) float64 rotation matrices, ``rotation_matrix`` of each row within round-off.
+    """
+    r = np.asarray(rvecs, np.float64)
+    a = np.linalg.norm(r, axis=1)
+    small = a < 1e-12
+    safe = np.where(small, 1.0, a)
+    s = np.where(small, 1.0, np.sin(a) / safe)[:, None, None]
+    c = np.where(small, 0.5, 2.0 * np.sin(0.5 * a) ** 2 / safe ** 2)[:, None, None]
+    x, y, z = r[:, 0], r[:, 1], r[:, 2]
+    zero = np.zeros_like(x)
+    cross = np.stack([np.stack([zero, -z, y], axis=1),
+                      np.stack([z, zero, -x], axis=1),
+                      np.stack([-y, x, zero], axis=1)], axis=1)  # [r]_x, (F, 3, 3)
+    return np.eye(3) + s * cross + c * (cross @ cross)
 
 
 def rotation_vector(rotation: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ from facewire.models.geometry import (
     Pose,
     intrinsics_guess,
     project,
+    rotation_matrices,
     rotation_matrix,
     rotation_vector,
 )
@@ -41,6 +42,21 @@ def test_rotation_round_trips():
     cross = np.array([[0.0, -tiny[2], tiny[1]], [tiny[2], 0.0, -tiny[0]],
                       [-tiny[1], tiny[0], 0.0]])
     np.testing.assert_allclose(rotation_matrix(tiny), np.eye(3) + cross, rtol=0, atol=1e-18)
+
+
+def test_rotation_matrices_are_rotation_matrix_batched():
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(300, 3))
+    angles = rng.uniform(0.0, math.pi, size=(300, 1))
+    rvecs = np.concatenate([axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles,
+                            [[0.0, 0.0, 0.0], [1e-10, -2e-10, 3e-10], [1e-13, 0.0, 0.0],
+                             [0.0, 0.0, math.pi], [2e-6, -1e-6, 4e-6]]])
+    batched = rotation_matrices(rvecs)
+    assert batched.shape == (len(rvecs), 3, 3) and batched.dtype == np.float64
+    for rvec, r in zip(rvecs, batched, strict=True):
+        np.testing.assert_allclose(r, rotation_matrix(rvec), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(rotation_matrices(np.zeros((2, 3))), np.stack([np.eye(3)] * 2))
+    assert rotation_matrices(np.zeros((0, 3))).shape == (0, 3, 3)
 
 
 def test_rotations_refuse_bad_input():

@@ -103,7 +103,14 @@ import numpy as np
 import scipy.sparse
 from scipy.optimize import least_squares
 
-from facewire.models.geometry import Intrinsics, Pose, project, rotation_matrix, rotation_vector
+from facewire.models.geometry import (
+    Intrinsics,
+    Pose,
+    project,
+    rotation_matrices,
+    rotation_matrix,
+    rotation_vector,
+)
 from facewire.models.landmarks import N_LANDMARKS, PHANTOM_NAMES, eye_aspect_ratio
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.morph import VolumeMorph
@@ -458,18 +465,6 @@ def _spread_by_yaw(posed: Sequence[int], yaws: np.ndarray, expression: np.ndarra
     return chosen
 
 
-def _rotate(rvecs: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Rodrigues rotation of points (K, 3) by each of the rotation vectors (F, 3): (F, K, 3)."""
-    theta = np.linalg.norm(rvecs, axis=1)[:, None, None]
-    safe = np.where(theta > 1e-12, theta, 1.0)
-    k = rvecs[:, None, :] / safe
-    p = np.broadcast_to(pts, (rvecs.shape[0], *pts.shape[-2:]))
-    cos, sin = np.cos(theta), np.sin(theta)
-    cross = np.cross(np.broadcast_to(k, p.shape), p)
-    dot = (k * p).sum(axis=2, keepdims=True)
-    return p * cos + cross * sin + k * dot * (1.0 - cos)
-
-
 def _structure_from_motion(frames: list[np.ndarray], poses: list[Pose], generic: np.ndarray,
                            camera: Intrinsics, eye_mm: float) -> np.ndarray:
     """Rigid bundle adjustment (step 4); returns (len(SFM_POINTS), 3) aligned to ``generic``."""
@@ -489,7 +484,7 @@ def _structure_from_motion(frames: list[np.ndarray], poses: list[Pose], generic:
     def residuals(x: np.ndarray) -> np.ndarray:
         shape = x[: 3 * k].reshape(k, 3)
         ext = x[3 * k:].reshape(f, 6)
-        cam = _rotate(ext[:, :3], shape) + ext[:, None, 3:]
+        cam = shape @ rotation_matrices(ext[:, :3]).transpose(0, 2, 1) + ext[:, None, 3:]
         z = np.maximum(cam[..., 2], 1e-6)
         uv = np.stack([cx + fx * cam[..., 0] / z, cy + fy * cam[..., 1] / z], axis=-1)
         eye = np.linalg.norm(shape[i36] - shape[i45])
