@@ -12,30 +12,27 @@ at integers and an image of W pixels spans [-1/2, W - 1/2], so a scale s = W' / 
 s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2, and the same in y with H' / H (an
 output of another aspect ratio stretches like a resized frame).
 
-Virtual view (``virtual_view``): a square-pixel camera framing the head as
-``sender.enroll.build.render_preview`` does: its field of view ``FOV_DEG`` holds
-``FIELD_EYE_DISTANCES`` outer-eye distances (36 to 45) across the image height, aimed at the
-head centre c (the landmarks' mean, raised by a tenth of the field), from the front (yaw 0)
-or from a three-quarter view (``THREE_QUARTER_YAW_DEG`` toward the person's left, the
-model's +x). The head turns by the received rotation about c and stays there (the
-translation is not followed): a model point X is seen at R_v (R (X - c) + c) + t_v, with
-(R_v, t_v) the orbit pose of ``models.infra.raster.orbit_pose`` around c, so c is always at
-the image centre.
+Virtual view (``virtual_view``): a square-pixel camera framing the head as the enrollment
+preview does (``models.framing``: a field of ``FIELD_EYE_DISTANCES`` outer-eye distances
+across the height of a ``FOV_DEG`` view, aimed at the head centre c, the landmarks' mean
+raised by a tenth of the field), from the front (yaw 0) or from a three-quarter view
+(``THREE_QUARTER_YAW_DEG`` toward the person's left, the model's +x). The head turns by the
+received rotation about c and stays there (the translation is not followed): a model point X
+is seen at R_v (R (X - c) + c) + t_v, with (R_v, t_v) the framing's orbit pose
+(``models.framing.framing_pose``) around c, so c is always at the image centre.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from facewire.models.framing import FOV_DEG, THREE_QUARTER_YAW_DEG, framing_pose, head_field
 from facewire.models.geometry import Intrinsics, Pose, rotation_matrix
-from facewire.models.infra.raster import Camera, RenderError, orbit_pose
-from facewire.models.landmarks import N_LANDMARKS, outer_eye_distance
+from facewire.models.infra.raster import Camera, RenderError
+from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.mesh import Mesh
 from facewire.protocol import control
 
-FOV_DEG = 25.0  # as sender.enroll.build.PREVIEW_FOV_DEG
-FIELD_EYE_DISTANCES = 3.6  # as sender.enroll.build.CROP_EYE_DISTANCES
-THREE_QUARTER_YAW_DEG = 35.0  # as sender.enroll.build.PREVIEW_YAWS
 VIEW_KINDS = ("front", "three-quarter")
 
 
@@ -101,10 +98,10 @@ def head_centre(head: Mesh | np.ndarray) -> tuple[np.ndarray, float]:
         if landmarks.shape != (N_LANDMARKS, 3) or not np.isfinite(landmarks).all():
             raise RenderError(f"head: expected a Mesh or finite ({N_LANDMARKS}, 3) landmarks, "
                               f"got shape {landmarks.shape}")
-    field = FIELD_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
+    centre, field = head_field(landmarks)
     if not field > 0:
         raise RenderError("head: the outer eye corners (36, 45) coincide")
-    return landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0], field
+    return centre, field
 
 
 def virtual_view(kind: str, head: Mesh | np.ndarray, rotation: np.ndarray, width: int,
@@ -128,9 +125,8 @@ def virtual_view(kind: str, head: Mesh | np.ndarray, rotation: np.ndarray, width
     _check_size(width, height)
     turn = _pose(rotation, np.zeros(3)).rotation
     centre, field = head_centre(head)
-    distance = field / (2 * np.tan(np.radians(FOV_DEG) / 2))
     yaw = 0.0 if kind == "front" else THREE_QUARTER_YAW_DEG
-    view = orbit_pose(yaw, 0.0, distance, centre)
+    view = framing_pose(yaw, centre, field)
     pose = Pose(view.rotation @ turn,
                 view.rotation @ (centre - turn @ centre) + view.translation)
     return Camera.virtual(width, height, pose, fov_y_deg=FOV_DEG)

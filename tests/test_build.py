@@ -13,12 +13,14 @@ from facewire.models.gltf import read_glb
 from facewire.models.head import generic_head
 from facewire.models.modelfile import load_model
 from facewire.models.regions import REGION_NAMES, spec
+from facewire.receiver.views import VIEW_KINDS, virtual_view
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.enroll.build import (
     PREVIEW_HEIGHT,
     REGION_ROW_HEIGHT,
     TEXTURE_SIZE,
     build_model,
+    preview_cameras,
 )
 
 
@@ -133,3 +135,14 @@ def test_corrupt_model_refused(built, tmp_path, capsys, damage):
         err = capsys.readouterr().err
         assert "bad.fwm" in err and "Traceback" not in err
     assert not (tmp_path / "x.glb").exists()
+
+
+def test_preview_frames_the_head_as_the_receiver_views():
+    """One framing (models.framing): the preview's front and three-quarter cameras are the
+    receiver's unturned virtual views at the preview's size."""
+    mesh = generic_head()
+    for preview, kind in zip(preview_cameras(mesh), VIEW_KINDS, strict=True):
+        view = virtual_view(kind, mesh, np.zeros(3), PREVIEW_HEIGHT, PREVIEW_HEIGHT)
+        assert preview.intrinsics == view.intrinsics
+        np.testing.assert_allclose(preview.pose.rotation, view.pose.rotation, atol=1e-12)
+        np.testing.assert_allclose(preview.pose.translation, view.pose.translation, atol=1e-9)

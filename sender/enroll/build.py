@@ -37,11 +37,19 @@ import cv2
 import numpy as np
 
 from facewire.models.draworder import region_areas, triangle_groups
+from facewire.models.framing import (
+    FIELD_EYE_DISTANCES,
+    FIELD_RAISE,
+    FOV_DEG,
+    THREE_QUARTER_YAW_DEG,
+    framing_pose,
+    head_field,
+)
 from facewire.models.geometry import intrinsics_guess
 from facewire.models.head import generic_head
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera as ViewCamera
-from facewire.models.infra.raster import MeshRenderer, orbit_pose
+from facewire.models.infra.raster import MeshRenderer
 from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 from facewire.models.landmarks import outer_eye_distance
 from facewire.models.mesh import Mesh
@@ -62,11 +70,9 @@ from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480
-PREVIEW_YAWS = (0.0, 35.0)  # degrees: front and three-quarter
-PREVIEW_FOV_DEG = 25.0
+PREVIEW_YAWS = (0.0, THREE_QUARTER_YAW_DEG)  # degrees: front and three-quarter
 PREVIEW_BACKGROUND = (40, 40, 40)
 PREVIEW_SAMPLES = 4  # multisampling of the preview's renders
-CROP_EYE_DISTANCES = 3.6  # the width of the preview's field, in outer-eye distances
 CREATOR = "facewire 0.1.0"
 REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
 REGION_LABEL_WIDTH = 150
@@ -266,20 +272,12 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
 
 
 def preview_cameras(mesh: Mesh) -> list[ViewCamera]:
-    """The preview's cameras (``PREVIEW_YAWS``), ``PREVIEW_HEIGHT`` px square: they frame the
-    model like the crop of the neutral frame (``_face_crop``), a field of
-    ``CROP_EYE_DISTANCES`` outer-eye distances centred a tenth of it above the landmarks'
-    mean."""
-    landmarks = mesh.vertices[mesh.landmarks].astype(np.float64)
-    field = CROP_EYE_DISTANCES * float(outer_eye_distance(landmarks[:, :2]))
-    centre = landmarks.mean(axis=0) + [0.0, 0.1 * field, 0.0]
-    distance = field / (2 * np.tan(np.radians(PREVIEW_FOV_DEG) / 2))
-    cameras = []
-    for yaw in PREVIEW_YAWS:
-        cameras.append(ViewCamera.virtual(PREVIEW_HEIGHT, PREVIEW_HEIGHT,
-                                          orbit_pose(yaw, 0.0, distance, centre),
-                                          fov_y_deg=PREVIEW_FOV_DEG))
-    return cameras
+    """The preview's cameras (``PREVIEW_YAWS``), ``PREVIEW_HEIGHT`` px square, framing the
+    model as the receiver's virtual views do (``models.framing``) and like the crop of the
+    neutral frame (``_face_crop``)."""
+    centre, field = head_field(mesh.vertices[mesh.landmarks].astype(np.float64))
+    return [ViewCamera.virtual(PREVIEW_HEIGHT, PREVIEW_HEIGHT, framing_pose(yaw, centre, field),
+                               fov_y_deg=FOV_DEG) for yaw in PREVIEW_YAWS]
 
 
 def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
@@ -322,15 +320,16 @@ def _to_height(images: np.ndarray, height: int) -> np.ndarray:
 
 
 def _face_crop(image: np.ndarray, points: np.ndarray | None, size: int) -> np.ndarray:
-    """A square crop of the frame around the face, ``CROP_EYE_DISTANCES`` outer-eye distances
-    wide, ``size`` px."""
+    """A square crop of the frame around the face, ``size`` px: the preview's field
+    (``models.framing``: ``FIELD_EYE_DISTANCES`` outer-eye distances wide, centred
+    ``FIELD_RAISE`` of it above the points' mean)."""
     h, w = image.shape[:2]
     if points is None:
         side, x0, y0 = min(h, w), (w - min(h, w)) // 2, (h - min(h, w)) // 2
     else:
-        side = int(CROP_EYE_DISTANCES * float(outer_eye_distance(points)))
+        side = int(FIELD_EYE_DISTANCES * float(outer_eye_distance(points)))
         cx, cy = points.mean(axis=0)
-        x0, y0 = int(cx - side / 2), int(cy - side / 2 - 0.1 * side)
+        x0, y0 = int(cx - side / 2), int(cy - side / 2 - FIELD_RAISE * side)
     pad = max(0, -x0, -y0, x0 + side - w, y0 + side - h)
     padded = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
                                 value=(40, 40, 40))
