@@ -1,4 +1,4 @@
-"""The geometry both hosts share: camera intrinsics, rotations, the head pose, projection.
+"""The geometry both hosts share: camera intrinsics, rotations, the head pose, projection, normals.
 
 Frames
 ------
@@ -37,6 +37,14 @@ are the wire's (``protocol.control.Camera``, which a Hello carries and which may
 nothing of ours): fx, fy in (0, 1e6), cx, cy finite with ``|c| < 1e5``, width and height
 integers in [1, 16384]. ``intrinsics_guess`` is the guess for an unknown webcam; resizing an
 image by ``s = W' / W`` maps a pixel centre u to ``s (u + 1/2) - 1/2`` (``Intrinsics.resized``).
+
+Vertex normals
+--------------
+``vertex_normals`` of a triangle mesh: each vertex's unit normal is the normalised sum of its
+triangles' ``(b - a) x (c - a)`` (counter-clockwise from outside), i.e. their normals
+weighted by area; a vertex in no triangle gets zero. With ``groups``, the vertices of one
+group (the copies of a vertex on a UV seam) share the normal of all their triangles. The
+person model's mesh, the rasteriser (every frame) and the texture projection use it.
 
 Head pose yaw and pitch are those of the face's forward axis ``f = R e_z`` in the camera:
 ``yaw = atan2(f_x, f_z)`` (positive: the nose turns toward the image's right),
@@ -262,6 +270,32 @@ def project(points: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarra
     d = -cam[:, 2]
     return np.column_stack([intrinsics.cx + intrinsics.fx * cam[:, 0] / d,
                             intrinsics.cy - intrinsics.fy * cam[:, 1] / d])
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray,
+                   groups: np.ndarray | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals (module docstring).
+
+    Args:
+        vertices: (N, 3) float positions; the sums are taken in their dtype.
+        triangles: (M, 3) int vertex indices, counter-clockwise from outside.
+        groups: optional (N,) int group of each vertex, from 0; a group shares one normal.
+
+    Returns:
+        (N, 3) float32 unit normals (zero for a vertex, or group, in no triangle).
+    """
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    if groups is None:
+        corners, size = triangles.ravel(), len(vertices)
+    else:
+        corners, size = groups[triangles].ravel(), int(groups.max()) + 1
+    normals = np.column_stack([np.bincount(corners, weights=np.repeat(face[:, k], 3),
+                                           minlength=size) for k in range(3)])
+    if groups is not None:
+        normals = normals[groups]
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return (normals / np.maximum(length, 1e-12)).astype(np.float32)
 
 
 def _finite(a: np.ndarray) -> bool:

@@ -18,6 +18,7 @@ from enum import IntEnum
 import numpy as np
 
 from facewire.models.arrays import check_array
+from facewire.models.geometry import vertex_normals
 from facewire.models.landmarks import N_LANDMARKS, N_PHANTOMS
 from facewire.protocol.errors import FacewireError
 
@@ -72,12 +73,6 @@ class Mesh:
             raise MeshError(f"tags: unknown tag {int(self.tags.max())}")
 
     def vertex_normals(self) -> np.ndarray:
-        """(N, 3) float32 unit normals: area-weighted mean of the adjacent face normals."""
-        v = self.vertices.astype(np.float64)
-        a, b, c = (v[self.triangles[:, k]] for k in range(3))
-        face = np.cross(b - a, c - a)
-        normals = np.zeros_like(v)
-        for k in range(3):
-            np.add.at(normals, self.triangles[:, k], face)
-        length = np.linalg.norm(normals, axis=1, keepdims=True)
-        return (normals / np.maximum(length, 1e-12)).astype(np.float32)
+        """(N, 3) float32 unit normals: area-weighted mean of the adjacent face normals
+        (``models.geometry.vertex_normals``)."""
+        return vertex_normals(self.vertices.astype(np.float64), self.triangles)

@@ -14,6 +14,7 @@ from facewire.models.geometry import (
     rotation_matrices,
     rotation_matrix,
     rotation_vector,
+    vertex_normals,
 )
 from facewire.protocol.control import Camera, ControlError
 
@@ -145,3 +146,20 @@ def test_project_matches_opencv():
     np.testing.assert_allclose(got, want.reshape(-1, 2), atol=1e-9)
     centre = project(np.zeros((1, 3)), Pose(np.eye(3), np.array([0.0, 0.0, -500.0])), camera)
     np.testing.assert_allclose(centre, [[camera.cx, camera.cy]])
+
+
+def test_vertex_normals_weigh_triangles_by_area():
+    # Two triangles folded along the edge 0-1: the square in z = 0 (normal +z, area 1/2) and
+    # a larger one standing in y = 0 (normal -y, area 1); vertex 4 is in no triangle.
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 2], [5, 5, 5]], np.float64)
+    t = np.array([[0, 1, 2], [0, 1, 3]], np.int32)
+    n = vertex_normals(v, t)
+    assert n.dtype == np.float32 and n.shape == (5, 3)
+    np.testing.assert_allclose(n[0], np.array([0.0, -2.0, 1.0]) / math.sqrt(5), atol=1e-7)
+    np.testing.assert_allclose(n[2], [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(n[3], [0.0, -1.0, 0.0])
+    np.testing.assert_array_equal(n[4], 0.0)
+    # Vertices 2 and 3 in one group share the normal of both triangles (as vertex 0's).
+    shared = vertex_normals(v, t, np.array([0, 1, 2, 2, 3]))
+    np.testing.assert_allclose(shared[2], shared[3])
+    np.testing.assert_allclose(shared[2], n[0], atol=1e-7)

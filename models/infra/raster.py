@@ -37,7 +37,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from facewire.models.geometry import Intrinsics, Pose, project
+from facewire.models.geometry import Intrinsics, Pose, project, vertex_normals
 from facewire.models.infra.egl import create_context, in_context
 from facewire.protocol.errors import FacewireError
 
@@ -389,7 +389,7 @@ class MeshRenderer(ContextOwner):
             program["image"].value = 0
         else:
             vao, program = self._vao_shaded, self._shaded
-            self._normals.write(_vertex_normals(vertices, self._triangles))
+            self._normals.write(vertex_normals(vertices, self._triangles))
             program["rotation"].write(camera.pose.rotation.T.astype(np.float32).tobytes())
         program["mvp"].write(mvp.T.tobytes())  # GLSL matrices are column-major
         self._frame.begin(self.background)
@@ -402,17 +402,6 @@ class MeshRenderer(ContextOwner):
             if obj is not None:
                 obj.release()
         self._vao_textured = self._uv = None
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 area-weighted vertex normals (zero for unused vertices)."""
-    a, b, c = (vertices[triangles[:, k]] for k in range(3))
-    face = np.cross(b - a, c - a)
-    flat = triangles.ravel()
-    normals = np.column_stack([np.bincount(flat, weights=np.repeat(face[:, k], 3),
-                                           minlength=len(vertices)) for k in range(3)])
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return (normals / np.maximum(length, 1e-12)).astype(np.float32)
 
 
 def _check(name: str, a: object, dtype: type, shape: tuple[int | None, ...]) -> None:

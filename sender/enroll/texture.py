@@ -81,6 +81,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from facewire.models.geometry import vertex_normals
 from facewire.models.infra.egl import create_context, in_context
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
@@ -392,16 +393,7 @@ def _edges(depth: np.ndarray, cos_pixel: np.ndarray, focal: float, cos_min: floa
 def _welded_normals(mesh: Mesh) -> np.ndarray:
     """(N, 3) float32 area-weighted normals, shared by vertices at the same position."""
     _, group = np.unique(mesh.vertices, axis=0, return_inverse=True)
-    group = group.ravel()
-    v = mesh.vertices.astype(np.float64)
-    a, b, c = (v[mesh.triangles[:, k]] for k in range(3))
-    face = np.cross(b - a, c - a)
-    corner_group = group[mesh.triangles].ravel()
-    sums = np.column_stack([np.bincount(corner_group, weights=np.repeat(face[:, k], 3),
-                                        minlength=group.max() + 1) for k in range(3)])
-    normals = sums[group]
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return (normals / np.maximum(length, 1e-12)).astype(np.float32)
+    return vertex_normals(mesh.vertices.astype(np.float64), mesh.triangles, group.ravel())
 
 
 def _check_size(size: object) -> tuple[int, int]:
