@@ -37,6 +37,7 @@ from typing import Any, Self
 
 import numpy as np
 
+from facewire.models.arrays import check_array
 from facewire.models.geometry import Intrinsics, Pose, project, vertex_normals
 from facewire.models.infra.egl import create_context, in_context
 from facewire.protocol.errors import FacewireError
@@ -316,11 +317,11 @@ class MeshRenderer(ContextOwner):
         """
         if not isinstance(n_vertices, int) or n_vertices < 1:
             raise RenderError(f"n_vertices: expected a positive int, got {n_vertices!r}")
-        _check("triangles", triangles, np.int32, (None, 3))
+        check_array("triangles", triangles, np.int32, (None, 3), RenderError)
         if len(triangles) == 0 or triangles.min() < 0 or triangles.max() >= n_vertices:
             raise RenderError(f"triangles: empty, or a vertex index outside [0, {n_vertices})")
         if uv is not None:
-            _check("uv", uv, np.float32, (n_vertices, 2))
+            check_array("uv", uv, np.float32, (n_vertices, 2), RenderError)
         self._release_mesh()
         ctx = self._ctx
         self._n_vertices = n_vertices
@@ -353,7 +354,7 @@ class MeshRenderer(ContextOwner):
             self._texture = None
         if texture is None:
             return
-        _check("texture", texture, np.uint8, (None, None, 3))
+        check_array("texture", texture, np.uint8, (None, None, 3), RenderError)
         h, w = texture.shape[:2]
         self._texture = self._ctx.texture((w, h), 3, np.ascontiguousarray(texture[::-1]),
                                           alignment=1)
@@ -374,7 +375,7 @@ class MeshRenderer(ContextOwner):
         """
         if self._triangles is None:
             raise RenderError("render: call set_mesh first")
-        _check("vertices", vertices, np.float32, (self._n_vertices, 3))
+        check_array("vertices", vertices, np.float32, (self._n_vertices, 3), RenderError)
         size = (camera.intrinsics.width, camera.intrinsics.height)
         if size != (self.width, self.height):
             raise RenderError(f"camera: image {size[0]} x {size[1]}, renderer "
@@ -402,16 +403,3 @@ class MeshRenderer(ContextOwner):
             if obj is not None:
                 obj.release()
         self._vao_textured = self._uv = None
-
-
-def _check(name: str, a: object, dtype: type, shape: tuple[int | None, ...]) -> None:
-    """Validate one array input (dtype, shape, finiteness)."""
-    if not isinstance(a, np.ndarray):
-        raise RenderError(f"{name}: expected a numpy array, got {type(a).__name__}")
-    if a.dtype != dtype:
-        raise RenderError(f"{name}: expected dtype {np.dtype(dtype).name}, got {a.dtype.name}")
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise RenderError(f"{name}: expected shape {want}, got {a.shape}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise RenderError(f"{name}: contains NaN or infinity")
