@@ -1,4 +1,8 @@
-"""The .fwm person-model file: round trip, determinism, and refusal of hostile files."""
+"""The .fwm person-model file: round trip, determinism, and refusal of hostile files.
+
+Over 600 lines because it tests, one by one, each way a hostile file can be wrong that
+``models.modelfile`` promises to refuse, with the zip-editing helpers those tests share.
+"""
 
 from __future__ import annotations
 

@@ -71,6 +71,10 @@ centre at ``u = (c + 1/2) / W``, ``v = 1 - (r + 1/2) / H``, where OpenGL samples
    pyrUp(c_{l+1}). Valid texels (weight 1) keep their colour exactly; every hole gets a
    smooth blend of the nearest valid colours, at the scale of the hole, and the whole texture
    is filled, so mipmaps never average in a black background.
+
+Size: this module is over 600 lines because it is one method whose statement above takes
+about 75 lines, and whose OpenGL passes (``_Gl`` and its shaders, about 170 lines) serve
+nothing else.
 """
 
 from __future__ import annotations
