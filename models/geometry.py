@@ -33,10 +33,11 @@ agrees with ``rotation_matrix`` within float round-off, not to the bit.
 Intrinsics
 ----------
 ``Intrinsics`` holds a pinhole camera's fx, fy, cx, cy (pixels) and image size. Its bounds
-are the wire's (``protocol.control.Camera``, which a Hello carries and which may import
-nothing of ours): fx, fy in (0, 1e6), cx, cy finite with ``|c| < 1e5``, width and height
-integers in [1, 16384]. ``intrinsics_guess`` is the guess for an unknown webcam; resizing an
-image by ``s = W' / W`` maps a pixel centre u to ``s (u + 1/2) - 1/2`` (``Intrinsics.resized``).
+are the wire's, one set defined in ``protocol.control`` beside the ``Camera`` a Hello carries
+(``MAX_FOCAL_PX``, ``MAX_PRINCIPAL_PX``, ``MAX_IMAGE_SIDE``): fx, fy in (0, 1e6), cx, cy
+finite with ``|c| < 1e5``, width and height integers in [1, 16384]. ``intrinsics_guess`` is
+the guess for an unknown webcam; resizing an image by ``s = W' / W`` maps a pixel centre u
+to ``s (u + 1/2) - 1/2`` (``Intrinsics.resized``).
 
 Vertex normals
 --------------
@@ -59,9 +60,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-MAX_FOCAL_PX = 1e6
-MAX_PRINCIPAL_PX = 1e5
-MAX_IMAGE_SIDE = 16384
+from facewire.protocol.control import MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_PX
+
 OPENCV_FLIP = np.diag([1.0, -1.0, -1.0])  # S: GL camera frame <-> OpenCV camera frame
 OPENCV_FLIP.setflags(write=False)
 

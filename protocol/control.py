@@ -47,6 +47,10 @@ CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
 MAX_TEXT_CHARS = 1000
+# The camera's bounds, the one set (models.geometry.Intrinsics takes them from here).
+MAX_FOCAL_PX = 1e6
+MAX_PRINCIPAL_PX = 1e5
+MAX_IMAGE_SIDE = 16384
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -84,10 +88,13 @@ class Camera:
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy"):
-            _require(0 < getattr(self, name) < 1e6, f"camera.{name}: must be in (0, 1e6)")
+            _require(0 < getattr(self, name) < MAX_FOCAL_PX,
+                     f"camera.{name}: must be in (0, {MAX_FOCAL_PX:g})")
         for name in ("width", "height"):
-            _require(0 < getattr(self, name) <= 16384, f"camera.{name}: must be in [1, 16384]")
-        _require(abs(self.cx) < 1e5 and abs(self.cy) < 1e5, "camera.cx/cy: out of range")
+            _require(0 < getattr(self, name) <= MAX_IMAGE_SIDE,
+                     f"camera.{name}: must be in [1, {MAX_IMAGE_SIDE}]")
+        _require(abs(self.cx) < MAX_PRINCIPAL_PX and abs(self.cy) < MAX_PRINCIPAL_PX,
+                 "camera.cx/cy: out of range")
 
 
 @dataclass(frozen=True)
