@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -71,13 +72,16 @@ from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_r
 from facewire.bench.geometry import GeometryNME, geometry_nme
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
+from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme, track_fresh
+from facewire.bench.render_nme import summary as render_summary
 from facewire.bench.speed import NoFaceError
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoError, range_text
 from facewire.models.landmarks import eye_aspect_ratio
-from facewire.models.modelfile import load_model
+from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
 from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.receiver.render import FaceRenderer
@@ -85,6 +89,7 @@ from facewire.receiver.views import sender_view
 from facewire.sender.capture import Source, open_source
 from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.tracker import LandmarkTracker
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
@@ -105,9 +110,41 @@ class _Series(NamedTuple):
     appearance: _Appearance
 
 
+class OverlapError(FacewireError, ValueError):
+    """The frames to score overlap the model's build frames of the same video."""
+
+
+def check_overlap(model: PersonModel, source: str | os.PathLike[str], frames: slice,
+                  allow_overlap: bool = False) -> int | None:
+    """How many frames of ``frames`` the model was built from (module docstring, "Frames
+    the model was built from").
+
+    Returns:
+        The count (0 when the source is another video, or not a file); None when the model
+        does not say what it was built from.
+
+    Raises:
+        OverlapError: the count is positive and ``allow_overlap`` is False (one line, naming
+            the video, both ranges and the option).
+    """
+    built = model.info.source
+    if built is None:
+        return None
+    if not Path(source).is_file() or not built.same_video(source):
+        return 0
+    overlap = built.overlap(frames.start or 0, frames.stop)
+    if overlap and not allow_overlap:
+        raise OverlapError(
+            f"{source}: frames {range_text(frames)} include {overlap} of the frames "
+            f"{built.start}:{built.stop} the model was built from; score frames outside "
+            f"them (e.g. --frames {built.stop}:) or pass --allow-overlap")
+    return overlap
+
+
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                     frames: slice | None = None, progress: Progress = no_progress,
-                    reference: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+                    reference: str | os.PathLike[str] | None = None,
+                    allow_overlap: bool = False) -> dict[str, Any]:
     """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
 
     Args:
@@ -116,6 +153,7 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         frames: the frame range (``models.infra.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         reference: an OpenFace CSV of the same video, for ``q_reference``.
+        allow_overlap: score frames the model was built from (``check_overlap``).
 
     Returns:
         A dict: ``frames``, ``face_frames``, ``tracked_frames``, ``pose_lost_frames``,
@@ -133,17 +171,21 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         CaptureError / VideoError: the source is missing, unreadable or holds no frame in the
             range; ``NoFaceError`` when the tracker finds no face in any frame (names the file).
         OpenFaceError: the reference is missing or malformed (names the file).
+        OverlapError: the frames overlap the model's build frames of the same video and
+            ``allow_overlap`` is False.
     """
-    return _measure(model_path, source, frames, progress, reference)[0]
+    return _measure(model_path, source, frames, progress, reference,
+                    allow_overlap=allow_overlap)[0]
 
 
 def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
              frames: slice | None, progress: Progress,
-             reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False
-             ) -> tuple[dict[str, Any], _Series]:
+             reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False,
+             allow_overlap: bool = False) -> tuple[dict[str, Any], _Series]:
     frames = slice(0, None) if frames is None else frames
     openface = None if reference is None else read_openface(reference)
     model = load_model(model_path)
+    overlap = check_overlap(model, source, frames, allow_overlap)
     src = open_source(str(source), pace=False, frames=frames)
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
                               rate_hz=stream_rate(src.rate_hz))
@@ -177,6 +219,9 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                    "width": camera.width, "height": camera.height},
         **_stats("nme_heldout", result.heldout),
         **_stats("nme_rigid_only", result.rigid_only),
+        "nme_unweighted_mean": _stats("nme_unweighted", result.unweighted)["nme_unweighted_mean"],
+        "overlap_frames": overlap,
+        "model_source": None if model.info.source is None else model.info.source.as_dict(),
         "unit": "percent of the outer-eye distance",
         "targets": {"nme_heldout_mean": TARGET_NME_HELDOUT},
     }
@@ -203,6 +248,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         appearance.summary["face_ssim_mean"] is not None
         and appearance.summary["h264_face_ssim_mean"] is not None
         and appearance.summary["face_ssim_mean"] > appearance.summary["h264_face_ssim_mean"])
+    summary["met"]["render_nme_at_most_h264"] = _render_at_most_h264(appearance.summary)
     return summary, _Series(np.array(run.indices), np.array(run.times), posed, result, q,
                             layers, run.eyes, appearance)
 
@@ -300,6 +346,20 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     boxes: dict[int, tuple[int, int, int, int]] = {}
     masks: dict[int, np.ndarray] = {}
     rendered_faces: dict[int, np.ndarray] = {}
+    tracker = LandmarkTracker()
+    seen = np.full((len(decoded), len(PARTS)), np.nan)  # render NME per frame and part
+    h264_seen = np.full((len(decoded), len(PARTS)), np.nan)
+    real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
+    missing = {"real": 0, "render": 0, "h264": 0}
+    tracking = 0.0  # seconds spent tracking for the render NME
+
+    def fresh(image: np.ndarray) -> np.ndarray | None:
+        nonlocal tracking
+        start = time.perf_counter()
+        points = track_fresh(tracker, image)
+        tracking += time.perf_counter() - start
+        return points
+
     with FaceRenderer(model, camera.width, camera.height) as renderer:
         for k, image in enumerate(progress(images, "rendering", len(images))):
             points = tracked[k]
@@ -317,6 +377,16 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
             if keep_examples:
                 rendered_faces[k] = ours.copy()
+            truth = fresh(image)
+            if truth is None:
+                missing["real"] += 1
+                continue
+            real_points[k] = truth
+            drawn = fresh(rendered)
+            if drawn is None:
+                missing["render"] += 1
+            else:
+                seen[k] = picture_nme(truth, drawn)
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_kbps = None
@@ -326,6 +396,12 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
         with tempfile.TemporaryDirectory() as work:
             x264 = x264_reference(even, rate_hz, payload_kbps, work)
         h264_kbps = round(x264.kbps, 3)
+        for k, truth in progress(real_points.items(), "tracking x264", len(real_points)):
+            coded_points = fresh(x264.frames[k])
+            if coded_points is None:
+                missing["h264"] += 1
+            else:
+                h264_seen[k] = picture_nme(truth, coded_points)
         for k, (x0, y0, x1, y1) in boxes.items():
             real, coded = images[k][y0:y1, x0:x1], x264.frames[k][y0:y1, x0:x1]
             if coded.shape != real.shape:  # the box reaches the row or column x264 dropped
@@ -340,8 +416,22 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     examples = {k: triples[k] for k in sorted(picks)}
     summary = {"face_ssim_mean": _mean(ssim), "face_psnr_mean": _mean(peak),
                "h264_kbps": h264_kbps, "h264_face_ssim_mean": _mean(h264_ssim),
-               "h264_face_psnr_mean": _mean(h264_peak)}
+               "h264_face_psnr_mean": _mean(h264_peak),
+               **render_summary("render", FaceCounts(seen, missing["render"])),
+               **render_summary("h264_render", FaceCounts(h264_seen, missing["h264"])),
+               "render_face_missing": missing["render"],
+               "h264_face_missing": missing["h264"],
+               "real_face_missing": missing["real"],
+               "render_nme_seconds": round(tracking, 2)}
     return _Appearance(summary, ssim, h264_ssim, examples)
+
+
+def _render_at_most_h264(r: dict[str, Any]) -> bool:
+    """Ours no worse than x264 for the viewer: the tracker lost our face on no more frames,
+    and our render NME is at most x264's (or x264's face was never found while ours was)."""
+    ours, theirs = r["render_nme_mean"], r["h264_render_nme_mean"]
+    return (ours is not None and r["render_face_missing"] <= r["h264_face_missing"]
+            and (theirs is None or ours <= theirs))
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -421,6 +511,14 @@ def format_quality(result: dict[str, Any]) -> str:
         f"{r['measured_frames']} measured; {r['clamped_frames']} with clamped values",
         f"payload: {r['packet_bytes']} bytes a packet, {r['payload_kbps']:.2f} kbit/s at 30 Hz",
     ]
+    built = r["model_source"]
+    if r["overlap_frames"] is None:
+        lines.append("model: says nothing of the frames it was built from (an older model): "
+                     "overlap not checked")
+    elif r["overlap_frames"]:
+        lines.append(f"OVERLAP: {r['overlap_frames']} of these frames are among the model's "
+                     f"build frames {built['start']}:{built['stop']} (--allow-overlap): they "
+                     f"do not show how the model does on footage it never saw")
     if r["subset"] == "tuning":
         lines.append("clip: in the tuning subset (bench.clips): these figures show how the "
                      "tuning fits it; judge on the evaluation clips")
@@ -434,6 +532,8 @@ def format_quality(result: dict[str, Any]) -> str:
             f"median {r['nme_heldout_median']:.2f} %, p95 {r['nme_heldout_p95']:.2f} %",
             f"rigid-only NME (pose alone):     mean {r['nme_rigid_only_mean']:.2f} %, "
             f"median {r['nme_rigid_only_median']:.2f} %, p95 {r['nme_rigid_only_p95']:.2f} %",
+            f"unweighted NME (24 points the pose fit ignores: jaw contour, inner lips): "
+            f"mean {r['nme_unweighted_mean']:.2f} %",
             f"target: held-out mean <= {TARGET_NME_HELDOUT:g} %: "
             f"{_verdict(r['met']['nme_heldout'])}; below rigid-only: "
             f"{_verdict(r['met']['below_rigid_only'])}",
@@ -466,18 +566,35 @@ def format_quality(result: dict[str, Any]) -> str:
                      f"{r['h264_face_ssim_mean']:.3f}, PSNR {r['h264_face_psnr_mean']:.2f} dB "
                      f"at {r['h264_kbps']:.2f} kbit/s; ours above x264: "
                      f"{_verdict(r['met']['face_ssim_above_h264'])}")
+        lines.append(_seen_line("render NME (tracker on our rendering vs the real frame)",
+                                r, "render", r["render_face_missing"]))
+        lines.append(_seen_line("render NME (tracker on x264's frame vs the real frame) ",
+                                r, "h264_render", r["h264_face_missing"]))
+        lines.append(f"render NME: ours no worse than x264 (mean and faces lost): "
+                     f"{_verdict(r['met']['render_nme_at_most_h264'])}; {r['real_face_missing']} "
+                     f"real frames without a face left out; tracking took "
+                     f"{r['render_nme_seconds']:.1f} s")
     return "\n".join(lines)
+
+
+def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:
+    if r[f"{prefix}_nme_mean"] is None:
+        return f"{label}: no face found on any frame ({missing} frames)"
+    parts = ", ".join(f"{part} {r[f'{prefix}_nme_{part}']:.2f} %"
+                      for part in ("mouth", "eyes", "brows"))
+    return (f"{label}: mean {r[f'{prefix}_nme_mean']:.2f} % ({parts}) over "
+            f"{r[f'{prefix}_nme_frames']} frames; face not found on {missing}")
 
 
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
             frames: slice | None = None, plot: str | os.PathLike[str] | None = None,
             progress: Progress = no_progress,
-            reference: str | os.PathLike[str] | None = None
+            reference: str | os.PathLike[str] | None = None, allow_overlap: bool = False
             ) -> tuple[dict[str, Any], list[str]]:
     """Run ``measure_quality``, optionally plot: the result and the report's lines (targets
     inform; a miss is no failure: see the module docstring)."""
     result, series = _measure(model_path, source, frames, progress, reference,
-                              keep_eyes=plot is not None)
+                              keep_eyes=plot is not None, allow_overlap=allow_overlap)
     lines = format_quality(result).splitlines()
     if plot is not None:
         lines += _plots(series, result, Path(plot))

@@ -488,9 +488,9 @@ def test_index_outside_the_mesh_is_refused(saved: Path, tmp_path: Path) -> None:
 
 def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
-    manifest["format_version"] = 4
+    manifest["format_version"] = 5
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest),
-             "model.json: format_version: unsupported version 4")
+             "model.json: format_version: unsupported version 5")
     manifest["format_version"] = "1"
     _refused(_edit(saved, tmp_path / "b.fwm", manifest=manifest),
              "model.json: format_version: expected an integer")
