@@ -11,7 +11,9 @@ against the tracker's, normalised by the outer-eye distance, with pose and resid
 and counted (``pose_lost_frames``).
 
 Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldout_median``,
-``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``; and
+``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``,
+``nme_unweighted_mean`` (the same geometry over the 24 unsent points that carry no weight in
+the pose fit, the jaw contour without the chin and the inner lips: ``bench.geometry``); and
 ``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
 30 Hz; every packet is checked to have ``PACKET_BYTES``).
 
@@ -26,9 +28,38 @@ background and the hair, which the model does not carry, are not measured): gray
 ``face_psnr_mean``. The same clip is encoded with x264 through PyAV
 (``bench.fidelity.x264_reference``: two-pass, veryslow, tune ssim, aimed at our
 ``payload_kbps``; x264 usually cannot get that low, and ``h264_kbps`` is the rate it actually
-reached, container included), decoded, and measured in the same boxes:
+reached: the H.264 stream's bytes, the sizes of the packets x264 put out, not the MP4 file's
+size with its container, just as ``payload_kbps`` counts our packets without ZeroMQ's framing),
+decoded, and measured in the same boxes:
 ``h264_face_ssim_mean``, ``h264_face_psnr_mean``. ``met.face_ssim_above_h264`` says whether
 our face SSIM beats x264's (issue 6's target).
+
+What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
+full-frame detection per image, nothing carried from frame to frame) on the real frame, on
+our rendering of it and on x264's decoding of it, and the rendering's and x264's 68 points
+are compared with the real frame's, in units of the real frame's outer-eye distance:
+``render_nme_mean`` (68 points), ``render_nme_mouth`` (48-67), ``render_nme_eyes`` (36-47),
+``render_nme_brows`` (17-26), and the same for x264 (``h264_render_nme_*``). The frames are
+those rendered for the face SSIM. A real frame without a face is left out
+(``real_face_missing``); a rendering or x264 frame without one (the real frame has one) is
+counted, ``render_face_missing`` / ``h264_face_missing``, and left out of that picture's
+means (``*_nme_frames`` says over how many frames each mean is). ``met.render_nme_at_most_h264``
+holds when ours lost the face on no more frames than x264 and our mean is at most x264's (or
+x264's face was never found). ``render_nme_seconds`` is the time the tracking took: about
+20-35 ms an image on the shared 2-core machine, 2 to 3 images a measured frame (lp_d14,
+358 frames: 38 s of the command's 81 s).
+
+Frames the model was built from. A model built by ``model build`` stores the video frames it
+came from (``models.modelfile.SourceRange``: the video's name, size and sha256, frames
+[a, b)). Scoring those frames would measure how well the model remembers its enrollment, not
+how it does on new footage, so ``check_overlap`` refuses (``OverlapError``, one line, before
+any work) when the scored range overlaps [a, b) of the same video, unless ``allow_overlap``
+(``--allow-overlap``) is given; the report then says so and ``overlap_frames`` counts them.
+The same video is the same bytes: the source file's size and sha256 equal the stored ones
+(hashing the file costs under 1 ms a MB), so a renamed copy is recognised and another clip
+with the same frame numbers is not refused. ``overlap_frames`` is 0 for another video and
+None for a model that stores no range (built before it was stored); ``model_source`` is the
+stored range.
 
 Appearance classification. ``q_regions`` gives, per region of the model in packet order
 (a list of objects with the region's ``name``), its layer count
@@ -163,8 +194,12 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``nme_rigid_only_median``, ``nme_rigid_only_p95`` (percent; None when no frame was
         measured), ``q_regions``, ``q_reference`` (with a reference), ``camera``,
         ``face_ssim_mean``, ``face_psnr_mean``, ``h264_kbps``, ``h264_face_ssim_mean``,
-        ``h264_face_psnr_mean``, ``targets``, ``met``, ``model``, ``source``, ``subset``
-        (``bench.clips``: "tuning", "evaluation" or None).
+        ``h264_face_psnr_mean``, ``nme_unweighted_mean``, ``render_nme_mean``,
+        ``render_nme_mouth``, ``render_nme_eyes``, ``render_nme_brows``,
+        ``render_nme_frames``, the same five with ``h264_`` in front,
+        ``render_face_missing``, ``h264_face_missing``, ``real_face_missing``,
+        ``render_nme_seconds``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
+        ``model``, ``source``, ``subset`` (``bench.clips``: "tuning", "evaluation" or None).
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
