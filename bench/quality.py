@@ -45,7 +45,11 @@ those rendered for the face SSIM. A real frame without a face is left out
 counted, ``render_face_missing`` / ``h264_face_missing``, and left out of that picture's
 means (``*_nme_frames`` says over how many frames each mean is). ``met.render_nme_at_most_h264``
 holds when ours lost the face on no more frames than x264 and our mean is at most x264's (or
-x264's face was never found). ``render_nme_seconds`` is the time the tracking took: about
+x264's face was never found). Counting matters: on lp_d14 (frames 178:, model from 0:178)
+x264 at its floor gives its second keyframe (frame 250 of the range) 85 bytes, which decode
+to a flat grey picture, and the 107 frames after it stay grey; the tracker finds no face on
+any of them (``h264_face_missing`` 108 of 358), and x264's mean is over the other 250.
+``render_nme_seconds`` is the time the tracking took: about
 20-35 ms an image on the shared 2-core machine, 2 to 3 images a measured frame (lp_d14,
 358 frames: 38 s of the command's 81 s).
 

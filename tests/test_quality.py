@@ -246,7 +246,7 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path,
     assert 0.2 < r["face_ssim_mean"] < 1 and 0.2 < r["h264_face_ssim_mean"] < 1
     assert r["met"]["face_ssim_above_h264"] == (r["face_ssim_mean"] > r["h264_face_ssim_mean"])
     # what the viewer sees: the tracker finds our rendered face on every measured frame and
-    # its points lie near the real frame's (measured: 2.1 %)
+    # its points lie near the real frame's (measured: 1.94 %; x264 at its floor 2.62 %)
     assert r["real_face_missing"] == 0 and r["render_face_missing"] == 0
     assert r["render_nme_frames"] == r["measured_frames"]
     for key in ("render_nme_mean", "render_nme_mouth", "render_nme_eyes", "render_nme_brows"):
