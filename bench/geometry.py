@@ -22,6 +22,13 @@ same with zero residuals (``X_f`` = the neutral landmark vertices): what the pos
 explains. A frame is measured when its packet says ``FACE_PRESENT`` without
 ``TRACKING_LOST`` (with ``TRACKING_LOST`` the packet repeats the last good pose) and the
 tracker gave points; other frames are NaN.
+
+The unweighted NME is the same (pose and residuals) over ``UNWEIGHTED``, the 24 points that
+carry no weight in the sender's pose fit (``sender.pose.POSE_WEIGHTS`` = 0) and are not
+sent: the jaw contour 0-16 without the chin 8 (a non-rigid feature point, in the packet),
+and the inner lips 60-67. The pose fit never sees them, so they show how well pose, lift
+and morph carry the parts of the face the fit ignores. Issue 16 says 24 points: weight 0
+falls on 25 (0-16 and 60-67), one of which, the chin, the packet carries.
 """
 
 from __future__ import annotations
@@ -32,9 +39,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from facewire.models.geometry import rotation_matrix
-from facewire.models.landmarks import HELD_OUT, N_LANDMARKS, nme
+from facewire.models.landmarks import FEATURES, HELD_OUT, N_LANDMARKS, nme
 from facewire.models.rig import N_RESIDUALS, Rig
 from facewire.protocol.packet import FRAME_DTYPE, Flag, Frame
+from facewire.sender.pose import POSE_WEIGHTS
+
+UNWEIGHTED = np.setdiff1d(np.flatnonzero(POSE_WEIGHTS == 0), FEATURES)  # (24,) module docstring
 
 
 class GeometryNME(NamedTuple):
@@ -43,10 +53,12 @@ class GeometryNME(NamedTuple):
     Attributes:
         heldout: (F,) float64, pose and residuals.
         rigid_only: (F,) float64, pose alone.
+        unweighted: (F,) float64, pose and residuals, over ``UNWEIGHTED`` (24 points).
     """
 
     heldout: np.ndarray
     rigid_only: np.ndarray
+    unweighted: np.ndarray
 
 
 def _intrinsics(camera: Any) -> tuple[float, float, float, float]:
@@ -119,9 +131,9 @@ def geometry_nme(rig: Rig, camera: Any, decoded: np.ndarray | Sequence[Frame],
         tracked: F tracker results: (68, 2) pixel points, or None where no face was found.
 
     Returns:
-        ``GeometryNME``: (F,) held-out and rigid-only NME as fractions; NaN where the packet
-        has no ``FACE_PRESENT`` flag or has ``TRACKING_LOST`` (no pose of its own), or
-        ``tracked`` is None.
+        ``GeometryNME``: (F,) held-out, rigid-only and unweighted NME as fractions; NaN
+        where the packet has no ``FACE_PRESENT`` flag or has ``TRACKING_LOST`` (no pose of
+        its own), or ``tracked`` is None.
 
     Raises:
         ValueError: lengths differ, bad shapes, or a face-present pose is behind the camera.
@@ -131,6 +143,7 @@ def geometry_nme(rig: Rig, camera: Any, decoded: np.ndarray | Sequence[Frame],
         raise ValueError(f"tracked: {len(tracked)} entries for {len(records)} decoded frames")
     heldout = np.full(len(records), np.nan)
     rigid = np.full(len(records), np.nan)
+    unweighted = np.full(len(records), np.nan)
     for f, (rec, points) in enumerate(zip(records, tracked)):
         flags = Flag(int(rec["flags"]))
         if points is None or Flag.TRACKING_LOST in flags or Flag.FACE_PRESENT not in flags:
@@ -143,4 +156,5 @@ def geometry_nme(rig: Rig, camera: Any, decoded: np.ndarray | Sequence[Frame],
         pose = project_landmarks(rig, camera, rec["rotation"], rec["translation"], None)
         heldout[f] = nme(full, truth, HELD_OUT)
         rigid[f] = nme(pose, truth, HELD_OUT)
-    return GeometryNME(heldout, rigid)
+        unweighted[f] = nme(full, truth, UNWEIGHTED)
+    return GeometryNME(heldout, rigid, unweighted)

@@ -11,7 +11,9 @@ against the tracker's, normalised by the outer-eye distance, with pose and resid
 and counted (``pose_lost_frames``).
 
 Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldout_median``,
-``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``; and
+``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``,
+``nme_unweighted_mean`` (the same geometry over the 24 unsent points that carry no weight in
+the pose fit, the jaw contour without the chin and the inner lips: ``bench.geometry``); and
 ``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
 30 Hz; every packet is checked to have ``PACKET_BYTES``).
 
@@ -26,9 +28,42 @@ background and the hair, which the model does not carry, are not measured): gray
 ``face_psnr_mean``. The same clip is encoded with x264 through PyAV
 (``bench.fidelity.x264_reference``: two-pass, veryslow, tune ssim, aimed at our
 ``payload_kbps``; x264 usually cannot get that low, and ``h264_kbps`` is the rate it actually
-reached, container included), decoded, and measured in the same boxes:
+reached: the H.264 stream's bytes, the sizes of the packets x264 put out, not the MP4 file's
+size with its container, just as ``payload_kbps`` counts our packets without ZeroMQ's framing),
+decoded, and measured in the same boxes:
 ``h264_face_ssim_mean``, ``h264_face_psnr_mean``. ``met.face_ssim_above_h264`` says whether
 our face SSIM beats x264's (issue 6's target).
+
+What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
+full-frame detection per image, nothing carried from frame to frame) on the real frame, on
+our rendering of it and on x264's decoding of it, and the rendering's and x264's 68 points
+are compared with the real frame's, in units of the real frame's outer-eye distance:
+``render_nme_mean`` (68 points), ``render_nme_mouth`` (48-67), ``render_nme_eyes`` (36-47),
+``render_nme_brows`` (17-26), and the same for x264 (``h264_render_nme_*``). The frames are
+those rendered for the face SSIM. A real frame without a face is left out
+(``real_face_missing``); a rendering or x264 frame without one (the real frame has one) is
+counted, ``render_face_missing`` / ``h264_face_missing``, and left out of that picture's
+means (``*_nme_frames`` says over how many frames each mean is). ``met.render_nme_at_most_h264``
+holds when ours lost the face on no more frames than x264 and our mean is at most x264's (or
+x264's face was never found). Counting matters: on lp_d14 (frames 178:, model from 0:178)
+x264 at its floor gives its second keyframe (frame 250 of the range) 85 bytes, which decode
+to a flat grey picture, and the 107 frames after it stay grey; the tracker finds no face on
+any of them (``h264_face_missing`` 108 of 358), and x264's mean is over the other 250.
+``render_nme_seconds`` is the time the tracking took: about
+20-35 ms an image on the shared 2-core machine, 2 to 3 images a measured frame (lp_d14,
+358 frames: 38 s of the command's 81 s).
+
+Frames the model was built from. A model built by ``model build`` stores the video frames it
+came from (``models.modelfile.SourceRange``: the video's name, size and sha256, frames
+[a, b)). Scoring those frames would measure how well the model remembers its enrollment, not
+how it does on new footage, so ``check_overlap`` refuses (``OverlapError``, one line, before
+any work) when the scored range overlaps [a, b) of the same video, unless ``allow_overlap``
+(``--allow-overlap``) is given; the report then says so and ``overlap_frames`` counts them.
+The same video is the same bytes: the source file's size and sha256 equal the stored ones
+(hashing the file costs under 1 ms a MB), so a renamed copy is recognised and another clip
+with the same frame numbers is not refused. ``overlap_frames`` is 0 for another video and
+None for a model that stores no range (built before it was stored); ``model_source`` is the
+stored range.
 
 Appearance classification. ``q_regions`` gives, per region of the model in packet order
 (a list of objects with the region's ``name``), its layer count
@@ -60,6 +95,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -71,13 +107,16 @@ from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_r
 from facewire.bench.geometry import GeometryNME, geometry_nme
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
+from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme, track_fresh
+from facewire.bench.render_nme import summary as render_summary
 from facewire.bench.speed import NoFaceError
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoError, range_text
 from facewire.models.landmarks import eye_aspect_ratio
-from facewire.models.modelfile import load_model
+from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
+from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
 from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.receiver.render import FaceRenderer
@@ -85,6 +124,7 @@ from facewire.receiver.views import sender_view
 from facewire.sender.capture import Source, open_source
 from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.tracker import LandmarkTracker
 
 TARGET_NME_HELDOUT = 3.0  # percent of the outer-eye distance
 TARGET_Q = {"eyelid_au45": 0.6, "blink_f1": 0.7, "forehead_au01_au02": 0.4}
@@ -105,9 +145,41 @@ class _Series(NamedTuple):
     appearance: _Appearance
 
 
+class OverlapError(FacewireError, ValueError):
+    """The frames to score overlap the model's build frames of the same video."""
+
+
+def check_overlap(model: PersonModel, source: str | os.PathLike[str], frames: slice,
+                  allow_overlap: bool = False) -> int | None:
+    """How many frames of ``frames`` the model was built from (module docstring, "Frames
+    the model was built from").
+
+    Returns:
+        The count (0 when the source is another video, or not a file); None when the model
+        does not say what it was built from.
+
+    Raises:
+        OverlapError: the count is positive and ``allow_overlap`` is False (one line, naming
+            the video, both ranges and the option).
+    """
+    built = model.info.source
+    if built is None:
+        return None
+    if not Path(source).is_file() or not built.same_video(source):
+        return 0
+    overlap = built.overlap(frames.start or 0, frames.stop)
+    if overlap and not allow_overlap:
+        raise OverlapError(
+            f"{source}: frames {range_text(frames)} include {overlap} of the frames "
+            f"{built.start}:{built.stop} the model was built from; score frames outside "
+            f"them (e.g. --frames {built.stop}:) or pass --allow-overlap")
+    return overlap
+
+
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                     frames: slice | None = None, progress: Progress = no_progress,
-                    reference: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+                    reference: str | os.PathLike[str] | None = None,
+                    allow_overlap: bool = False) -> dict[str, Any]:
     """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
 
     Args:
@@ -116,6 +188,7 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         frames: the frame range (``models.infra.video.frame_range``); all by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         reference: an OpenFace CSV of the same video, for ``q_reference``.
+        allow_overlap: score frames the model was built from (``check_overlap``).
 
     Returns:
         A dict: ``frames``, ``face_frames``, ``tracked_frames``, ``pose_lost_frames``,
@@ -125,25 +198,33 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``nme_rigid_only_median``, ``nme_rigid_only_p95`` (percent; None when no frame was
         measured), ``q_regions``, ``q_reference`` (with a reference), ``camera``,
         ``face_ssim_mean``, ``face_psnr_mean``, ``h264_kbps``, ``h264_face_ssim_mean``,
-        ``h264_face_psnr_mean``, ``targets``, ``met``, ``model``, ``source``, ``subset``
-        (``bench.clips``: "tuning", "evaluation" or None).
+        ``h264_face_psnr_mean``, ``nme_unweighted_mean``, ``render_nme_mean``,
+        ``render_nme_mouth``, ``render_nme_eyes``, ``render_nme_brows``,
+        ``render_nme_frames``, the same five with ``h264_`` in front,
+        ``render_face_missing``, ``h264_face_missing``, ``real_face_missing``,
+        ``render_nme_seconds``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
+        ``model``, ``source``, ``subset`` (``bench.clips``: "tuning", "evaluation" or None).
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
         CaptureError / VideoError: the source is missing, unreadable or holds no frame in the
             range; ``NoFaceError`` when the tracker finds no face in any frame (names the file).
         OpenFaceError: the reference is missing or malformed (names the file).
+        OverlapError: the frames overlap the model's build frames of the same video and
+            ``allow_overlap`` is False.
     """
-    return _measure(model_path, source, frames, progress, reference)[0]
+    return _measure(model_path, source, frames, progress, reference,
+                    allow_overlap=allow_overlap)[0]
 
 
 def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
              frames: slice | None, progress: Progress,
-             reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False
-             ) -> tuple[dict[str, Any], _Series]:
+             reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False,
+             allow_overlap: bool = False) -> tuple[dict[str, Any], _Series]:
     frames = slice(0, None) if frames is None else frames
     openface = None if reference is None else read_openface(reference)
     model = load_model(model_path)
+    overlap = check_overlap(model, source, frames, allow_overlap)
     src = open_source(str(source), pace=False, frames=frames)
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
                               rate_hz=stream_rate(src.rate_hz))
@@ -177,6 +258,9 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                    "width": camera.width, "height": camera.height},
         **_stats("nme_heldout", result.heldout),
         **_stats("nme_rigid_only", result.rigid_only),
+        "nme_unweighted_mean": _stats("nme_unweighted", result.unweighted)["nme_unweighted_mean"],
+        "overlap_frames": overlap,
+        "model_source": None if model.info.source is None else model.info.source.as_dict(),
         "unit": "percent of the outer-eye distance",
         "targets": {"nme_heldout_mean": TARGET_NME_HELDOUT},
     }
@@ -203,6 +287,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         appearance.summary["face_ssim_mean"] is not None
         and appearance.summary["h264_face_ssim_mean"] is not None
         and appearance.summary["face_ssim_mean"] > appearance.summary["h264_face_ssim_mean"])
+    summary["met"]["render_nme_at_most_h264"] = _render_at_most_h264(appearance.summary)
     return summary, _Series(np.array(run.indices), np.array(run.times), posed, result, q,
                             layers, run.eyes, appearance)
 
@@ -300,6 +385,20 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     boxes: dict[int, tuple[int, int, int, int]] = {}
     masks: dict[int, np.ndarray] = {}
     rendered_faces: dict[int, np.ndarray] = {}
+    tracker = LandmarkTracker()
+    seen = np.full((len(decoded), len(PARTS)), np.nan)  # render NME per frame and part
+    h264_seen = np.full((len(decoded), len(PARTS)), np.nan)
+    real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
+    missing = {"real": 0, "render": 0, "h264": 0}
+    tracking = 0.0  # seconds spent tracking for the render NME
+
+    def fresh(image: np.ndarray) -> np.ndarray | None:
+        nonlocal tracking
+        start = time.perf_counter()
+        points = track_fresh(tracker, image)
+        tracking += time.perf_counter() - start
+        return points
+
     with FaceRenderer(model, camera.width, camera.height) as renderer:
         for k, image in enumerate(progress(images, "rendering", len(images))):
             points = tracked[k]
@@ -317,6 +416,16 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
             if keep_examples:
                 rendered_faces[k] = ours.copy()
+            truth = fresh(image)
+            if truth is None:
+                missing["real"] += 1
+                continue
+            real_points[k] = truth
+            drawn = fresh(rendered)
+            if drawn is None:
+                missing["render"] += 1
+            else:
+                seen[k] = picture_nme(truth, drawn)
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_kbps = None
@@ -326,6 +435,12 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
         with tempfile.TemporaryDirectory() as work:
             x264 = x264_reference(even, rate_hz, payload_kbps, work)
         h264_kbps = round(x264.kbps, 3)
+        for k, truth in progress(real_points.items(), "tracking x264", len(real_points)):
+            coded_points = fresh(x264.frames[k])
+            if coded_points is None:
+                missing["h264"] += 1
+            else:
+                h264_seen[k] = picture_nme(truth, coded_points)
         for k, (x0, y0, x1, y1) in boxes.items():
             real, coded = images[k][y0:y1, x0:x1], x264.frames[k][y0:y1, x0:x1]
             if coded.shape != real.shape:  # the box reaches the row or column x264 dropped
@@ -340,8 +455,22 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     examples = {k: triples[k] for k in sorted(picks)}
     summary = {"face_ssim_mean": _mean(ssim), "face_psnr_mean": _mean(peak),
                "h264_kbps": h264_kbps, "h264_face_ssim_mean": _mean(h264_ssim),
-               "h264_face_psnr_mean": _mean(h264_peak)}
+               "h264_face_psnr_mean": _mean(h264_peak),
+               **render_summary("render", FaceCounts(seen, missing["render"])),
+               **render_summary("h264_render", FaceCounts(h264_seen, missing["h264"])),
+               "render_face_missing": missing["render"],
+               "h264_face_missing": missing["h264"],
+               "real_face_missing": missing["real"],
+               "render_nme_seconds": round(tracking, 2)}
     return _Appearance(summary, ssim, h264_ssim, examples)
+
+
+def _render_at_most_h264(r: dict[str, Any]) -> bool:
+    """Ours no worse than x264 for the viewer: the tracker lost our face on no more frames,
+    and our render NME is at most x264's (or x264's face was never found while ours was)."""
+    ours, theirs = r["render_nme_mean"], r["h264_render_nme_mean"]
+    return (ours is not None and r["render_face_missing"] <= r["h264_face_missing"]
+            and (theirs is None or ours <= theirs))
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -421,6 +550,14 @@ def format_quality(result: dict[str, Any]) -> str:
         f"{r['measured_frames']} measured; {r['clamped_frames']} with clamped values",
         f"payload: {r['packet_bytes']} bytes a packet, {r['payload_kbps']:.2f} kbit/s at 30 Hz",
     ]
+    built = r["model_source"]
+    if r["overlap_frames"] is None:
+        lines.append("model: says nothing of the frames it was built from (an older model): "
+                     "overlap not checked")
+    elif r["overlap_frames"]:
+        lines.append(f"OVERLAP: {r['overlap_frames']} of these frames are among the model's "
+                     f"build frames {built['start']}:{built['stop']} (--allow-overlap): they "
+                     f"do not show how the model does on footage it never saw")
     if r["subset"] == "tuning":
         lines.append("clip: in the tuning subset (bench.clips): these figures show how the "
                      "tuning fits it; judge on the evaluation clips")
@@ -434,6 +571,8 @@ def format_quality(result: dict[str, Any]) -> str:
             f"median {r['nme_heldout_median']:.2f} %, p95 {r['nme_heldout_p95']:.2f} %",
             f"rigid-only NME (pose alone):     mean {r['nme_rigid_only_mean']:.2f} %, "
             f"median {r['nme_rigid_only_median']:.2f} %, p95 {r['nme_rigid_only_p95']:.2f} %",
+            f"unweighted NME (24 points the pose fit ignores: jaw contour, inner lips): "
+            f"mean {r['nme_unweighted_mean']:.2f} %",
             f"target: held-out mean <= {TARGET_NME_HELDOUT:g} %: "
             f"{_verdict(r['met']['nme_heldout'])}; below rigid-only: "
             f"{_verdict(r['met']['below_rigid_only'])}",
@@ -466,18 +605,35 @@ def format_quality(result: dict[str, Any]) -> str:
                      f"{r['h264_face_ssim_mean']:.3f}, PSNR {r['h264_face_psnr_mean']:.2f} dB "
                      f"at {r['h264_kbps']:.2f} kbit/s; ours above x264: "
                      f"{_verdict(r['met']['face_ssim_above_h264'])}")
+        lines.append(_seen_line("render NME (tracker on our rendering vs the real frame)",
+                                r, "render", r["render_face_missing"]))
+        lines.append(_seen_line("render NME (tracker on x264's frame vs the real frame) ",
+                                r, "h264_render", r["h264_face_missing"]))
+        lines.append(f"render NME: ours no worse than x264 (mean and faces lost): "
+                     f"{_verdict(r['met']['render_nme_at_most_h264'])}; {r['real_face_missing']} "
+                     f"real frames without a face left out; tracking took "
+                     f"{r['render_nme_seconds']:.1f} s")
     return "\n".join(lines)
+
+
+def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:
+    if r[f"{prefix}_nme_mean"] is None:
+        return f"{label}: no face found on any frame ({missing} frames)"
+    parts = ", ".join(f"{part} {r[f'{prefix}_nme_{part}']:.2f} %"
+                      for part in ("mouth", "eyes", "brows"))
+    return (f"{label}: mean {r[f'{prefix}_nme_mean']:.2f} % ({parts}) over "
+            f"{r[f'{prefix}_nme_frames']} frames; face not found on {missing}")
 
 
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
             frames: slice | None = None, plot: str | os.PathLike[str] | None = None,
             progress: Progress = no_progress,
-            reference: str | os.PathLike[str] | None = None
+            reference: str | os.PathLike[str] | None = None, allow_overlap: bool = False
             ) -> tuple[dict[str, Any], list[str]]:
     """Run ``measure_quality``, optionally plot: the result and the report's lines (targets
     inform; a miss is no failure: see the module docstring)."""
     result, series = _measure(model_path, source, frames, progress, reference,
-                              keep_eyes=plot is not None)
+                              keep_eyes=plot is not None, allow_overlap=allow_overlap)
     lines = format_quality(result).splitlines()
     if plot is not None:
         lines += _plots(series, result, Path(plot))

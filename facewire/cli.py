@@ -238,6 +238,8 @@ def _model_build(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
                f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
+               f"built from: {s['source']['video']} frames {s['source']['start']}:"
+               f"{s['source']['stop']}",
                f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
                f"from the generic head)",
                f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
@@ -253,11 +255,16 @@ def _model_info(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,
          "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
-         "texture": list(model.texture.shape[:2]), "creator": model.info.creator}
+         "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
+         "source": None if model.info.source is None else model.info.source.as_dict()}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
+    source = model.info.source
+    built = "unknown (a model written before the range was stored)" if source is None else \
+        f"{source.text()} ({source.bytes:,} bytes, sha256 {source.sha256[:16]}...)"
     report(s, [f"model:    {args.model}",
                f"person:   {s['name']} (from {s['source_video'] or '-'}, "
                f"neutral frame {s['neutral_frame']})",
+               f"built from: {built}",
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
@@ -307,7 +314,8 @@ def _bench_quality(args: argparse.Namespace) -> int:
     from facewire.report import report
 
     report(*quality(args.model, args.source, frames=_frames(args.frames), plot=args.plot,
-                    progress=_progress, reference=args.reference), args.json)
+                    progress=_progress, reference=args.reference,
+                    allow_overlap=args.allow_overlap), args.json)
     return 0
 
 
@@ -450,6 +458,9 @@ def _add_bench(sub: Commands) -> None:
     bq.add_argument("--source", required=True, help="video file")
     bq.add_argument("--frames", help="frame range A:B to measure on")
     bq.add_argument("--reference", help="OpenFace CSV of the same video, for Q agreement")
+    bq.add_argument("--allow-overlap", action="store_true",
+                    help="score frames the model was built from (refused by default; the "
+                    "report then says how many)")
     _add_json(bq)
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
     bq.set_defaults(run=_bench_quality)

@@ -41,14 +41,14 @@ N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy for
 2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
 their header before that). Manifest ``model.json``, every key required and no others::
 
-    {"format": "facewire-model", "format_version": 3,
+    {"format": "facewire-model", "format_version": 4,
      "camera":  {"fx", "fy": focal lengths, px; "cx", "cy": principal point, px
                  (image origin top-left); "width", "height": image size, px; within the
                  bounds of ``models.geometry.Intrinsics``},
      "info":    {"name": person, "source_video": enrollment video's name ("" if none),
                  "frames_used": strictly increasing frame indices, "neutral_frame": index,
                  "creator": software that built it, "created": a date given by the caller
-                 or ""},
+                 or "", "source": the frames the model was built from, or null (below)},
      "members": {member name: {"dtype": numpy dtype name, "shape": [int, ...]}},
      "regions": [{"name": R, "uv_rect": [u0, v0, u1, v1], "template_rect": [u0, v0, u1, v1],
                   "layers": k, "opacity": [k numbers in [0, 1]], "rest": Q,
@@ -70,7 +70,16 @@ dimensions, size limit) and against its ``members`` entry; the mesh arrays then 
 data) is a new row of that table and a new manifest key, with ``format_version`` raised: a
 reader accepts only the versions it knows, and keeps reading the older ones. Version 1 had
 no ``opacity`` and no ``rest`` (read as all ones and 0); nothing ever wrote a version-1
-model with regions. Version 2 had no ``areas`` (read as none).
+model with regions. Version 2 had no ``areas`` (read as none). Version 3 had no
+``info.source`` (read as null: the build range is unknown).
+
+``info.source`` (``SourceRange``) is the frame range the model was built from, so that a
+benchmark can refuse to score a model on its own enrollment frames (``bench quality``):
+``{"video": file name, "bytes": file size, "sha256": sha256 of the file's bytes (64
+lowercase hex), "start": a, "stop": b}``, the frames [a, b) of that file (0 <= a < b; b is
+one past the last frame decoded, never open-ended). Two videos are the same video when
+their bytes are the same (size and sha256): a renamed copy is the same video, a re-encoded
+one is not. null for a model made from no video (a still portrait).
 
 The zip itself must be plain (``models.archive``, the container this module fills: it
 ends with its end-of-archive record, no comment, nothing before or after the archive),
@@ -129,8 +138,8 @@ from facewire.models.mesh import Mesh, MeshError
 from facewire.protocol.errors import FacewireError
 
 FORMAT = "facewire-model"
-FORMAT_VERSION = 3
-READ_VERSIONS = (1, 2, 3)
+FORMAT_VERSION = 4
+READ_VERSIONS = (1, 2, 3, 4)
 MAX_FILE_BYTES = 256 * 1024**2
 MAX_TOTAL_BYTES = 256 * 1024**2
 MAX_MEMBER_BYTES = 64 * 1024**2
@@ -161,6 +170,68 @@ class ModelFileError(FacewireError, ValueError):
 
 
 @dataclass(frozen=True)
+class SourceRange:
+    """The frames of one video a model was built from (module docstring, ``info.source``).
+
+    Attributes:
+        video: the video's file name (no folder), 1 to 1024 printable characters.
+        bytes: the video file's size, bytes, >= 1.
+        sha256: lowercase hex sha256 of the video file's bytes (its identity).
+        start: the first frame index used, >= 0.
+        stop: one past the last frame index, > ``start``.
+    """
+
+    video: str
+    bytes: int
+    sha256: str
+    start: int
+    stop: int
+
+    def __post_init__(self) -> None:
+        _text(self.video, "info.source.video", 1, 1024)
+        object.__setattr__(self, "bytes", _integer(self.bytes, "info.source.bytes", 1, 2**53))
+        if not (isinstance(self.sha256, str) and _HEX64.fullmatch(self.sha256)):
+            raise ModelError("info.source.sha256: expected 64 lowercase hex digits")
+        start = _integer(self.start, "info.source.start", 0, 2**53)
+        stop = _integer(self.stop, "info.source.stop", 1, 2**53)
+        if stop <= start:
+            raise ModelError(f"info.source.stop: {stop} not after start {start}")
+        object.__setattr__(self, "start", start)
+        object.__setattr__(self, "stop", stop)
+
+    @classmethod
+    def of_file(cls, path: str | os.PathLike[str], start: int, stop: int) -> SourceRange:
+        """The range [start, stop) of the video file ``path`` (hashes the file's bytes).
+
+        Raises:
+            ModelFileError: the file cannot be read (names it).
+            ModelError: a bad range.
+        """
+        size, digest = file_identity(path)
+        return cls(os.path.basename(os.fspath(path)), size, digest, start, stop)
+
+    def same_video(self, path: str | os.PathLike[str]) -> bool:
+        """Whether the file ``path`` is this video: the same size and sha256 of its bytes."""
+        return file_identity(path) == (self.bytes, self.sha256)
+
+    def overlap(self, start: int, stop: int | None) -> int:
+        """How many frame indices of [start, stop) (``stop`` None: to the end of the video)
+        also lie in this range."""
+        end = self.stop if stop is None else min(stop, self.stop)
+        return max(0, end - max(start, self.start))
+
+    def text(self) -> str:
+        """``NAME frames A:B``."""
+        return f"{self.video} frames {self.start}:{self.stop}"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The manifest's ``info.source`` object (also ``model build/info --json``'s
+        ``source``): video, bytes, sha256, start, stop."""
+        return {"video": self.video, "bytes": self.bytes, "sha256": self.sha256,
+                "start": self.start, "stop": self.stop}
+
+
+@dataclass(frozen=True)
 class ModelInfo:
     """Who the model is and how it was made; nothing here depends on the clock.
 
@@ -171,6 +242,8 @@ class ModelInfo:
         neutral_frame: the frame index the neutral texture comes from, >= 0.
         creator: the software that built it (e.g. "facewire 0.1.0"), at most 256 characters.
         created: a creation date given by the caller, "" for none (at most 64 characters).
+        source: the video frames the model was built from; None when unknown (a model of
+            format version 3 or older) or made from no video.
     """
 
     name: str
@@ -179,6 +252,7 @@ class ModelInfo:
     neutral_frame: int = 0
     creator: str = ""
     created: str = ""
+    source: SourceRange | None = None
 
     def __post_init__(self) -> None:
         _text(self.name, "info.name", 1, 256)
@@ -196,6 +270,9 @@ class ModelInfo:
                 raise ModelError(f"info.frames_used[{i}]: not strictly increasing")
         object.__setattr__(self, "neutral_frame", neutral)
         object.__setattr__(self, "frames_used", frames)
+        if self.source is not None and not isinstance(self.source, SourceRange):
+            raise ModelError(f"info.source: expected a SourceRange or None, "
+                             f"got {_kind(self.source)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -365,6 +442,19 @@ def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
     except OSError as e:
         raise ModelFileError(f"{os.fspath(path)}: cannot write ({e})") from e
     return hashlib.sha256(data).hexdigest()
+
+
+def file_identity(path: str | os.PathLike[str]) -> tuple[int, str]:
+    """A file's size in bytes and the lowercase hex sha256 of its bytes (read in chunks).
+
+    Raises ``ModelFileError`` naming the file if it cannot be read.
+    """
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            return size, hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError as e:
+        raise ModelFileError(f"{os.fspath(path)}: cannot read ({e})") from e
 
 
 def model_sha256(path: str | os.PathLike[str]) -> str:
@@ -555,7 +645,8 @@ def _encode(model: PersonModel) -> bytes:
                    "width": c.width, "height": c.height},
         "info": {"name": i.name, "source_video": i.source_video,
                  "frames_used": list(i.frames_used), "neutral_frame": i.neutral_frame,
-                 "creator": i.creator, "created": i.created},
+                 "creator": i.creator, "created": i.created,
+                 "source": None if i.source is None else i.source.as_dict()},
         "members": declared,
         "regions": [{"name": r.name, "uv_rect": list(r.uv_rect),
                      "template_rect": list(r.template_rect), "layers": int(r.layers.shape[0]),
@@ -616,8 +707,14 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         camera = Intrinsics(**fields)
     except ValueError as e:
         raise ModelError(f"camera.{e}") from e
-    info = ModelInfo(**_keys(doc["info"], "info", {"name", "source_video", "frames_used",
-                                                   "neutral_frame", "creator", "created"}))
+    info_keys = {"name", "source_video", "frames_used", "neutral_frame", "creator", "created"}
+    info_fields = dict(_keys(doc["info"], "info", info_keys | ({"source"} if version >= 4
+                                                                 else set())))
+    source = info_fields.pop("source", None)
+    if source is not None:
+        source = SourceRange(**_keys(source, "info.source",
+                                     {"video", "bytes", "sha256", "start", "stop"}))
+    info = ModelInfo(**info_fields, source=source)
     members: dict[str, tuple[int, ...]] = {}
     if not isinstance(doc["members"], dict):
         raise ModelError(f"members: expected an object, got {_kind(doc['members'])}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import cv2
@@ -76,6 +77,10 @@ def test_build_info_export(built, capsys):
     info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert info["sha256"] == summary["sha256"] and info["neutral_frame"] == summary[
         "neutral_frame"]
+    # the frames it was built from: all 78 of lp_d0, the file known by its bytes
+    source = {"video": "lp_d0.mp4", "bytes": video.stat().st_size,
+              "sha256": hashlib.sha256(video.read_bytes()).hexdigest(), "start": 0, "stop": 78}
+    assert summary["source"] == info["source"] == source
 
     glb = out.with_suffix(".glb")
     assert main(["model", "export", str(out), "-o", str(glb)]) == 0

@@ -12,6 +12,7 @@ import json
 import struct
 import tracemalloc
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from facewire.models.modelfile import (
     ModelInfo,
     PersonModel,
     Region,
+    SourceRange,
     load_model,
     load_model_bytes,
     model_sha256,
@@ -54,6 +56,9 @@ def _grid_mesh(g: int = 12) -> Mesh:
     return Mesh(vertices, triangles, uv, tags, landmarks, phantoms)
 
 
+SOURCE = SourceRange("alice.mp4", 123456, "ab" * 32, 7, 43)
+
+
 def _model(name: str = "alice", regions: bool = True) -> PersonModel:
     rng = np.random.default_rng(2)
     region = Region(
@@ -69,7 +74,7 @@ def _model(name: str = "alice", regions: bool = True) -> PersonModel:
         texture=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
         camera=Intrinsics(fx=610.5, fy=612.25, cx=319.5, cy=241.0, width=640, height=480),
         info=ModelInfo(name=name, source_video="alice.mp4", frames_used=tuple(range(10, 40, 3)),
-                       neutral_frame=13, creator="facewire test"),
+                       neutral_frame=13, creator="facewire test", source=SOURCE),
         regions=(region,) if regions else ())
 
 
@@ -492,9 +497,9 @@ def test_index_outside_the_mesh_is_refused(saved: Path, tmp_path: Path) -> None:
 
 def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
-    manifest["format_version"] = 4
+    manifest["format_version"] = 5
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest),
-             "model.json: format_version: unsupported version 4")
+             "model.json: format_version: unsupported version 5")
     manifest["format_version"] = "1"
     _refused(_edit(saved, tmp_path / "b.fwm", manifest=manifest),
              "model.json: format_version: expected an integer")
@@ -512,6 +517,17 @@ def test_unknown_format_version_is_refused(saved: Path, tmp_path: Path) -> None:
     (lambda m: m["info"].update(extra=1), "info: unknown key 'extra'"),
     (lambda m: m["info"].update(frames_used=[3, 2]), "info.frames_used[1]: not strictly"),
     (lambda m: m["info"].update(name=""), "info.name"),
+    (lambda m: m["info"].pop("source"), "info: missing key 'source'"),
+    (lambda m: m["info"].update(source=[0, 10]), "info.source: expected an object, got list"),
+    (lambda m: m["info"]["source"].pop("sha256"), "info.source: missing key 'sha256'"),
+    (lambda m: m["info"]["source"].update(frames=9), "info.source: unknown key 'frames'"),
+    (lambda m: m["info"]["source"].update(start=-1), "info.source.start: -1 outside"),
+    (lambda m: m["info"]["source"].update(start=1.5), "info.source.start: expected an integer"),
+    (lambda m: m["info"]["source"].update(stop=7), "info.source.stop: 7 not after start 7"),
+    (lambda m: m["info"]["source"].update(bytes=0), "info.source.bytes: 0 outside"),
+    (lambda m: m["info"]["source"].update(sha256="AB" * 32),
+     "info.source.sha256: expected 64 lowercase hex"),
+    (lambda m: m["info"]["source"].update(video=""), "info.source.video: expected 1 to 1024"),
     (lambda m: m.update(regions={}), "regions: expected a list"),
     (lambda m: m["regions"][0].update(name="../x"), "regions[0].name"),
     (lambda m: m["regions"][0].update(layers=0), "regions[0].layers"),
@@ -541,9 +557,56 @@ def test_manifest_schema_is_enforced(saved: Path, tmp_path: Path, edit, fragment
     _refused(_edit(saved, tmp_path / "a.fwm", manifest=manifest), fragment)
 
 
+def test_build_range_round_trips(saved: Path, tmp_path: Path) -> None:
+    """info.source: written as the manifest's object, read back equal; None round-trips as
+    null; the range's overlap arithmetic."""
+    loaded = load_model(saved).info.source
+    assert loaded == SOURCE
+    assert _manifest(saved)["info"]["source"] == {"video": "alice.mp4", "bytes": 123456,
+                                                  "sha256": "ab" * 32, "start": 7, "stop": 43}
+    none = replace(_model(), info=replace(_model().info, source=None))
+    save_model(none, tmp_path / "none.fwm")
+    assert _manifest(tmp_path / "none.fwm")["info"]["source"] is None
+    assert load_model(tmp_path / "none.fwm").info.source is None
+    assert [SOURCE.overlap(a, b) for a, b in ((43, None), (0, 7), (0, None), (40, 50),
+                                              (10, 20), (0, 8))] == [0, 0, 36, 3, 10, 1]
+    with pytest.raises(ModelError, match="info.source.stop"):
+        SourceRange("a.mp4", 1, "ab" * 32, 5, 5)
+    with pytest.raises(ModelError, match="info.source: expected a SourceRange"):
+        ModelInfo("alice", source=(0, 10))  # type: ignore[arg-type]
+
+
+def test_build_range_identifies_the_video_by_its_bytes(tmp_path: Path) -> None:
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"frames" * 1000)
+    built = SourceRange.of_file(video, 0, 30)
+    assert (built.video, built.bytes) == ("clip.mp4", 6000)
+    assert built.sha256 == hashlib.sha256(video.read_bytes()).hexdigest()
+    copy = tmp_path / "renamed.mkv"
+    copy.write_bytes(video.read_bytes())
+    assert built.same_video(video) and built.same_video(copy)  # the bytes, not the name
+    other = tmp_path / "other" / "clip.mp4"
+    other.parent.mkdir()
+    other.write_bytes(b"frameS" * 1000)  # same name, same size, other bytes
+    assert not built.same_video(other)
+    with pytest.raises(ModelFileError, match="absent.mp4"):
+        SourceRange.of_file(tmp_path / "absent.mp4", 0, 1)
+
+
+def test_version_3_is_read_without_a_build_range(saved: Path, tmp_path: Path) -> None:
+    manifest = _manifest(saved)
+    manifest["format_version"] = 3
+    manifest["info"].pop("source")
+    assert load_model(_edit(saved, tmp_path / "v3.fwm", manifest=manifest)).info.source is None
+    manifest["info"]["source"] = None
+    _refused(_edit(saved, tmp_path / "v3b.fwm", manifest=manifest),
+             "info: unknown key 'source'")
+
+
 def test_version_2_is_read_without_further_areas(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
     manifest["format_version"] = 2
+    manifest["info"].pop("source")
     manifest["regions"][0].pop("areas")
     for name in [n for n in manifest["members"] if "/area_" in n]:
         manifest["members"].pop(name)
@@ -557,6 +620,7 @@ def test_version_2_is_read_without_further_areas(saved: Path, tmp_path: Path) ->
 def test_version_1_is_read_with_opaque_layers(saved: Path, tmp_path: Path) -> None:
     manifest = _manifest(saved)
     manifest["format_version"] = 1
+    manifest["info"].pop("source")
     manifest["regions"][0].pop("opacity")
     manifest["regions"][0].pop("rest")
     manifest["regions"][0].pop("areas")

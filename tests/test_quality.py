@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +13,20 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from facewire.bench.geometry import geometry_nme, project_landmarks
-from facewire.bench.quality import TARGET_NME_HELDOUT, TARGET_Q, format_quality, quality
+from facewire.bench.quality import (
+    TARGET_NME_HELDOUT,
+    TARGET_Q,
+    OverlapError,
+    check_overlap,
+    format_quality,
+    quality,
+)
 from facewire.bench.reference import OpenFaceError
 from facewire.bench.speed import NoFaceError
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.landmarks import HELD_OUT, outer_eye_distance
-from facewire.models.modelfile import ModelFileError
+from facewire.models.modelfile import ModelFileError, load_model
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
 from facewire.protocol.packet import (
@@ -235,6 +245,20 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path,
         assert isinstance(r[key], float) and math.isfinite(r[key]), key
     assert 0.2 < r["face_ssim_mean"] < 1 and 0.2 < r["h264_face_ssim_mean"] < 1
     assert r["met"]["face_ssim_above_h264"] == (r["face_ssim_mean"] > r["h264_face_ssim_mean"])
+    # what the viewer sees: the tracker finds our rendered face on every measured frame and
+    # its points lie near the real frame's (measured: 1.94 %; x264 at its floor 2.62 %)
+    assert r["real_face_missing"] == 0 and r["render_face_missing"] == 0
+    assert r["render_nme_frames"] == r["measured_frames"]
+    for key in ("render_nme_mean", "render_nme_mouth", "render_nme_eyes", "render_nme_brows"):
+        assert isinstance(r[key], float) and 0 < r[key] < 6, key
+    assert r["h264_render_nme_frames"] + r["h264_face_missing"] == r["render_nme_frames"]
+    assert r["met"]["render_nme_at_most_h264"] == (
+        r["render_face_missing"] <= r["h264_face_missing"]
+        and (r["h264_render_nme_mean"] is None
+             or r["render_nme_mean"] <= r["h264_render_nme_mean"]))
+    assert 0 < r["nme_unweighted_mean"] and r["overlap_frames"] == 0
+    assert r["model_source"]["video"] == "lp_d0.mp4"
+    assert (r["model_source"]["start"], r["model_source"]["stop"]) == (0, 40)
     text = "\n".join(out)
     q_plot, face_plot = tmp_path / "nme-q.png", tmp_path / "nme-face.png"
     assert text == format_quality(r) + f"\nplot: {plot}\nplot: {q_plot}\nplot: {face_plot}"
@@ -250,6 +274,46 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path,
         assert 0 <= q["min"] <= q["mean"] <= q["max"] <= q["layers"] - 1, name
     assert regions["eyeball_left"]["cue_r"] > 0.5
     assert "q_reference" not in r  # only with --reference
+
+
+def test_overlap_with_the_build_frames_through_the_cli(lp_d0_model: Path, shared_data: Path,
+                                                      tmp_path: Path) -> None:
+    """The model was built from lp_d0's frames 0:40: scoring 30:45 is refused in one line
+    (exit 2) before any work; with --allow-overlap it runs and says so; model info shows the
+    range; another video with the model's frame numbers is not refused."""
+    video = shared_data / "video" / "lp_d0.mp4"
+    facewire = str(Path(sys.executable).with_name("facewire"))
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([facewire, *args], capture_output=True, text=True, timeout=300)
+
+    refused = run("bench", "quality", "--model", str(lp_d0_model), "--source", str(video),
+                  "--frames", "30:45", "--json")
+    assert refused.returncode == 2 and refused.stdout == ""
+    assert refused.stderr.count("\n") == 1 and "Traceback" not in refused.stderr
+    assert refused.stderr.startswith(f"facewire: {video}: frames 30:45 include 10 of the "
+                                     f"frames 0:40 the model was built from")
+    assert "--allow-overlap" in refused.stderr
+    allowed = run("bench", "quality", "--model", str(lp_d0_model), "--source", str(video),
+                  "--frames", "36:44", "--allow-overlap", "--json")
+    assert allowed.returncode == 0, allowed.stderr
+    r = json.loads(allowed.stdout.splitlines()[-1])
+    assert r["overlap_frames"] == 4 and r["frames"] == 8
+    assert "OVERLAP: 4 of these frames are among the model's build frames 0:40" in allowed.stdout
+    info = run("model", "info", str(lp_d0_model), "--json")
+    assert info.returncode == 0
+    assert "built from: lp_d0.mp4 frames 0:40" in info.stdout
+    source = json.loads(info.stdout.splitlines()[-1])["source"]
+    assert (source["video"], source["start"], source["stop"]) == ("lp_d0.mp4", 0, 40)
+    assert source["bytes"] == video.stat().st_size
+    # The same frame numbers of another file are not the model's frames.
+    model = load_model(lp_d0_model)
+    other = shared_data / "video" / "lp_d18.mp4"
+    assert check_overlap(model, other, slice(0, 20)) == 0
+    assert check_overlap(model, video, slice(40, None)) == 0
+    assert check_overlap(model, video, slice(0, None), allow_overlap=True) == 40
+    with pytest.raises(OverlapError, match="include 1 of the frames 0:40"):
+        check_overlap(model, video, slice(39, 50))
 
 
 @pytest.fixture(scope="module")

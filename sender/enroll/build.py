@@ -15,11 +15,13 @@ The steps, in order (``build_model``):
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
    templates are what the sender will sample at run time.
-5. Save the model (``models.modelfile``) and a preview PNG beside it: the model rendered from
-   the front and from three-quarter view, beside the neutral frame cropped to the face, so a
-   user can see at a glance whether the model is that person; below, one row per region
-   with its layers in order (as drawn over the neutral texture: layer times its opacity and
-   alpha ramp).
+5. Save the model (``models.modelfile``), with the frames it was built from (the
+   video's name, size and sha256, and the range [first, last + 1) of the frames tracked:
+   ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
+   rendered from the front and from three-quarter view, beside the neutral frame cropped to
+   the face, so a user can see at a glance whether the model is that person; below, one row
+   per region with its layers in order (as drawn over the neutral texture: layer times its
+   opacity and alpha ramp).
 
 Failures a user can cause (an unreadable video, no face, too few face frames) raise
 ``BuildError`` naming the video.
@@ -58,6 +60,7 @@ from facewire.models.modelfile import (
     ModelInfo,
     PersonModel,
     Region,
+    SourceRange,
     model_summary,
     save_model,
 )
@@ -113,6 +116,8 @@ class BuildResult:
                 "neutral_frame": self.model.info.neutral_frame, "depth": self.fit.depth,
                 "depth_change_mm": round(self.fit.depth_change_mm, 3),
                 "texture_views": list(self.model.info.frames_used),
+                "source": None if self.model.info.source is None
+                else self.model.info.source.as_dict(),
                 "appearance": self.appearance, "seconds": round(self.seconds, 2)}
 
 
@@ -184,7 +189,8 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         camera=camera,
         info=ModelInfo(name=name or video.stem, source_video=video.name,
                        frames_used=tuple(sorted(indices[k] for k in fit.views)),
-                       neutral_frame=indices[fit.neutral], creator=CREATOR))
+                       neutral_frame=indices[fit.neutral], creator=CREATOR,
+                       source=SourceRange.of_file(video, indices[0], indices[-1] + 1)))
     report: dict[str, Any] = {}
     if appearance:
         regions, report = enroll_regions(model, video, frames, progress)
