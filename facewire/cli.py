@@ -242,8 +242,25 @@ def _model_build(args: argparse.Namespace) -> int:
                f"from the generic head)",
                f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
                *regions,
+               *_coverage_lines(s["coverage"], s["coverage_lines"]),
                f"time:     {s['seconds']} s"], args.json)
     return 0
+
+
+def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = None
+                    ) -> list[str]:
+    """The report's coverage: a line naming the states the layers show, then one line per
+    state they lack, saying what the rendering does instead (``sender.enroll.coverage``)."""
+    if coverage is None:
+        return ["coverage: not measured (a model built before coverage was stored)"]
+    if lines is None:
+        from facewire.sender.enroll.coverage import missing_lines
+
+        lines = missing_lines(coverage)
+    seen = [name.replace("_", " ") for name, ok in coverage.items() if ok]
+    head = (f"coverage: {len(seen)} of {len(coverage)} states: {', '.join(seen)}" if seen
+            else "coverage: none of the expression states")
+    return [head, *(f"          {line}" for line in lines)]
 
 
 def _model_info(args: argparse.Namespace) -> int:
@@ -253,7 +270,8 @@ def _model_info(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,
          "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
-         "texture": list(model.texture.shape[:2]), "creator": model.info.creator}
+         "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
+         "coverage": model.coverage}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     report(s, [f"model:    {args.model}",
                f"person:   {s['name']} (from {s['source_video'] or '-'}, "
@@ -261,6 +279,7 @@ def _model_info(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
+               *_coverage_lines(model.coverage),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
 
@@ -345,8 +364,10 @@ def _add_model(sub: Commands) -> None:
     """``model build``, ``model info`` and ``model export``."""
     model = sub.add_parser("model", help="build, inspect and export a person model (.fwm)")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
-    m = msub.add_parser("build", help="build a person model from a short video of that person")
-    m.add_argument("video", help="enrollment video of the person making faces")
+    m = msub.add_parser("build", help="build a person model from a short video of that person, "
+                        "or from one photo")
+    m.add_argument("video", metavar="VIDEO|PHOTO", help="enrollment video of the person making "
+                   "faces, or one photo (.jpg, .jpeg, .png, .bmp, .webp): the neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     _add_json(m)
