@@ -28,8 +28,10 @@ The steps, in order (``build_model``):
 
 One photo (``build_photo``; ``build_model`` sends a path with a ``PHOTO_SUFFIXES`` suffix
 there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go through
-steps 1-3 and 5 unchanged (the fit needs 10 face frames; identical copies give the same
-points, so the fit is that of the one view, with the generic head's depth). Step 4 is
+steps 1-3 and 5 (the fit needs 10 face frames). Each copy takes the points the tracker
+detects on the first: its follower, fed the same image again, moved points by up to 27 px
+on the demo's portrait, so the copies would disagree and the fit would take whichever
+looked most neutral. One view gives the generic head's depth. Step 4 is
 skipped: one expression gives no states to choose, so the model has no regions, only the
 neutral; a receiver draws the neutral texture on the morphed mesh whatever the packet's Q.
 The demo's performer (``facewire.performer``) builds its portrait's model this way.
@@ -238,6 +240,9 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     points: list[np.ndarray | None] = []
     for frame in progress(read(frames), "tracking", total):
         indices.append(frame.index)
+        if photo and points:  # the same image: the detection's points, not the follower's
+            points.append(points[0])
+            continue
         points.append(tracker.track(frame.image).points)
     if not indices:
         raise BuildError(f"{where}: no frames in range {range_text(frames)}")
