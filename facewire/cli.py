@@ -253,14 +253,11 @@ def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = 
     state they lack, saying what the rendering does instead (``sender.enroll.coverage``)."""
     if coverage is None:
         return ["coverage: not measured (a model built before coverage was stored)"]
-    if lines is None:
-        from facewire.sender.enroll.coverage import missing_lines
+    from facewire.sender.enroll.coverage import covered_line, missing_lines
 
+    if lines is None:
         lines = missing_lines(coverage)
-    seen = [name.replace("_", " ") for name, ok in coverage.items() if ok]
-    head = (f"coverage: {len(seen)} of {len(coverage)} states: {', '.join(seen)}" if seen
-            else "coverage: none of the expression states")
-    return [head, *(f"          {line}" for line in lines)]
+    return [f"coverage: {covered_line(coverage)}", *(f"          {line}" for line in lines)]
 
 
 def _model_info(args: argparse.Namespace) -> int:

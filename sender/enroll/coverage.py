@@ -340,3 +340,14 @@ def missing_lines(coverage: dict[str, bool], neutral_only: bool | None = None) -
     lines += [f"{name}: not seen" for name, ok in coverage.items() if name not in names
               and not ok]
     return lines
+
+
+def covered_line(coverage: dict[str, bool]) -> str:
+    """One line naming the states covered, by their labels (``STATES`` order)."""
+    labels = {s.name: s.label for s in STATES}
+    seen = [labels.get(name, name) for name in sorted(
+        (n for n, ok in coverage.items() if ok),
+        key=lambda n: STATE_NAMES.index(n) if n in STATE_NAMES else len(STATE_NAMES))]
+    if not seen:
+        return "none of the expression states"
+    return f"{len(seen)} of {len(coverage)} states: {', '.join(seen)}"
