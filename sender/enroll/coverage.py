@@ -131,8 +131,8 @@ _EYEBALLS = ("eyeball_right", "eyeball_left")
 _AHEAD = "the eyes render looking ahead (the nearest gaze layer)"
 STATES: tuple[StateTest, ...] = (
     StateTest("eyes_closed", "eyes closed", _EYELIDS, ("open_right", "open_left"),
-              -_INF, CLOSED_EAR, "the eyelids render open (the nearest layer); a blink "
-              "does not show"),
+              -_INF, CLOSED_EAR, "the eyelids render as the most closed layer seen (open "
+              "or half-closed): a blink does not close them"),
     StateTest("gaze_left", "gaze left (the person's own)", _EYEBALLS, ("gaze", "gaze"),
               GAZE_ACROSS, _INF, _AHEAD),
     StateTest("gaze_right", "gaze right (the person's own)", _EYEBALLS, ("gaze", "gaze"),

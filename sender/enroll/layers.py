@@ -8,7 +8,9 @@ what the sender will sample at run time, so enrollment runs the sender itself: t
 the sender's pose and lift.
 
 1. Observe. Every frame of the range goes through the pipeline; each frame with a pose
-   gives its pose, residuals, the (centre-offset) sample of every region and five cues.
+   gives its pose, residuals, the (centre-offset) sample of every region, five cues and the
+   coverage's measures (``sender.enroll.coverage.state_measures``: once the states are
+   chosen, ``coverage.measure_coverage`` judges which expression states their frames show).
 2. Cues (landmark-derived, used only here; at run time only the classifier decides Q):
 
    =============  =========================================================================
