@@ -99,7 +99,7 @@ STILL_FRAMES = 10  # a photo is fitted as this many copies: sender.enroll.fit ne
 STILL_RATE_HZ = 30.0
 
 class BuildError(FacewireError, ValueError):
-    """The video cannot give a model; the message names the video and says why."""
+    """The video or photo cannot give a model; the message names the file and says why."""
 
 
 @dataclass(frozen=True)
