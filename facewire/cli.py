@@ -244,8 +244,22 @@ def _model_build(args: argparse.Namespace) -> int:
                f"from the generic head)",
                f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
                *regions,
+               *_coverage_lines(s["coverage"], s["coverage_lines"]),
                f"time:     {s['seconds']} s"], args.json)
     return 0
+
+
+def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = None
+                    ) -> list[str]:
+    """The report's coverage: a line naming the states the layers show, then one line per
+    state they lack, saying what the rendering does instead (``sender.enroll.coverage``)."""
+    if coverage is None:
+        return ["coverage: not measured (a model built before coverage was stored)"]
+    from facewire.sender.enroll.coverage import covered_line, missing_lines
+
+    if lines is None:
+        lines = missing_lines(coverage)
+    return [f"coverage: {covered_line(coverage)}", *(f"          {line}" for line in lines)]
 
 
 def _model_info(args: argparse.Namespace) -> int:
@@ -256,7 +270,8 @@ def _model_info(args: argparse.Namespace) -> int:
     s = {**model_summary(model), "name": model.info.name,
          "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
          "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
-         "source": None if model.info.source is None else model.info.source.as_dict()}
+         "source": None if model.info.source is None else model.info.source.as_dict(),
+         "coverage": model.coverage}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -268,6 +283,7 @@ def _model_info(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
+               *_coverage_lines(model.coverage),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
 
@@ -353,8 +369,10 @@ def _add_model(sub: Commands) -> None:
     """``model build``, ``model info`` and ``model export``."""
     model = sub.add_parser("model", help="build, inspect and export a person model (.fwm)")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
-    m = msub.add_parser("build", help="build a person model from a short video of that person")
-    m.add_argument("video", help="enrollment video of the person making faces")
+    m = msub.add_parser("build", help="build a person model from a short video of that person, "
+                        "or from one photo")
+    m.add_argument("video", metavar="VIDEO|PHOTO", help="enrollment video of the person making "
+                   "faces, or one photo (.jpg, .jpeg, .png, .bmp, .webp): the neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     _add_json(m)

@@ -6,9 +6,9 @@ U.S. Navy's official photograph of Rear Admiral Grace Hopper; ``portrait``).
 
 How a frame is made (``Performer.frame``), and what in it is synthetic
 ---------------------------------------------------------------------
-1. A *bootstrap model* of the portrait: ``sender.enroll.build.build_model`` on a clip of
-   ``STILL_FRAMES`` copies of the still (geometry and neutral texture, no regions; one view,
-   so the depth is the generic head's). The only edit: the mouth cavity's texels
+1. A *bootstrap model* of the portrait: ``sender.enroll.build.build_photo``, the build of
+   ``facewire model build PHOTO`` (geometry and neutral texture, no regions; one view, so
+   the depth is the generic head's). The only edit: the mouth cavity's texels
    (``Tag.MOUTH_INTERIOR`` triangles in UV) are painted a dark red (``MOUTH_COLOUR``): the
    photo's closed mouth shows no inside, and a filled skin tone there would make an open
    mouth look closed to the tracker.
@@ -69,18 +69,16 @@ import numpy as np
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera, MeshRenderer
-from facewire.models.infra.video import VideoError
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import PersonModel
 from facewire.models.morph import VolumeMorph
 from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
 from facewire.receiver.output import VideoWriter
-from facewire.sender.enroll.build import BuildError, BuildResult, build_model
+from facewire.sender.enroll.build import BuildError, BuildResult, build_photo
 
 PORTRAIT = "grace_hopper.jpg"  # matplotlib's sample data: public domain (U.S. Navy photo)
 RATE_HZ = 30.0
-STILL_FRAMES = 10  # the bootstrap clip: sender.enroll.fit needs at least 10 face frames
 CHANNELS = ("yaw", "pitch", "brows", "mouth", "blink")
 MOUTH_COLOUR = (58, 16, 20)  # RGB of the painted mouth cavity
 PIVOT = (0.0, -40.0, -80.0)  # mm from the landmarks' centroid: the head turns about this
@@ -399,21 +397,16 @@ class Performer:
     @staticmethod
     def bootstrap(image: np.ndarray, folder: str | os.PathLike[str],
                   progress: Progress = no_progress) -> BuildResult:
-        """Build the bootstrap model of a still (module docstring, 1) in ``folder``.
+        """Build the bootstrap model of a still (module docstring, 1) in ``folder``: the
+        one-photo build of ``facewire model build PHOTO`` (``sender.enroll.build.build_photo``).
 
         Raises:
             PerformerError: no face, or no usable fit, in the image.
         """
-        folder = Path(folder)
-        still = folder / "still.mp4"
-        with VideoWriter(still, image.shape[1], image.shape[0], RATE_HZ) as writer:
-            rgb = np.ascontiguousarray(image[..., ::-1])
-            for _ in range(STILL_FRAMES):
-                writer.write(rgb)
         try:
-            return build_model(still, folder / "still.fwm", name="portrait", progress=progress,
-                               appearance=False)
-        except (BuildError, VideoError) as exc:
+            return build_photo(image, Path(folder) / "still.fwm", name="portrait",
+                               progress=progress)
+        except BuildError as exc:
             raise PerformerError(f"the portrait cannot be modelled: {exc}") from None
 
     def camera(self, yaw_deg: float, pitch_deg: float) -> Camera:

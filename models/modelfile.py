@@ -54,6 +54,11 @@ their header before that). Manifest ``model.json``, every key required and no ot
                   "layers": k, "opacity": [k numbers in [0, 1]], "rest": Q,
                   "areas": [[u0, v0, u1, v1], ...]}, ...]}
 
+One key is optional: ``"coverage": {state: true or false}``, the expression states the
+model's layers show (``sender.enroll.coverage``; at most 32, names as region names), absent
+when they were not measured (models built before it). It leaves ``format_version`` at 3: a
+reader that predates it refuses such a model by name ("unknown key 'coverage'").
+
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
 empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
@@ -392,6 +397,9 @@ class PersonModel:
         sha256: the model id, lowercase hex sha256 of the file it was loaded from; "" for a
             model built in memory (``model_summary`` computes it then).
         file_bytes: size of that file, bytes; 0 for a model built in memory.
+        coverage: {state: covered}, the expression states its layers show
+            (``sender.enroll.coverage``; at most 32, names as region names), or None when
+            not measured (older models). The manifest's optional ``coverage`` key.
     """
 
     mesh: Mesh
@@ -401,6 +409,7 @@ class PersonModel:
     regions: tuple[Region, ...] = ()
     sha256: str = ""
     file_bytes: int = 0
+    coverage: dict[str, bool] | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -425,6 +434,8 @@ class PersonModel:
                                       and _HEX64.fullmatch(self.sha256))):
             raise ModelError("sha256: expected '' or 64 lowercase hex digits")
         _integer(self.file_bytes, "file_bytes", 0, MAX_FILE_BYTES)
+        if self.coverage is not None:
+            _coverage(self.coverage)
 
 
 def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
@@ -529,7 +540,8 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
                                   arrays[f"{main}/mask.png"], arrays[f"{main}/templates.npy"],
                                   r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
-                           tuple(regions), hashlib.sha256(data).hexdigest(), len(data))
+                           tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
+                           manifest.coverage)
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -654,6 +666,8 @@ def _encode(model: PersonModel) -> bytes:
                      "areas": [list(a.uv_rect) for a in r.areas]}
                     for r in model.regions],
     }
+    if model.coverage is not None:
+        manifest["coverage"] = dict(model.coverage)
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
                                            allow_nan=False) + "\n").encode("ascii")
     return zip_bytes(members)
@@ -678,6 +692,7 @@ class _Manifest(NamedTuple):
     info: ModelInfo
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
     regions: list[_RegionEntry]
+    coverage: dict[str, bool] | None
 
 
 def _parse_manifest(raw: bytes) -> _Manifest:
@@ -695,7 +710,9 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         doc = json.loads(raw.decode("utf-8"), object_pairs_hook=unique, parse_constant=no_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise ModelError(f"not valid JSON ({e})") from e
-    _keys(doc, "manifest", {"format", "format_version", "camera", "info", "members", "regions"})
+    optional = {"coverage"} & (doc.keys() if isinstance(doc, dict) else set())
+    _keys(doc, "manifest", {"format", "format_version", "camera", "info", "members",
+                            "regions"} | optional)
     if doc["format"] != FORMAT:
         raise ModelError(f"format: expected {FORMAT!r}, got {doc['format']!r:.80}")
     version = _integer(doc["format_version"], "format_version", 0, 2**31)
@@ -761,7 +778,8 @@ def _parse_manifest(raw: bytes) -> _Manifest:
                              f"rectangles, got {_kind(areas)}")
         regions.append(_RegionEntry(name, entry["uv_rect"], entry["template_rect"], k,
                                     tuple(opacity), entry.get("rest", 0.0), areas))
-    return _Manifest(camera, info, members, regions)
+    coverage = _coverage(doc["coverage"]) if optional else None
+    return _Manifest(camera, info, members, regions, coverage)
 
 
 def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],
@@ -832,6 +850,20 @@ def _kind(value: object) -> str:
 
 def _shape_text(shape: tuple[int | str, ...]) -> str:
     return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _coverage(value: object) -> dict[str, bool]:
+    """The ``coverage`` field: at most ``MAX_REGIONS`` states, names as region names, each
+    true or false; raises ``ModelError`` otherwise."""
+    if not isinstance(value, dict) or len(value) > MAX_REGIONS:
+        raise ModelError(f"coverage: expected an object of at most {MAX_REGIONS} states, "
+                         f"got {_kind(value)}")
+    for name, covered in value.items():
+        if not isinstance(name, str) or not _REGION_NAME.fullmatch(name):
+            raise ModelError(f"coverage: bad state name {name!r:.40}")
+        if not isinstance(covered, bool):
+            raise ModelError(f"coverage[{name!r}]: expected true or false, got {_kind(covered)}")
+    return dict(value)
 
 
 def _keys(value: object, field: str, keys: set[str]) -> dict[str, Any]:

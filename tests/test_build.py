@@ -17,6 +17,7 @@ from facewire.models.regions import REGION_NAMES, spec
 from facewire.receiver.views import VIEW_KINDS, virtual_view
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.enroll.build import (
+    COVERAGE_ROW_HEIGHT,
     PREVIEW_HEIGHT,
     REGION_ROW_HEIGHT,
     TEXTURE_SIZE,
@@ -66,8 +67,8 @@ def test_build_info_export(built, capsys):
     closed = summary["appearance"]["eyelid_left"]["cue"]
     assert closed[-1] > closed[0] + 0.05  # lp_d0 closes its eyes: the last state is closed
     preview = cv2.imread(str(out.with_name("lp.preview.png")))
-    assert preview.shape == (PREVIEW_HEIGHT + len(REGION_NAMES) * REGION_ROW_HEIGHT,
-                             3 * PREVIEW_HEIGHT, 3)
+    assert preview.shape == (PREVIEW_HEIGHT + len(REGION_NAMES) * REGION_ROW_HEIGHT
+                             + COVERAGE_ROW_HEIGHT, 3 * PREVIEW_HEIGHT, 3)
     front = preview[:, PREVIEW_HEIGHT:2 * PREVIEW_HEIGHT]
     face = front[PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3,
                  PREVIEW_HEIGHT // 3:2 * PREVIEW_HEIGHT // 3].reshape(-1, 3).mean(axis=0)

@@ -14,23 +14,39 @@ The steps, in order (``build_model``):
 4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
-   templates are what the sender will sample at run time.
+   templates are what the sender will sample at run time. With them, the coverage
+   (``sender.enroll.coverage``): which expression states (eyes closed, gaze, brows, mouth
+   open or wide, teeth) the layers' frames show; the model stores it
+   (``PersonModel.coverage``) and ``model build`` says what the rendering does for each
+   state it lacks. A model without regions covers none: only the neutral.
 5. Save the model (``models.modelfile``), with the frames it was built from (the
    video's name, size and sha256, and the range [first, last + 1) of the frames tracked:
    ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
    rendered from the front and from three-quarter view, beside the neutral frame cropped to
    the face, so a user can see at a glance whether the model is that person; below, one row
    per region with its layers in order (as drawn over the neutral texture: layer times its
-   opacity and alpha ramp).
+   opacity and alpha ramp); last, the coverage (``sender.enroll.coverage``): which
+   expression states the layers show, and which they do not.
 
-Failures a user can cause (an unreadable video, no face, too few face frames) raise
-``BuildError`` naming the video.
+One photo (``build_photo``; ``build_model`` sends a path with a ``PHOTO_SUFFIXES`` suffix
+there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go through
+steps 1-3 and 5 (the fit needs 10 face frames). Each copy takes the points the tracker
+detects on the first: its follower, fed the same image again, moved points by up to 27 px
+on the demo's portrait, so the copies would disagree and the fit would take whichever
+looked most neutral. One view gives the generic head's depth. Step 4 is
+skipped: one expression gives no states to choose, so the model has no regions, only the
+neutral; a receiver draws the neutral texture on the morphed mesh whatever the packet's Q.
+The demo's performer (``facewire.performer``) builds its portrait's model this way.
+
+Failures a user can cause (an unreadable video or photo, no face, too few face frames)
+raise ``BuildError`` naming the file.
 """
 
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -52,7 +68,13 @@ from facewire.models.head import generic_head
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer
-from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
+from facewire.models.infra.video import (
+    VideoFrame,
+    frames_in_range,
+    range_text,
+    read_frames,
+    video_info,
+)
 from facewire.models.landmarks import outer_eye_distance
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import (
@@ -66,6 +88,7 @@ from facewire.models.modelfile import (
 )
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
+from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.enroll.texture import fill_holes, project_views, uv_surface
@@ -79,9 +102,13 @@ PREVIEW_SAMPLES = 4  # multisampling of the preview's renders
 CREATOR = "facewire 0.1.0"
 REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
 REGION_LABEL_WIDTH = 150
+COVERAGE_ROW_HEIGHT = 60  # the preview's last row: the states covered and not seen
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp")  # what ``model build`` takes as a photo
+STILL_FRAMES = 10  # a photo is fitted as this many copies: sender.enroll.fit needs 10 face frames
+STILL_RATE_HZ = 30.0
 
 class BuildError(FacewireError, ValueError):
-    """The video cannot give a model; the message names the video and says why."""
+    """The video or photo cannot give a model; the message names the file and says why."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +124,8 @@ class BuildResult:
         face_frames: how many of them had a face.
         seconds: wall time of the whole build.
         appearance: the appearance step's report per region ({} when it was not run).
+        coverage: the states the layers show (``sender.enroll.coverage``; none without
+            regions).
     """
 
     model: PersonModel
@@ -107,6 +136,7 @@ class BuildResult:
     face_frames: int
     seconds: float
     appearance: dict[str, Any]
+    coverage: Coverage
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
@@ -118,7 +148,8 @@ class BuildResult:
                 "texture_views": list(self.model.info.frames_used),
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
-                "appearance": self.appearance, "seconds": round(self.seconds, 2)}
+                "appearance": self.appearance, **self.coverage.summary(),
+                "seconds": round(self.seconds, 2)}
 
 
 def preview_path(model_path: str | os.PathLike[str]) -> Path:
@@ -127,54 +158,121 @@ def preview_path(model_path: str | os.PathLike[str]) -> Path:
     return path.with_name(path.stem + ".preview.png")
 
 
+def is_photo(path: str | os.PathLike[str]) -> bool:
+    """Whether ``model build`` takes ``path`` as a photo (``PHOTO_SUFFIXES``, any case)."""
+    return Path(path).suffix.lower() in PHOTO_SUFFIXES
+
+
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
                 progress: Progress = no_progress,
                 appearance: bool = True) -> BuildResult:
-    """Build a person's model from a video and save it with its preview.
+    """Build a person's model from a video, or from one photo, and save it with its preview.
 
     Args:
         video: the enrollment video: one person (the largest face is taken), some seconds of
             neutral face and expressions, ideally some head turns (for depth and side texture).
+            A photo (``is_photo``) goes to ``build_photo``.
         out: the ``.fwm`` file to write; the preview goes to ``preview_path(out)``.
-        frames: the frame range to use (``models.infra.video.frame_range``).
+        frames: the frame range to use (``models.infra.video.frame_range``); a photo takes
+            only the whole range.
         name: the person's name; the video's file name without extension by default.
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         appearance: run the appearance step (module docstring, 4); False builds geometry and
-            the neutral texture only, a model without regions (the demo's bootstrap model of
-            a still portrait, which has no expressions to choose states from).
+            the neutral texture only, a model without regions.
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
         EnrollError: the appearance step found fewer than 2 frames with a head pose.
         VideoError: the video cannot be opened or decoded.
     """
-    start = time.perf_counter()
     video = Path(video)
+    if is_photo(video):
+        if frames != slice(0, None):
+            raise BuildError(f"{video}: a photo has one frame; --frames is for videos")
+        return build_photo(video, out, name, progress)
     info = video_info(video)
-    total = frames_in_range(frames, info.frames)
+    return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
+                  frames_in_range(frames, info.frames), out, frames, name or video.stem,
+                  progress, video if appearance else None, str(video), video)
 
+
+def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLike[str],
+                name: str | None = None, progress: Progress = no_progress) -> BuildResult:
+    """Build a model from one photo: the neutral only (module docstring, "One photo").
+
+    Args:
+        photo: an image file OpenCV reads (``PHOTO_SUFFIXES``), or an (H, W, 3) uint8 BGR
+            image (the demo's portrait).
+        out: the ``.fwm`` file to write; the preview goes beside it.
+        name: the person's name; the file name without extension (or "portrait") by default.
+        progress: wraps an iterable to show progress.
+
+    Raises:
+        BuildError: the file is not a readable image, or no face or no usable fit in it (the
+            message names the file).
+    """
+    if isinstance(photo, np.ndarray):
+        image, where, source = photo, "the photo", ""
+        name = name or "portrait"
+    else:
+        path = Path(photo)
+        if not path.is_file():
+            raise BuildError(f"{path}: no such photo")
+        read = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if read is None:
+            raise BuildError(f"{path}: not an image OpenCV can read")
+        image = np.asarray(read)
+        where, source = str(path), path.name
+        name = name or path.stem
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8 or min(
+            image.shape[:2]) < 16:
+        raise BuildError(f"{where}: expected a colour image of at least 16 x 16 pixels, got "
+                         f"shape {image.shape}")
+    still = [VideoFrame(k, k / STILL_RATE_HZ, image) for k in range(STILL_FRAMES)]
+
+    def copies(frames: slice) -> Iterator[VideoFrame]:
+        return iter(still[frames])
+
+    return _build(source, copies, image.shape[1], image.shape[0], STILL_FRAMES, out,
+                  slice(0, None), name, progress, None, where,
+                  None if isinstance(photo, np.ndarray) else Path(photo), photo=True)
+
+
+def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: int,
+           height: int, total: int | None, out: str | os.PathLike[str], frames: slice,
+           name: str, progress: Progress, video: Path | None, where: str,
+           source_file: Path | None, photo: bool = False) -> BuildResult:
+    """The build (module docstring, steps 1-5) from a frame source: ``read(frames)`` yields
+    the frames of a range; ``video`` is the file the appearance step reads (None: no
+    appearance step); ``where`` names the input in errors; ``source_file`` is the file the
+    model says it was built from (``info.source``; None for an image given in memory)."""
+    start = time.perf_counter()
     tracker = LandmarkTracker()
     indices: list[int] = []
     points: list[np.ndarray | None] = []
-    for frame in progress(read_frames(video, frames), "tracking", total):
+    for frame in progress(read(frames), "tracking", total):
         indices.append(frame.index)
+        if photo and points:  # the same image: the detection's points, not the follower's
+            points.append(points[0])
+            continue
         points.append(tracker.track(frame.image).points)
     if not indices:
-        raise BuildError(f"{video}: no frames in range {range_text(frames)}")
+        raise BuildError(f"{where}: no frames in range {range_text(frames)}")
     face_frames = sum(p is not None for p in points)
     if face_frames == 0:
-        raise BuildError(f"{video}: no face found in frames {indices[0]}..{indices[-1]}")
+        raise BuildError(f"{where}: no face found in the photo" if photo else
+                         f"{where}: no face found in frames {indices[0]}..{indices[-1]}")
 
-    camera = intrinsics_guess(info.width, info.height)
+    camera = intrinsics_guess(width, height)
     try:
         fit = fit_person(points, camera, head=generic_head())
     except FitError as exc:
-        raise BuildError(f"{video}: {exc}") from None
+        raise BuildError(f"{where}: {exc}") from None
 
     wanted = {indices[k] for k in fit.views}
-    images = {frame.index: frame.image for frame in read_frames(
-        video, slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
+    images = {frame.index: frame.image for frame in read(
+        slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
     views = []
     for k in fit.views:
         pose = fit.poses[k]
@@ -184,24 +282,29 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     texture, weight = project_views(fit.mesh, surface, views)
     texture = fill_holes(texture, weight > 0)
 
+    used, neutral = tuple(sorted(indices[k] for k in fit.views)), indices[fit.neutral]
+    if photo:  # the copies are one frame: frame 0
+        used, neutral, indices, face_frames = (0,), 0, [0], 1
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
         camera=camera,
-        info=ModelInfo(name=name or video.stem, source_video=video.name,
-                       frames_used=tuple(sorted(indices[k] for k in fit.views)),
-                       neutral_frame=indices[fit.neutral], creator=CREATOR,
-                       source=SourceRange.of_file(video, indices[0], indices[-1] + 1)))
+        info=ModelInfo(name=name, source_video=source, frames_used=used,
+                       neutral_frame=neutral, creator=CREATOR,
+                       source=None if source_file is None else SourceRange.of_file(
+                           source_file, indices[0], indices[-1] + 1)))
     report: dict[str, Any] = {}
-    if appearance:
-        regions, report = enroll_regions(model, video, frames, progress)
+    coverage = measure_coverage({}, np.zeros(len(MEASURES)))
+    if video is not None:
+        regions, report, coverage = enroll_regions(model, video, frames, progress)
         model = at_rest(replace(model, regions=regions))
+    model = replace(model, coverage=coverage.states)
     out = Path(out)
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
     preview = preview_path(out)
-    neutral_image = images[indices[fit.neutral]]
+    neutral_image = images[min(images)] if photo else images[indices[fit.neutral]]
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start, report)
+                       time.perf_counter() - start, report, coverage)
 
 
 def at_rest(model: PersonModel) -> PersonModel:
@@ -257,8 +360,10 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
             renders; the whole frame when None.
 
     Returns:
-        (PREVIEW_HEIGHT + R * REGION_ROW_HEIGHT, W, 3) uint8 BGR image: [neutral frame |]
-        front | three-quarter, then a row per region of its R regions (module docstring).
+        (PREVIEW_HEIGHT + R * REGION_ROW_HEIGHT [+ COVERAGE_ROW_HEIGHT], W, 3) uint8 BGR
+        image: [neutral frame |] front | three-quarter, then a row per region of its R
+        regions, then, when the model has its coverage, a row naming the states covered and
+        those not seen (module docstring).
     """
     mesh = model.mesh
     size = PREVIEW_HEIGHT
@@ -274,7 +379,23 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
     top = np.hstack(panels)
     rows = [_region_row(model.texture, r, top.shape[1]) for r in model.regions]
+    if model.coverage is not None:
+        rows.append(_coverage_row(model.coverage, top.shape[1]))
     return np.vstack([top, *rows])
+
+
+def _coverage_row(coverage: dict[str, bool], width: int) -> np.ndarray:
+    """(COVERAGE_ROW_HEIGHT, width, 3) BGR: the states the layers show, and those they do
+    not (``sender.enroll.coverage``)."""
+    row = np.full((COVERAGE_ROW_HEIGHT, width, 3), 24, np.uint8)
+    seen = [name.replace("_", " ") for name, ok in coverage.items() if ok]
+    missing = [name.replace("_", " ") for name, ok in coverage.items() if not ok]
+    for y, colour, text in ((22, (140, 220, 140), "covered: " + (", ".join(seen) or
+                                                                  "only the neutral")),
+                            (48, (120, 160, 240), "not seen: " + (", ".join(missing) or
+                                                                   "none"))):
+        cv2.putText(row, text, (6, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+    return row
 
 
 def preview_cameras(mesh: Mesh) -> list[ViewCamera]:

@@ -8,7 +8,9 @@ what the sender will sample at run time, so enrollment runs the sender itself: t
 the sender's pose and lift.
 
 1. Observe. Every frame of the range goes through the pipeline; each frame with a pose
-   gives its pose, residuals, the (centre-offset) sample of every region and five cues.
+   gives its pose, residuals, the (centre-offset) sample of every region, five cues and the
+   coverage's measures (``sender.enroll.coverage.state_measures``: once the states are
+   chosen, ``coverage.measure_coverage`` judges which expression states their frames show).
 2. Cues (landmark-derived, used only here; at run time only the classifier decides Q):
 
    =============  =========================================================================
@@ -76,6 +78,12 @@ from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from facewire.sender.enroll.coverage import (
+    Coverage,
+    measure_coverage,
+    reference,
+    state_measures,
+)
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
@@ -104,6 +112,7 @@ class Observation:
         cues: (R,) float64 each region's cue (module docstring); NaN when not defined.
         eye_ratio: (2,) the eye aspect ratios (right eye, left eye).
         yaw_deg: the head's yaw, degrees.
+        measures: (M,) float64 the frame's ``sender.enroll.coverage.state_measures``.
     """
 
     index: int
@@ -114,14 +123,17 @@ class Observation:
     cues: np.ndarray
     eye_ratio: np.ndarray
     yaw_deg: float
+    measures: np.ndarray
 
 
 class Enrollment(NamedTuple):
-    """What ``enroll_regions`` made: the regions and, per region, how they were chosen (the
-    report is ``BuildResult.appearance``, ``sender.enroll.build``)."""
+    """What ``enroll_regions`` made: the regions, per region how they were chosen (the
+    report is ``BuildResult.appearance``, ``sender.enroll.build``), and which states their
+    layers show (``sender.enroll.coverage``)."""
 
     regions: tuple[Region, ...]
     report: dict[str, dict[str, Any]]
+    coverage: Coverage
 
 
 def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
@@ -137,8 +149,9 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         progress: wraps an iterable to show progress.
 
     Returns:
-        The regions in ``REGIONS`` order, and a report per region: the chosen frames, their
-        cue values, the span, whether it is weak, and the rest state (the neutral frame's).
+        The regions in ``REGIONS`` order, a report per region (the chosen frames, their
+        cue values, the span, whether it is weak, and the rest state: the neutral frame's),
+        and the states the layers' frames show.
 
     Raises:
         EnrollError: fewer than 2 frames with a pose.
@@ -160,6 +173,9 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         picks, info = _choose_states(region, cues[:, r], yaw, neutral)
         chosen[region.name] = picks
         report[region.name] = {**info, "frames": [observations[i].index for i in picks]}
+    measures = np.array([o.measures for o in observations])
+    coverage = measure_coverage({name: measures[picks] for name, picks in chosen.items()},
+                                reference(measures))
 
     wanted = sorted({i for picks in chosen.values() for i in picks})
     images = {}
@@ -184,7 +200,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         areas = tuple(Area(*area) for area in zip(placement.areas, parts[1:], masks[1:]))
         regions.append(Region(region.name, placement.uv_rect, placement.template_rect, parts[0],
                               masks[0], templates, opacity, float(rest), areas))
-    return Enrollment(tuple(regions), report)
+    return Enrollment(tuple(regions), report, coverage)
 
 
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
@@ -203,12 +219,14 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
         gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
         samples = sampler.sample(gray, sent.rotation, sent.translation, sent.residuals)
         forward = sent.rotation[:, 2]
+        cues = region_cues(samples[:, 0], sent.points, sent.residuals)
+        measures = state_measures(sent.points, sent.residuals, dict(zip(names, cues)),
+                                  frame.image)
         out.append(Observation(
             index=frame.index, rotation=sent.rotation, translation=sent.translation,
-            residuals=sent.residuals, samples=samples[:, 0].copy(),
-            cues=region_cues(samples[:, 0], sent.points, sent.residuals),
+            residuals=sent.residuals, samples=samples[:, 0].copy(), cues=cues,
             eye_ratio=eye_aspect_ratio(sent.points),
-            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2])))))
+            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures))
     return out
 
 
