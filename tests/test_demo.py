@@ -104,8 +104,13 @@ def test_the_demo_runs_the_real_send_and_receive_with_the_model_fetched_by_hash(
     assert got["model_sha256"] == sent["model_sha256"] == result.build.model.sha256
     assert got["model_bytes"] == sent["model_bytes"] == Path(result.model).stat().st_size
     assert sent["model_chunks"] > 1
-    assert sent["control"] == {"hello_requests": got["hellos"],
-                               "chunk_requests": sent["model_chunks"], "errors": 0}
+    # The sender answered every request; on a loaded machine a reply can come after the
+    # receiver's wait (0.5 s when it re-checks a Hello), which then asks again: the sender may
+    # count more requests than the receiver counts answers.
+    control = sent["control"]
+    assert control["errors"] == 0
+    assert control["hello_requests"] >= got["hellos"] >= 1
+    assert control["chunk_requests"] >= sent["model_chunks"]
     # ... into a temporary cache, gone after the demo.
     assert got["cached"] is not None and not Path(got["cached"]).exists()
     # Both ends ran as ``facewire send`` and ``facewire receive`` do, over one link.
