@@ -253,8 +253,6 @@ def _model_build(args: argparse.Namespace) -> int:
                *_coverage_lines(s["coverage"], s["coverage_lines"]),
                *_self_check_lines(s),
                f"time:     {s['seconds']} s"], args.json)
-    for line in s.get("self_check_lines", []):
-        print(f"facewire model build: {line}", file=sys.stderr)
     return 0
 
 
@@ -413,7 +411,7 @@ def _add_model(sub: Commands) -> None:
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     m.add_argument("--no-self-check", action="store_true",
-                   help="skip the self-check (the model rendered at up to 60 of its own "
+                   help="skip the self-check (the model rendered at up to 40 of its own "
                    "frames and scored: face SSIM, render NME; about 5 s)")
     _add_json(m)
     m.set_defaults(run=_model_build)

@@ -64,7 +64,7 @@ def built(lp_d0: tuple[Path, Path]) -> tuple[dict, str, str]:
 
 
 def test_build_reports_and_stores_a_plausible_self_check(built, lp_d0, capsys) -> None:
-    """lp_d0 0:40: every frame has a face, so all 40 are scored (fewer than MAX_FRAMES);
+    """lp_d0 0:40: every frame has a face, so all 40 are scored (no more than MAX_FRAMES);
     the model renders its own frames well (measured: SSIM 0.88, render NME 1.9 %) and no
     warning is printed; ``model info`` shows the same scores from the file."""
     s, out, err = built
@@ -165,7 +165,10 @@ def test_the_warning_names_the_cause_the_evidence_shows() -> None:
     lost = replace(clean, posed_frames=int(200 * (1 - 2 * LOST_FRACTION)))
     verdict = diagnose(poor, lost)
     assert verdict.poor and verdict.causes == ("occlusion",)
-    assert "likely cause: occlusion (80 of 200 frames without a face or pose" in verdict.lines[1]
+    assert verdict.lines[1:] == ("likely cause: occlusion", "  occlusion: 80 of 200 frames "
+                                 "without a face or pose (threshold 20 %); tracked points "
+                                 "2.0 % of the eye distance from the fitted model (threshold "
+                                 "6 %)")
     both = replace(lost, face_frames=MIN_FACE_FRAMES // 4, speed_deg_s=1000.0)
     assert diagnose(poor, both).causes == ("motion", "too few frames", "occlusion")
     narrow = replace(clean, yaw_range_deg=0.5)
