@@ -412,7 +412,7 @@ def _add_model(sub: Commands) -> None:
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     m.add_argument("--no-self-check", action="store_true",
                    help="skip the self-check (the model rendered at up to 40 of its own "
-                   "frames and scored: face SSIM, render NME; about 5 s)")
+                   "frames and scored: face SSIM, render NME; about 4 s)")
     _add_json(m)
     m.set_defaults(run=_model_build)
     m = msub.add_parser("info", help="describe a model file")
