@@ -65,7 +65,7 @@ def built(lp_d0: tuple[Path, Path]) -> tuple[dict, str, str]:
 
 def test_build_reports_and_stores_a_plausible_self_check(built, lp_d0, capsys) -> None:
     """lp_d0 0:40: every frame has a face, so all 40 are scored (no more than MAX_FRAMES);
-    the model renders its own frames well (measured: SSIM 0.88, render NME 1.9 %) and no
+    the model renders its own frames well (measured: SSIM 0.867, render NME 1.81 %) and no
     warning is printed; ``model info`` shows the same scores from the file."""
     s, out, err = built
     assert set(KEYS) <= s.keys()
@@ -112,7 +112,7 @@ def test_no_self_check_skips_it(shared_data: Path, tmp_path: Path, capsys) -> No
 def test_another_persons_frames_score_poorly_and_warn(built, lp_d0, shared_data) -> None:
     """lp_d0's model scored on lp_d18's frames (another person): the scores fall well below
     the model's own (measured: SSIM 0.79, render NME 4.6 % against 0.88 and 1.9 %), the
-    verdict is poor, and the warning names a cause."""
+    verdict is poor, and the warning names a cause (of the 40-frame model: render NME 1.81 %)."""
     s = built[0]
     model = load_model(lp_d0[1])
     video = shared_data / "video" / "lp_d18.mp4"
