@@ -96,6 +96,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -111,17 +112,18 @@ from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme, track_fres
 from facewire.bench.render_nme import summary as render_summary
 from facewire.bench.speed import NoFaceError
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.video import VideoError, range_text
+from facewire.models.infra.video import VideoError, VideoFrame, range_text
 from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
+from facewire.protocol.control import Camera
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
 from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import sender_view
-from facewire.sender.capture import Source, open_source
+from facewire.sender.capture import open_source
 from facewire.sender.enroll.layers import region_cues, without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 from facewire.sender.tracker import LandmarkTracker
@@ -230,14 +232,14 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                               rate_hz=stream_rate(src.rate_hz))
     camera = pipeline.hello().camera
     with src:
-        run = _encode(pipeline, src, progress, keep_eyes)
+        run = encode_frames(pipeline, src, progress, src.frames or None, keep_eyes)
     span = f"range {range_text(frames)}"
     if not run.packets:
         raise VideoError(f"{source}: no frames in {span}")
     if all(p is None for p in run.tracked):
         raise NoFaceError(f"{source}: no face found in any of its {len(run.packets)} frames "
                           f"({span})")
-    decoded = _decode(run.packets, run.indices)
+    decoded = decode_run(run.packets, run.indices)
     result = geometry_nme(Rig(model.mesh), camera, decoded, run.tracked)
     flags = decoded["flags"].astype(np.int64)
     face = (flags & Flag.FACE_PRESENT) != 0
@@ -292,7 +294,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                             layers, run.eyes, appearance)
 
 
-class _Run(NamedTuple):
+class Run(NamedTuple):
     """What the sender pipeline made of each frame of the range, in order (F frames)."""
 
     indices: list[int]  # video frame indices
@@ -307,15 +309,23 @@ class _Run(NamedTuple):
     eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
 
 
-def _encode(pipeline: SenderPipeline, src: Source, progress: Progress,
-            keep_eyes: bool) -> _Run:
-    """Run the sender pipeline over every frame of ``src``, keeping what the measures need."""
+def encode_frames(pipeline: SenderPipeline, frames: Iterable[VideoFrame], progress: Progress,
+                  total: int | None = None, keep_eyes: bool = False,
+                  independent: bool = False) -> Run:
+    """Run the sender pipeline over ``frames`` in order, keeping what the measures need.
+
+    With ``independent``, the pipeline is reset before every frame, so each is encoded as
+    the first frame of a stream (a fresh detection, no filter state): the self-check's
+    frames, spread over a range, are not one stream (``bench.selfcheck``).
+    """
     cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
-    run = _Run([], [], [], [], [], np.empty(0), None, np.empty(0), {})
+    run = Run([], [], [], [], [], np.empty(0), None, np.empty(0), {})
     brightness: list[float] = []
     cues: list[np.ndarray] = []
     ratios: list[np.ndarray] = []
-    for frame in progress(src, "encoding", src.frames or None):
+    for frame in progress(frames, "encoding", total):
+        if independent:
+            pipeline.reset()
         out = pipeline.process(frame.image, frame.time)
         if keep_eyes and out.points is not None:
             run.eyes[len(run.indices)] = _eye_crop(frame.image, out.points)
@@ -336,7 +346,7 @@ def _encode(pipeline: SenderPipeline, src: Source, progress: Progress,
                         ratios=np.array(ratios))
 
 
-def _decode(packets: list[bytes], indices: list[int]) -> np.ndarray:
+def decode_run(packets: list[bytes], indices: list[int]) -> np.ndarray:
     """The sender's packets decoded: (F,) ``FRAME_DTYPE``; every one must be whole and valid.
     """
     sizes = {len(p) for p in packets}
@@ -352,7 +362,7 @@ def _decode(packets: list[bytes], indices: list[int]) -> np.ndarray:
     return decoded
 
 
-def _q_regions(q: dict[str, np.ndarray], layers: dict[str, int], run: _Run
+def _q_regions(q: dict[str, np.ndarray], layers: dict[str, int], run: Run
                ) -> list[dict[str, Any]]:
     """Per region in packet order, ``_q_stats`` with its cue on open-eyed frames."""
     cue = np.full((len(run.packets), len(REGION_NAMES)), np.nan)
@@ -371,34 +381,65 @@ class _Appearance(NamedTuple):
     examples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # k -> real, ours, x264
 
 
-def _appearance(model: Any, camera: Any, decoded: np.ndarray,
-                tracked: list[np.ndarray | None], posed: np.ndarray,
-                images: list[np.ndarray], rate_hz: float, payload_kbps: float,
-                progress: Progress, keep_examples: bool = False) -> _Appearance:
-    """Render every measured frame from the sender's camera and compare its face box with
-    the real frame; the same for x264 at our payload rate (module docstring). With
-    ``keep_examples``, the face crops of ``EXAMPLES`` frames evenly spread over the measured
-    ones (real, ours, x264) come back for the plot."""
+class RenderScores(NamedTuple):
+    """Our rendering of each measured frame against the real frame (``render_scores``).
+
+    Attributes:
+        ssim, psnr: (F,) face SSIM and PSNR (dB); NaN where not measured.
+        seen: ``FaceCounts``: (F, len(PARTS)) render NME fractions and the frames whose
+            rendering showed the tracker no face.
+        real_points: frame position -> (68, 2) the real frame's fresh track.
+        real_missing: measured frames whose real frame showed the fresh tracker no face.
+        boxes, masks: frame position -> the face box and its mask (``bench.fidelity``).
+        faces: frame position -> our rendering cropped to the face box (``keep_faces``).
+        tracking_s: seconds spent in the fresh tracking.
+    """
+
+    ssim: np.ndarray
+    psnr: np.ndarray
+    seen: FaceCounts
+    real_points: dict[int, np.ndarray]
+    real_missing: int
+    boxes: dict[int, tuple[int, int, int, int]]
+    masks: dict[int, np.ndarray]
+    faces: dict[int, np.ndarray]
+    tracking_s: float
+
+
+def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
+                  tracked: list[np.ndarray | None], posed: np.ndarray,
+                  images: list[np.ndarray], progress: Progress, tracker: LandmarkTracker,
+                  keep_faces: bool = False,
+                  truths: list[np.ndarray | None] | None = None) -> RenderScores:
+    """Render every measured frame (a pose of its own and tracked points) with the
+    receiver's renderer from the sender's camera and score it against the real frame: face
+    SSIM and PSNR in the face box, and the fresh tracker's points on both (module
+    docstring, "Appearance fidelity" and "What the viewer sees").
+
+    Args:
+        model: the person model the packets were made with.
+        camera: the sender's camera as the Hello carries it.
+        decoded: (F,) ``FRAME_DTYPE`` decoded packets.
+        tracked: F sender tracker results, (68, 2) pixels or None.
+        posed: (F,) bool, frames with a pose of their own.
+        images: F real frames, (H, W, 3) uint8 BGR.
+        progress: wraps an iterable to show progress.
+        tracker: the tracker for the fresh detections (``bench.render_nme.track_fresh``).
+        keep_faces: keep each rendering's face crop (``RenderScores.faces``).
+        truths: the real frames' fresh tracks when already made (a pipeline reset before
+            every frame detects afresh: ``encode_frames(independent=True)``); else tracked
+            here.
+    """
     rig = Rig(model.mesh)
     ssim = np.full(len(decoded), np.nan)
     peak = np.full(len(decoded), np.nan)
     boxes: dict[int, tuple[int, int, int, int]] = {}
     masks: dict[int, np.ndarray] = {}
     rendered_faces: dict[int, np.ndarray] = {}
-    tracker = LandmarkTracker()
     seen = np.full((len(decoded), len(PARTS)), np.nan)  # render NME per frame and part
-    h264_seen = np.full((len(decoded), len(PARTS)), np.nan)
     real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
-    missing = {"real": 0, "render": 0, "h264": 0}
-    tracking = 0.0  # seconds spent tracking for the render NME
-
-    def fresh(image: np.ndarray) -> np.ndarray | None:
-        nonlocal tracking
-        start = time.perf_counter()
-        points = track_fresh(tracker, image)
-        tracking += time.perf_counter() - start
-        return points
-
+    missing = {"real": 0, "render": 0}
+    fresh = _Fresh(tracker)
     with FaceRenderer(model, camera.width, camera.height) as renderer:
         for k, image in enumerate(progress(images, "rendering", len(images))):
             points = tracked[k]
@@ -414,9 +455,9 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
             real, ours = image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
             ssim[k] = gray_ssim(real, ours, mask)
             peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
-            if keep_examples:
+            if keep_faces:
                 rendered_faces[k] = ours.copy()
-            truth = fresh(image)
+            truth = fresh(image) if truths is None else truths[k]
             if truth is None:
                 missing["real"] += 1
                 continue
@@ -426,8 +467,42 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
                 missing["render"] += 1
             else:
                 seen[k] = picture_nme(truth, drawn)
+    return RenderScores(ssim, peak, FaceCounts(seen, missing["render"]), real_points,
+                        missing["real"], boxes, masks, rendered_faces, fresh.seconds)
+
+
+class _Fresh:
+    """``track_fresh`` with the tracker given, timed: ``seconds`` spent in it so far."""
+
+    def __init__(self, tracker: LandmarkTracker) -> None:
+        self.tracker = tracker
+        self.seconds = 0.0
+
+    def __call__(self, image: np.ndarray) -> np.ndarray | None:
+        start = time.perf_counter()
+        points = track_fresh(self.tracker, image)
+        self.seconds += time.perf_counter() - start
+        return points
+
+
+def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
+                tracked: list[np.ndarray | None], posed: np.ndarray,
+                images: list[np.ndarray], rate_hz: float, payload_kbps: float,
+                progress: Progress, keep_examples: bool = False) -> _Appearance:
+    """Our rendering of every measured frame scored against the real frame
+    (``render_scores``), then the same for x264 at our payload rate (module docstring).
+    With ``keep_examples``, the face crops of ``EXAMPLES`` frames evenly spread over the
+    measured ones (real, ours, x264) come back for the plot."""
+    tracker = LandmarkTracker()
+    ours = render_scores(model, camera, decoded, tracked, posed, images, progress, tracker,
+                         keep_faces=keep_examples)
+    ssim, peak, boxes, masks = ours.ssim, ours.psnr, ours.boxes, ours.masks
+    rendered_faces, real_points = ours.faces, ours.real_points
+    missing = {"real": ours.real_missing, "render": ours.seen.missing, "h264": 0}
+    fresh = _Fresh(tracker)
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
+    h264_seen = np.full((len(decoded), len(PARTS)), np.nan)  # x264's render NME
     h264_kbps = None
     triples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # real, ours, x264
     even = [f[:f.shape[0] // 2 * 2, :f.shape[1] // 2 * 2] for f in images]
@@ -456,12 +531,12 @@ def _appearance(model: Any, camera: Any, decoded: np.ndarray,
     summary = {"face_ssim_mean": _mean(ssim), "face_psnr_mean": _mean(peak),
                "h264_kbps": h264_kbps, "h264_face_ssim_mean": _mean(h264_ssim),
                "h264_face_psnr_mean": _mean(h264_peak),
-               **render_summary("render", FaceCounts(seen, missing["render"])),
+               **render_summary("render", ours.seen),
                **render_summary("h264_render", FaceCounts(h264_seen, missing["h264"])),
                "render_face_missing": missing["render"],
                "h264_face_missing": missing["h264"],
                "real_face_missing": missing["real"],
-               "render_nme_seconds": round(tracking, 2)}
+               "render_nme_seconds": round(ours.tracking_s + fresh.seconds, 2)}
     return _Appearance(summary, ssim, h264_ssim, examples)
 
 

@@ -225,10 +225,16 @@ def _frames(text: str | None) -> slice:
 
 def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
-    from facewire.sender.enroll.build import build_model
+    from facewire.sender.enroll.build import build_model, is_photo
 
     frames = _frames(args.frames)
-    result = build_model(args.video, args.output, frames, progress=_progress)
+    check = None
+    if not args.no_self_check:
+        from facewire.bench.selfcheck import photo_check, video_check
+
+        check = photo_check(args.video, _progress) if is_photo(args.video) else \
+            video_check(args.video, _progress)
+    result = build_model(args.video, args.output, frames, progress=_progress, check=check)
     s = result.summary()
     regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
                + (" (weak: the video barely shows it)" if r["weak"] else "")
@@ -245,6 +251,7 @@ def _model_build(args: argparse.Namespace) -> int:
                f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
                *regions,
                *_coverage_lines(s["coverage"], s["coverage_lines"]),
+               *_self_check_lines(s),
                f"time:     {s['seconds']} s"], args.json)
     return 0
 
@@ -262,6 +269,24 @@ def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = 
     return [f"coverage: {covered_line(coverage)}", *(f"          {line}" for line in lines)]
 
 
+def _self_check_lines(s: dict[str, Any]) -> list[str]:
+    """``model build``'s self-check lines (``bench.selfcheck``): the scores, then, when
+    poor, the warning and its likely cause."""
+    if "self_check_ssim" not in s:
+        return ["self-check: skipped (--no-self-check)"]
+    return [_self_check_text(s["self_check_ssim"], s["self_check_render_nme"],
+                             s["self_check_frames"])
+            + f" ({s['self_check_seconds']} s)",
+            *(f"          {line}" for line in s["self_check_lines"])]
+
+
+def _self_check_text(ssim: float | None, nme: float | None, frames: int) -> str:
+    if ssim is None or nme is None:
+        return f"self-check: no frame scored ({frames} frames)"
+    return (f"self-check: face SSIM {ssim:.3f}, render NME {nme:.2f} % over {frames} of the "
+            f"build's own frames")
+
+
 def _model_info(args: argparse.Namespace) -> int:
     from facewire.models.modelfile import load_model, model_summary
     from facewire.report import report
@@ -271,7 +296,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "source_video": model.info.source_video, "neutral_frame": model.info.neutral_frame,
          "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
          "source": None if model.info.source is None else model.info.source.as_dict(),
-         "coverage": model.coverage}
+         "coverage": model.coverage,
+         "self_check": None if model.self_check is None else model.self_check.as_dict()}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -284,8 +310,17 @@ def _model_info(args: argparse.Namespace) -> int:
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
                *_coverage_lines(model.coverage),
+               _stored_self_check(model.self_check),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
+
+
+def _stored_self_check(check: Any) -> str:
+    """``model info``'s self-check line: the stored scores and verdict."""
+    if check is None:
+        return "self-check: not stored (built with --no-self-check, or before it existed)"
+    verdict = f"; POOR, likely cause: {', '.join(check.causes)}" if check.poor else ""
+    return _self_check_text(check.ssim, check.render_nme, check.frames) + verdict
 
 
 def _model_export(args: argparse.Namespace) -> int:
@@ -375,6 +410,9 @@ def _add_model(sub: Commands) -> None:
                    "faces, or one photo (.jpg, .jpeg, .png, .bmp, .webp): the neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
+    m.add_argument("--no-self-check", action="store_true",
+                   help="skip the self-check (the model rendered at up to 40 of its own "
+                   "frames and scored: face SSIM, render NME; about 4 s)")
     _add_json(m)
     m.set_defaults(run=_model_build)
     m = msub.add_parser("info", help="describe a model file")

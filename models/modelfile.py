@@ -58,6 +58,12 @@ One key is optional: ``"coverage": {state: true or false}``, the expression stat
 model's layers show (``sender.enroll.coverage``; at most 32, names as region names), absent
 when they were not measured (models built before it). It leaves ``format_version`` at 3: a
 reader that predates it refuses such a model by name ("unknown key 'coverage'").
+Another is optional in the same way: ``"self_check": {"ssim": number or null, "render_nme":
+number or null, "frames": int, "poor": bool, "causes": [text, ...]}``, the build's
+self-check (``SelfCheck``; ``bench.selfcheck``): the model rendered at its own enrollment
+frames, its mean face SSIM and render NME (percent of the outer-eye distance) over
+``frames`` frames, whether that is poor and its likely causes (at most 8, each at most 64
+characters), absent when it was not run (``model build --no-self-check``, older models).
 
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
@@ -384,6 +390,52 @@ class Region:
         return (Area(self.uv_rect, self.layers, self.mask), *self.areas)
 
 
+@dataclass(frozen=True)
+class SelfCheck:
+    """The build's self-check (module docstring, ``self_check``; ``bench.selfcheck``).
+
+    Attributes:
+        ssim: mean face SSIM (grey) of the model rendered at its enrollment frames, in
+            [-1, 1], or None when no frame was scored.
+        render_nme: mean render NME, percent of the outer-eye distance, >= 0, or None.
+        frames: frames scored, >= 0.
+        poor: whether the scores are poor.
+        causes: the likely causes named (at most 8, each 1 to 64 printable characters).
+    """
+
+    ssim: float | None
+    render_nme: float | None
+    frames: int
+    poor: bool
+    causes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.ssim is not None:
+            ssim = _number(self.ssim, "self_check.ssim")
+            if not -1.0 <= ssim <= 1.0:
+                raise ModelError(f"self_check.ssim: {ssim} outside [-1, 1]")
+            object.__setattr__(self, "ssim", ssim)
+        if self.render_nme is not None:
+            nme = _number(self.render_nme, "self_check.render_nme")
+            if nme < 0:
+                raise ModelError(f"self_check.render_nme: {nme} is negative")
+            object.__setattr__(self, "render_nme", nme)
+        object.__setattr__(self, "frames", _integer(self.frames, "self_check.frames", 0, 2**31))
+        if not isinstance(self.poor, bool):
+            raise ModelError(f"self_check.poor: expected true or false, got {_kind(self.poor)}")
+        if not isinstance(self.causes, (tuple, list)) or len(self.causes) > 8:
+            raise ModelError(f"self_check.causes: expected at most 8 texts, got "
+                             f"{_kind(self.causes)}")
+        for k, cause in enumerate(self.causes):
+            _text(cause, f"self_check.causes[{k}]", 1, 64)
+        object.__setattr__(self, "causes", tuple(self.causes))
+
+    def as_dict(self) -> dict[str, Any]:
+        """The manifest's ``self_check`` object."""
+        return {"ssim": self.ssim, "render_nme": self.render_nme, "frames": self.frames,
+                "poor": self.poor, "causes": list(self.causes)}
+
+
 @dataclass(frozen=True, eq=False)
 class PersonModel:
     """One person's model, as ``save_model`` writes it and ``load_model`` returns it.
@@ -400,6 +452,8 @@ class PersonModel:
         coverage: {state: covered}, the expression states its layers show
             (``sender.enroll.coverage``; at most 32, names as region names), or None when
             not measured (older models). The manifest's optional ``coverage`` key.
+        self_check: the build's self-check, or None when it was not run. The manifest's
+            optional ``self_check`` key.
     """
 
     mesh: Mesh
@@ -410,6 +464,7 @@ class PersonModel:
     sha256: str = ""
     file_bytes: int = 0
     coverage: dict[str, bool] | None = None
+    self_check: SelfCheck | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -436,6 +491,9 @@ class PersonModel:
         _integer(self.file_bytes, "file_bytes", 0, MAX_FILE_BYTES)
         if self.coverage is not None:
             _coverage(self.coverage)
+        if self.self_check is not None and not isinstance(self.self_check, SelfCheck):
+            raise ModelError(f"self_check: expected a SelfCheck or None, got "
+                             f"{_kind(self.self_check)}")
 
 
 def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
@@ -541,7 +599,7 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
                                   r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
-                           manifest.coverage)
+                           manifest.coverage, manifest.self_check)
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -668,6 +726,8 @@ def _encode(model: PersonModel) -> bytes:
     }
     if model.coverage is not None:
         manifest["coverage"] = dict(model.coverage)
+    if model.self_check is not None:
+        manifest["self_check"] = model.self_check.as_dict()
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
                                            allow_nan=False) + "\n").encode("ascii")
     return zip_bytes(members)
@@ -693,6 +753,7 @@ class _Manifest(NamedTuple):
     members: dict[str, tuple[int, ...]]  # member name -> declared shape
     regions: list[_RegionEntry]
     coverage: dict[str, bool] | None
+    self_check: SelfCheck | None
 
 
 def _parse_manifest(raw: bytes) -> _Manifest:
@@ -710,7 +771,7 @@ def _parse_manifest(raw: bytes) -> _Manifest:
         doc = json.loads(raw.decode("utf-8"), object_pairs_hook=unique, parse_constant=no_constant)
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise ModelError(f"not valid JSON ({e})") from e
-    optional = {"coverage"} & (doc.keys() if isinstance(doc, dict) else set())
+    optional = {"coverage", "self_check"} & (doc.keys() if isinstance(doc, dict) else set())
     _keys(doc, "manifest", {"format", "format_version", "camera", "info", "members",
                             "regions"} | optional)
     if doc["format"] != FORMAT:
@@ -778,8 +839,14 @@ def _parse_manifest(raw: bytes) -> _Manifest:
                              f"rectangles, got {_kind(areas)}")
         regions.append(_RegionEntry(name, entry["uv_rect"], entry["template_rect"], k,
                                     tuple(opacity), entry.get("rest", 0.0), areas))
-    coverage = _coverage(doc["coverage"]) if optional else None
-    return _Manifest(camera, info, members, regions, coverage)
+    coverage = _coverage(doc["coverage"]) if "coverage" in optional else None
+    check = None
+    if "self_check" in optional:
+        entry = _keys(doc["self_check"], "self_check",
+                      {"ssim", "render_nme", "frames", "poor", "causes"})
+        check = SelfCheck(entry["ssim"], entry["render_nme"], entry["frames"], entry["poor"],
+                          entry["causes"])
+    return _Manifest(camera, info, members, regions, coverage, check)
 
 
 def _check_members(manifest: _Manifest, entries: dict[str, zipfile.ZipInfo],

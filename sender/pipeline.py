@@ -162,10 +162,8 @@ class SenderPipeline:
         """The Hello announcing this stream (module docstring)."""
         summary = model_summary(self.model)
         regions = tuple(r.name for r in self.model.regions)[:N_REGIONS]
-        c = self.camera
-        wire = Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
         return Hello(model_sha256=summary["sha256"], model_bytes=summary["bytes"],
-                     rate_hz=self.rate_hz, camera=wire, regions=regions)
+                     rate_hz=self.rate_hz, camera=wire_camera(self.camera), regions=regions)
 
     def reset(self) -> None:
         """Forget the stream: tracker, filters, last pose and the sequence number."""
@@ -294,6 +292,11 @@ class SenderPipeline:
         packed = pack(self._seq, flags, self._sent, tangent, q)
         self._seq = (self._seq + 1) % (1 << 16)
         return packed
+
+
+def wire_camera(camera: Intrinsics) -> Camera:
+    """The intrinsics as the Hello carries them (``protocol.control.Camera``)."""
+    return Camera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
 
 
 def _gray(image: np.ndarray) -> np.ndarray:

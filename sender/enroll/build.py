@@ -38,6 +38,12 @@ skipped: one expression gives no states to choose, so the model has no regions, 
 neutral; a receiver draws the neutral texture on the morphed mesh whatever the packet's Q.
 The demo's performer (``facewire.performer``) builds its portrait's model this way.
 
+The self-check (``check``, a hook: ``sender.enroll`` may not render with the receiver or
+score with the benchmarks, so ``facewire model build`` passes ``bench.selfcheck``'s). After
+step 4 and before step 5, ``check(model, fit, indices, points)`` gets the finished model,
+the fit, the frame indices tracked and their points; it returns the model's ``SelfCheck``
+record (saved with the model) and the report's keys (``BuildResult.self_check``).
+
 Failures a user can cause (an unreadable video or photo, no face, too few face frames)
 raise ``BuildError`` naming the file.
 """
@@ -46,7 +52,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -82,6 +88,7 @@ from facewire.models.modelfile import (
     ModelInfo,
     PersonModel,
     Region,
+    SelfCheck,
     SourceRange,
     model_summary,
     save_model,
@@ -107,6 +114,10 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp")  # what ``model buil
 STILL_FRAMES = 10  # a photo is fitted as this many copies: sender.enroll.fit needs 10 face frames
 STILL_RATE_HZ = 30.0
 
+SelfCheckHook = Callable[[PersonModel, Fit, Sequence[int], Sequence[np.ndarray | None]],
+                         tuple[SelfCheck, dict[str, Any]]]
+
+
 class BuildError(FacewireError, ValueError):
     """The video or photo cannot give a model; the message names the file and says why."""
 
@@ -126,6 +137,7 @@ class BuildResult:
         appearance: the appearance step's report per region ({} when it was not run).
         coverage: the states the layers show (``sender.enroll.coverage``; none without
             regions).
+        self_check: the self-check hook's report keys ({} when it was not run).
     """
 
     model: PersonModel
@@ -137,6 +149,7 @@ class BuildResult:
     seconds: float
     appearance: dict[str, Any]
     coverage: Coverage
+    self_check: dict[str, Any]
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
@@ -149,7 +162,7 @@ class BuildResult:
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
                 "appearance": self.appearance, **self.coverage.summary(),
-                "seconds": round(self.seconds, 2)}
+                **self.self_check, "seconds": round(self.seconds, 2)}
 
 
 def preview_path(model_path: str | os.PathLike[str]) -> Path:
@@ -166,7 +179,7 @@ def is_photo(path: str | os.PathLike[str]) -> bool:
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
                 progress: Progress = no_progress,
-                appearance: bool = True) -> BuildResult:
+                appearance: bool = True, check: SelfCheckHook | None = None) -> BuildResult:
     """Build a person's model from a video, or from one photo, and save it with its preview.
 
     Args:
@@ -180,6 +193,7 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         appearance: run the appearance step (module docstring, 4); False builds geometry and
             the neutral texture only, a model without regions.
+        check: the self-check hook (module docstring), or None: no self-check.
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
@@ -190,15 +204,16 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     if is_photo(video):
         if frames != slice(0, None):
             raise BuildError(f"{video}: a photo has one frame; --frames is for videos")
-        return build_photo(video, out, name, progress)
+        return build_photo(video, out, name, progress, check)
     info = video_info(video)
     return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
                   frames_in_range(frames, info.frames), out, frames, name or video.stem,
-                  progress, video if appearance else None, str(video), video)
+                  progress, video if appearance else None, str(video), video, check=check)
 
 
 def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLike[str],
-                name: str | None = None, progress: Progress = no_progress) -> BuildResult:
+                name: str | None = None, progress: Progress = no_progress,
+                check: SelfCheckHook | None = None) -> BuildResult:
     """Build a model from one photo: the neutral only (module docstring, "One photo").
 
     Args:
@@ -207,6 +222,7 @@ def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLi
         out: the ``.fwm`` file to write; the preview goes beside it.
         name: the person's name; the file name without extension (or "portrait") by default.
         progress: wraps an iterable to show progress.
+        check: the self-check hook (module docstring), or None.
 
     Raises:
         BuildError: the file is not a readable image, or no face or no usable fit in it (the
@@ -236,13 +252,15 @@ def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLi
 
     return _build(source, copies, image.shape[1], image.shape[0], STILL_FRAMES, out,
                   slice(0, None), name, progress, None, where,
-                  None if isinstance(photo, np.ndarray) else Path(photo), photo=True)
+                  None if isinstance(photo, np.ndarray) else Path(photo), photo=True,
+                  check=check)
 
 
 def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: int,
            height: int, total: int | None, out: str | os.PathLike[str], frames: slice,
            name: str, progress: Progress, video: Path | None, where: str,
-           source_file: Path | None, photo: bool = False) -> BuildResult:
+           source_file: Path | None, photo: bool = False,
+           check: SelfCheckHook | None = None) -> BuildResult:
     """The build (module docstring, steps 1-5) from a frame source: ``read(frames)`` yields
     the frames of a range; ``video`` is the file the appearance step reads (None: no
     appearance step); ``where`` names the input in errors; ``source_file`` is the file the
@@ -298,13 +316,17 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         regions, report, coverage = enroll_regions(model, video, frames, progress)
         model = at_rest(replace(model, regions=regions))
     model = replace(model, coverage=coverage.states)
+    checked: dict[str, Any] = {}
+    if check is not None:
+        record, checked = check(model, fit, indices, points)
+        model = replace(model, self_check=record)
     out = Path(out)
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
     preview = preview_path(out)
     neutral_image = images[min(images)] if photo else images[indices[fit.neutral]]
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start, report, coverage)
+                       time.perf_counter() - start, report, coverage, checked)
 
 
 def at_rest(model: PersonModel) -> PersonModel:
