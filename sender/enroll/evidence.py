@@ -35,8 +35,13 @@ views that were outliers over a part of the face tell which frames were occluded
    per view: a view that was an outlier (``Fusion.outlier_fraction``) on more than
    ``OCCLUDED_FRACTION`` of the part's texels it sees was occluded there (or showed an
    expression the others did not). ``sender.enroll.build`` takes the neutral frame again
-   from the views occluded nowhere when the first neutral was occluded: the neutral frame
-   also gives the regions' rest layers, which are painted over the base texture.
+   from the clean views (``clean_views``: aligned, and occluded over none of
+   ``NEUTRAL_PARTS``, the mouth and the nose) when the first neutral was not clean: the
+   neutral frame also gives the regions' rest layers, which are painted over the base
+   texture. The eyes and brows do not count there: a neutral frame looking up while most
+   views look ahead is an outlier over its eyes, and on lp_d3 (a skin patch over the mouth
+   in frames 20-59 of 0:140) taking the neutral again for that replaced an open-eyed
+   frame by one looking down; the fusion still replaces such a patch of the texture.
 
 4. Every frame, for the regions' layers (``ring_occluded``, called by
    ``sender.enroll.layers``): the layers take one frame per state, chosen by a landmark cue,
@@ -82,6 +87,7 @@ RING_OUTER = 0.6  # ... to 60 % of its size on every side
 RING_DEPART_LEVELS = 40.0  # grey levels a ring texel must depart by to count
 RING_OCCLUDED_FRACTION = 0.15  # of the ring's seen texels, beyond which the part is occluded
 RING_MIN_TEXELS = 50
+NEUTRAL_PARTS = ("mouth", "nose")  # the parts whose occlusion makes the neutral taken again
 REGION_PARTS = {"mouth": "mouth"}  # the regions judged per frame, and their parts
 PARTS = {"mouth": np.arange(48, 68), "right_eye": np.arange(36, 42),
          "left_eye": np.arange(42, 48), "nose": np.arange(27, 36),
@@ -213,9 +219,10 @@ def occluded_parts(fusion: Fusion, masks: dict[str, np.ndarray]) -> dict[str, np
 
 
 def clean_views(fusion: Fusion, occluded: dict[str, np.ndarray]) -> np.ndarray:
-    """(V,) bool: the view lined up with the others and was occluded in no part."""
+    """(V,) bool: the view lined up with the others and was occluded in none of the
+    ``NEUTRAL_PARTS`` (module docstring, 3)."""
     ok = fusion.aligned.copy()
-    for flags in occluded.values():
-        ok &= ~flags
+    for part in NEUTRAL_PARTS:
+        ok &= ~occluded[part]
     return ok
 
