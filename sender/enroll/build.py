@@ -7,14 +7,22 @@ The steps, in order (``build_model``):
 2. Fit: choose the neutral frame, estimate the head pose in every frame and the person's 3D
    landmarks, and warp the generic head onto them (``sender.enroll.fit``). The camera is
    unknown, so its intrinsics are a guess (``models.geometry.intrinsics_guess``).
-3. Texture: decode the fit's texture views again (the neutral frame first, then side views),
-   project them onto the fitted mesh's UV layout (``sender.enroll.texture``) at
+3. Texture: score the frames and choose up to nine clean views, spread in time, the neutral
+   frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
+   blur, pose and expression; frames whose landmarks do not line up are not candidates),
+   decode them again, project them onto the fitted mesh's UV layout and fuse them robustly
+   per texel (``sender.enroll.texture.fuse_views``: a weighted median's consensus, views
+   departing from it take no part there, misaligned views none at all) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
-   angle.
+   angle. When the neutral frame was an outlier over a part of the face (occluded there),
+   the fit is run again with the neutral frame taken among the clean views, and the views
+   are fused again on its mesh. ``BuildResult.evidence`` says which views were used, which
+   were dropped and where each was occluded. A photo has one view.
 4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
-   templates are what the sender will sample at run time. With them, the coverage
+   templates are what the sender will sample at run time; a frame whose mouth is occluded
+   (``sender.enroll.evidence``, 4) gives the mouth no layer. With them, the coverage
    (``sender.enroll.coverage``): which expression states (eyes closed, gaze, brows, mouth
    open or wide, teeth) the layers' frames show; the model stores it
    (``PersonModel.coverage``) and ``model build`` says what the rendering does for each
@@ -69,7 +77,7 @@ from facewire.models.framing import (
     framing_pose,
     head_field,
 )
-from facewire.models.geometry import intrinsics_guess
+from facewire.models.geometry import Intrinsics, intrinsics_guess
 from facewire.models.head import generic_head
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.raster import Camera as ViewCamera
@@ -96,9 +104,17 @@ from facewire.models.modelfile import (
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage
+from facewire.sender.enroll.evidence import (
+    clean_views,
+    frame_scores,
+    occluded_parts,
+    part_masks,
+    sharpness,
+    texture_views,
+)
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.layers import enroll_regions
-from facewire.sender.enroll.texture import fill_holes, project_views, uv_surface
+from facewire.sender.enroll.texture import Fusion, UVSurface, fill_holes, fuse_views, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
@@ -138,6 +154,10 @@ class BuildResult:
         coverage: the states the layers show (``sender.enroll.coverage``; none without
             regions).
         self_check: the self-check hook's report keys ({} when it was not run).
+        evidence: the base texture's views (video indices, the neutral first), those
+            dropped as misaligned, per part of the face those that were occluded there, and
+            the first neutral frame when it was occluded and taken again
+            (``sender.enroll.evidence``).
     """
 
     model: PersonModel
@@ -150,6 +170,7 @@ class BuildResult:
     appearance: dict[str, Any]
     coverage: Coverage
     self_check: dict[str, Any]
+    evidence: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
@@ -161,6 +182,7 @@ class BuildResult:
                 "texture_views": list(self.model.info.frames_used),
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
+                "texture_evidence": self.evidence,
                 "appearance": self.appearance, **self.coverage.summary(),
                 **self.self_check, "seconds": round(self.seconds, 2)}
 
@@ -269,12 +291,16 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     tracker = LandmarkTracker()
     indices: list[int] = []
     points: list[np.ndarray | None] = []
+    blur: list[float] = []
     for frame in progress(read(frames), "tracking", total):
         indices.append(frame.index)
         if photo and points:  # the same image: the detection's points, not the follower's
             points.append(points[0])
+            blur.append(blur[0])
             continue
-        points.append(tracker.track(frame.image).points)
+        found = tracker.track(frame.image).points
+        points.append(found)
+        blur.append(0.0 if found is None else sharpness(frame.image, found))
     if not indices:
         raise BuildError(f"{where}: no frames in range {range_text(frames)}")
     face_frames = sum(p is not None for p in points)
@@ -288,19 +314,33 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     except FitError as exc:
         raise BuildError(f"{where}: {exc}") from None
 
-    wanted = {indices[k] for k in fit.views}
-    images = {frame.index: frame.image for frame in read(
-        slice(min(wanted), max(wanted) + 1)) if frame.index in wanted}
-    views = []
-    for k in fit.views:
-        pose = fit.poses[k]
-        assert pose is not None  # fit_person chooses views among the posed frames
-        views.append((images[indices[k]], ViewCamera(camera, pose)))
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
-    texture, weight = project_views(fit.mesh, surface, views)
-    texture = fill_holes(texture, weight > 0)
+    chosen, primary = ((fit.neutral,), 1) if photo else texture_views(
+        fit, frame_scores(points, fit, camera, blur))
+    images = _decode(read, {indices[k] for k in chosen})
+    fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
+    clean = clean_views(fusion, occluded)
+    first_neutral = None
+    if not clean[0] and clean.any():  # the neutral was occluded: take it from the clean views
+        first_neutral = indices[fit.neutral]
+        try:
+            fit = fit_person(points, camera, head=generic_head(),
+                             neutral_among=[k for k, ok in zip(chosen, clean) if ok])
+        except FitError as exc:
+            raise BuildError(f"{where}: {exc}") from None
+        surface = uv_surface(fit.mesh, TEXTURE_SIZE)
+        chosen = (fit.neutral, *(k for k in chosen if k != fit.neutral))
+        primary = 1
+        images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
+        fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
+    texture = fill_holes(fusion.texture, fusion.weight > 0)
+    evidence = {"views": [indices[k] for k in chosen],
+                "misaligned": [indices[k] for k, ok in zip(chosen, fusion.aligned) if not ok],
+                "occluded": {part: [indices[k] for k, bad in zip(chosen, flags) if bad]
+                             for part, flags in occluded.items()},
+                "neutral_occluded": first_neutral}
 
-    used, neutral = tuple(sorted(indices[k] for k in fit.views)), indices[fit.neutral]
+    used, neutral = tuple(sorted(indices[k] for k in chosen)), indices[fit.neutral]
     if photo:  # the copies are one frame: frame 0
         used, neutral, indices, face_frames = (0,), 0, [0], 1
     model = PersonModel(
@@ -326,7 +366,31 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     neutral_image = images[min(images)] if photo else images[indices[fit.neutral]]
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start, report, coverage, checked)
+                       time.perf_counter() - start, report, coverage, checked, evidence)
+
+
+def _decode(read: Callable[[slice], Iterable[VideoFrame]], wanted: set[int]
+            ) -> dict[int, np.ndarray]:
+    """The images of the frames ``wanted`` (video indices), decoded again."""
+    if not wanted:
+        return {}
+    return {frame.index: frame.image for frame in read(slice(min(wanted), max(wanted) + 1))
+            if frame.index in wanted}
+
+
+def _fuse(fit: Fit, chosen: tuple[int, ...], primary: int, images: dict[int, np.ndarray],
+          indices: list[int], camera: Intrinsics, surface: UVSurface
+          ) -> tuple[Fusion, dict[str, np.ndarray]]:
+    """The chosen views fused onto the fitted mesh (the first ``primary`` of them make the
+    texture where none is an outlier), and per part which were occluded
+    (``sender.enroll.evidence``, 3)."""
+    views = []
+    for k in chosen:
+        pose = fit.poses[k]
+        assert pose is not None  # the views are chosen among the posed frames
+        views.append((images[indices[k]], ViewCamera(camera, pose)))
+    fusion = fuse_views(fit.mesh, surface, views, primary=primary)
+    return fusion, occluded_parts(fusion, part_masks(fit.mesh, surface.size))
 
 
 def at_rest(model: PersonModel) -> PersonModel:

@@ -30,7 +30,9 @@ in OpenCV's camera frame, converted by ``S = diag(1, -1, -1)``. Yaw and pitch ar
    eyes less open than 85 % of the video's 90th-percentile eye aspect ratio (per 0.1);
    inner-lip gap / 4 % of the eye distance; mouth width away from the video's median / 5 %;
    expression residual (RMS reprojection error of the non-contour points after pose) above
-   the video's median, per 50 % of that median. At least ``MIN_FACE_FRAMES`` frames with a
+   the video's median, per 50 % of that median. The build may restrict the choice to given
+   frames (``neutral_among``: its clean texture views, ``sender.enroll.evidence``); the
+   medians and percentiles stay the whole video's. At least ``MIN_FACE_FRAMES`` frames with a
    face are required (else ``FitError``): fewer give no meaningful percentiles and medians.
 
 4. Depth. If the posed frames' yaw spans at least ``SFM_MIN_YAW_RANGE_DEG`` (20 deg), depth
@@ -98,7 +100,7 @@ other module uses.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -179,6 +181,7 @@ def fit_person(
     camera: Intrinsics,
     head: Mesh | None = None,
     progress: Callable[[int], None] | None = None,
+    neutral_among: Collection[int] | None = None,
 ) -> Fit:
     """Fit the generic head to the person seen in a video (method in the module docstring).
 
@@ -188,6 +191,9 @@ def fit_person(
         camera: the camera's intrinsics (``models.geometry.intrinsics_guess`` when unknown).
         head: the generic head; ``models.head.generic_head()`` when None.
         progress: called with the percentage done (int, 0-100) after each stage.
+        neutral_among: frames the neutral frame may be chosen from (the build's clean
+            views, ``sender.enroll.evidence``); any posed frame when None or when none of
+            them is posed.
 
     Returns:
         The ``Fit``.
@@ -223,7 +229,8 @@ def fit_person(
     shape, poses, depth, depth_change = _depth(frames, posed, poses, generic, camera, eye_mm)
     report(50)
 
-    neutral = choose_neutral(frames, poses, shape, camera)
+    among = None if neutral_among is None else set(neutral_among)
+    neutral = choose_neutral(frames, poses, shape, camera, among)
     targets = _neutral_landmarks(_present(frames, neutral), _present(poses, neutral), shape,
                                  head, camera, eye_mm)
     report(60)
@@ -273,7 +280,8 @@ def _final_fit(frames: Sequence[np.ndarray | None], faces: Sequence[int], mesh: 
 
 
 def choose_neutral(points: Sequence[np.ndarray | None], poses: Sequence[Pose | None],
-                   shape: np.ndarray, camera: Intrinsics) -> int:
+                   shape: np.ndarray, camera: Intrinsics,
+                   among: Collection[int] | None = None) -> int:
     """The most neutral frame: frontal, eyes open, mouth closed and relaxed, least expression.
 
     Args:
@@ -281,6 +289,8 @@ def choose_neutral(points: Sequence[np.ndarray | None], poses: Sequence[Pose | N
         poses: per frame, the pose of ``shape`` or None.
         shape: (68, 3) float64 3D landmarks the poses refer to, mm.
         camera: the camera's intrinsics.
+        among: only these frames may be chosen (all when None or when none is posed); the
+            costs' medians and percentiles are still the whole video's.
 
     Returns:
         Index of the frame with the lowest neutral cost (module docstring, step 3).
@@ -291,8 +301,10 @@ def choose_neutral(points: Sequence[np.ndarray | None], poses: Sequence[Pose | N
     posed = [i for i, (p, q) in enumerate(zip(points, poses)) if p is not None and q is not None]
     if not posed:
         raise FitError("no frame with a face and a head pose")
-    costs = _neutral_costs(points, poses, posed, shape, camera)
-    return posed[int(np.argmin(costs["total"]))]
+    costs = _neutral_costs(points, poses, posed, shape, camera)["total"]
+    if among is not None and any(i in among for i in posed):
+        costs = np.where([i in among for i in posed], costs, np.inf)
+    return posed[int(np.argmin(costs))]
 
 
 def warp_head(head: Mesh, targets: np.ndarray) -> Mesh:
@@ -453,7 +465,25 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
         + (np.maximum(0.0, resid / np.median(resid) - 1.0) / 0.5) ** 2
     )
     pose_cost = (angles[:, 0] / 10.0) ** 2 + ((angles[:, 1] - np.median(angles[:, 1])) / 10.0) ** 2
-    return {"total": expression + pose_cost, "expression": expression}
+    return {"total": expression + pose_cost, "expression": expression,
+            "residual": resid / max(float(np.median(resid)), 1e-12)}
+
+
+def frame_costs(points: Sequence[np.ndarray | None], poses: Sequence[Pose | None],
+                posed: Sequence[int], shape: np.ndarray,
+                camera: Intrinsics) -> dict[str, np.ndarray]:
+    """Per frame of ``posed``: the neutral cost (step 3) as ``total``, without its pose terms
+    as ``expression``, and the landmarks' RMS residual against ``shape`` over the stable
+    points 17-67 under the frame's pose, over the median of those frames, as ``residual``.
+
+    Args:
+        points: per frame, (68, 2) image points or None.
+        poses: per frame, the pose of ``shape`` or None.
+        posed: frames with both, at least one.
+        shape: (68, 3) float64 3D landmarks the poses refer to, mm.
+        camera: the camera's intrinsics.
+    """
+    return _neutral_costs(points, poses, posed, shape, camera)
 
 
 def _spread_by_yaw(posed: Sequence[int], yaws: np.ndarray, expression: np.ndarray,

@@ -8,7 +8,9 @@ what the sender will sample at run time, so enrollment runs the sender itself: t
 the sender's pose and lift.
 
 1. Observe. Every frame of the range goes through the pipeline; each frame with a pose
-   gives its pose, residuals, the (centre-offset) sample of every region, five cues and the
+   gives its pose, residuals, the (centre-offset) sample of every region, five cues, the
+   parts of the face occluded in it (``sender.enroll.evidence``, 4: a region whose part is
+   occluded in a frame takes nothing from it, its cue there is dropped) and the
    coverage's measures (``sender.enroll.coverage.state_measures``: once the states are
    chosen, ``coverage.measure_coverage`` judges which expression states their frames show).
 2. Cues (landmark-derived, used only here; at run time only the classifier decides Q):
@@ -60,7 +62,7 @@ the sender's pose and lift.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -84,6 +86,7 @@ from facewire.sender.enroll.coverage import (
     reference,
     state_measures,
 )
+from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
@@ -113,6 +116,8 @@ class Observation:
         eye_ratio: (2,) the eye aspect ratios (right eye, left eye).
         yaw_deg: the head's yaw, degrees.
         measures: (M,) float64 the frame's ``sender.enroll.coverage.state_measures``.
+        occluded: the parts of the face (``sender.enroll.evidence.PARTS``) occluded in the
+            frame (``sender.enroll.evidence.ring_occluded``).
     """
 
     index: int
@@ -124,6 +129,7 @@ class Observation:
     eye_ratio: np.ndarray
     yaw_deg: float
     measures: np.ndarray
+    occluded: frozenset[str] = frozenset()
 
 
 class Enrollment(NamedTuple):
@@ -158,12 +164,16 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         VideoError: the video cannot be decoded.
     """
     video = Path(video)
-    observations = _observe(model, model.camera, video, frames, progress)
+    texels = _RegionTexels(model, model.camera)
+    observations = _observe(model, model.camera, video, frames, progress, texels)
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
                           f"{range_text(frames)}; appearance needs at least 2")
     cues = without_closed_eyes(np.array([o.cues for o in observations]),
                                np.array([o.eye_ratio for o in observations]))
+    blocked = np.array([[REGION_PARTS.get(r.name, "") in o.occluded for r in REGIONS]
+                        for o in observations])
+    cues[blocked] = np.nan  # an occluded part gives its regions nothing (step 1)
     yaw = np.array([abs(o.yaw_deg) for o in observations])
     neutral = min(range(len(observations)),
                   key=lambda i: abs(observations[i].index - model.info.neutral_frame))
@@ -172,7 +182,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     for r, region in enumerate(REGIONS):
         picks, info = _choose_states(region, cues[:, r], yaw, neutral)
         chosen[region.name] = picks
-        report[region.name] = {**info, "frames": [observations[i].index for i in picks]}
+        report[region.name] = {**info, "frames": [observations[i].index for i in picks],
+                               "occluded_frames": int(blocked[:, r].sum())}
     measures = np.array([o.measures for o in observations])
     coverage = measure_coverage({name: measures[picks] for name, picks in chosen.items()},
                                 reference(measures))
@@ -185,7 +196,6 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
                           "layers", None):
         if frame.index in by_index:
             images[by_index[frame.index]] = frame.image
-    texels = _RegionTexels(model, model.camera)
     regions = []
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
@@ -204,7 +214,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
 
 
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
-             progress: Progress) -> list[Observation]:
+             progress: Progress, texels: _RegionTexels) -> list[Observation]:
     """Run the sender over the frames (module docstring, step 1)."""
     info = video_info(video)
     pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(info.rate_hz))
@@ -222,11 +232,12 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
         cues = region_cues(samples[:, 0], sent.points, sent.residuals)
         measures = state_measures(sent.points, sent.residuals, dict(zip(names, cues)),
                                   frame.image)
-        out.append(Observation(
+        seen = Observation(
             index=frame.index, rotation=sent.rotation, translation=sent.translation,
             residuals=sent.residuals, samples=samples[:, 0].copy(), cues=cues,
             eye_ratio=eye_aspect_ratio(sent.points),
-            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures))
+            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures)
+        out.append(replace(seen, occluded=texels.occluded(frame.image, seen)))
     return out
 
 
@@ -337,6 +348,20 @@ class _RegionTexels:
             placement = self.placements[r.name]
             self.areas[r.name] = [_AreaTexels(model.mesh, rig, surface, rect, shape)
                                   for rect in (placement.uv_rect, *placement.areas)]
+        self.rings: dict[str, tuple[_AreaTexels, np.ndarray]] = {}
+        for part in sorted(set(REGION_PARTS.values())):
+            rect, ring = ring_mask(model.mesh, part, shape)
+            self.rings[part] = (_AreaTexels(model.mesh, rig, surface, rect, shape), ring)
+
+    def occluded(self, image: np.ndarray, seen: Observation) -> frozenset[str]:
+        """The parts whose ring departs from the base texture in ``image``
+        (``sender.enroll.evidence``, 4)."""
+        out = set()
+        for part, (area, ring) in self.rings.items():
+            colour, ok = area.read(self.camera, image, seen)
+            if ring_occluded(colour, ok, self.model.texture[area.slices], ring):
+                out.add(part)
+        return frozenset(out)
 
     def layers(self, name: str, image: np.ndarray, seen: Observation) -> list[np.ndarray]:
         """(h, w, 3) uint8 RGB per area of the region: its texels read from ``image``, with

@@ -1,0 +1,228 @@
+"""Clean evidence for the base texture: which enrollment frames it is fused from.
+
+The base texture (``sender.enroll.texture.fuse_views``) is a robust estimate across views,
+and a median is only right when the clean views carry more than half of the weight. So the
+views are chosen clean, and spread in time, before they are fused; after the fusion, the
+views that were outliers over a part of the face tell which frames were occluded there.
+
+1. Score (``frame_scores``). Every frame with a pose against the fitted mesh gets
+
+       cost = expression + pose + blur,
+
+   with expression and pose the fit's neutral costs (``sender.enroll.fit.frame_costs``:
+   eyes open, lips closed, mouth at its usual width, the landmarks' residual against the
+   fitted model, the head frontal and at its usual pitch), and
+
+       blur = (max(0, 1 - b / median b) / 0.25)^2,
+
+   b the variance of the Laplacian of the grey face box (the landmarks' bounding box,
+   resized to ``BLUR_BOX_PX`` wide so faces of any size compare). A frame whose landmarks
+   do not line up with the fitted model, an RMS residual over the stable points (17-67)
+   above ``MISFIT_RATIO`` (2) times the video's median, is not a candidate at all: a tracking
+   slip puts every feature a few pixels off, and its texture would ghost.
+
+2. Choose (``texture_views``): the neutral frame first (it sets the exposure), then the
+   fit's side views (for the texture beyond the front) when they are candidates (these are
+   the fusion's primary views: they make the texture wherever none of them is an outlier),
+   then the lowest-cost candidates, each at least ``gap`` frames from every view taken (an occluder
+   or an expression held for a second is in consecutive frames: spaced views are
+   independent evidence), up to ``TEXTURE_VIEWS`` views; ``gap`` is the range's length over
+   twice that count, at least 1.
+
+3. Judge (``occluded_parts``). After the fusion, each part of the face (``PARTS``: the
+   mouth, each eye, the nose, the brows; in texture space the UV bounding box of the
+   part's landmark vertices, grown by ``PART_MARGIN`` of its size on every side) is judged
+   per view: a view that was an outlier (``Fusion.outlier_fraction``) on more than
+   ``OCCLUDED_FRACTION`` of the part's texels it sees was occluded there (or showed an
+   expression the others did not). ``sender.enroll.build`` takes the neutral frame again
+   from the clean views (``clean_views``: aligned, and occluded over none of
+   ``NEUTRAL_PARTS``, the mouth and the nose) when the first neutral was not clean: the
+   neutral frame also gives the regions' rest layers, which are painted over the base
+   texture. The eyes and brows do not count there: a neutral frame looking up while most
+   views look ahead is an outlier over its eyes, and on lp_d3 (a skin patch over the mouth
+   in frames 20-59 of 0:140) taking the neutral again for that replaced an open-eyed
+   frame by one looking down; the fusion still replaces such a patch of the texture.
+
+4. Every frame, for the regions' layers (``ring_occluded``, called by
+   ``sender.enroll.layers``): the layers take one frame per state, chosen by a landmark cue,
+   and a dark occluder over the mouth reads as an open mouth to the tracker, so the mouth's
+   open states would show the occluder. Each region's part (``REGION_PARTS``) is judged on
+   each frame on the skin *around* it, which the part's own expressions barely change (a
+   blink moves the lids, not the skin beside the eye; a jaw drop is followed by the morph):
+   the ring between the part's box grown by ``RING_INNER`` and by ``RING_OUTER`` of its
+   size, read from the frame on the morphed, posed mesh like a layer, its colours scaled per
+   channel by the ratio of medians to the base texture's (exposure), and compared with the
+   base texture in luma. When more than ``RING_OCCLUDED_FRACTION`` (15 %) of the ring's seen
+   texels depart by more than ``RING_DEPART_LEVELS`` grey levels, the part is occluded in
+   that frame and the region takes nothing from it: neither a layer nor its cue's
+   percentiles. Measured on the reproduction (``bench.occluded``, lp_d3 0:140, a dark patch
+   over the mouth in 61 frames): the mouth's ring departs on 0-1 % of its texels in the
+   clean frames and on 24-81 % in the occluded ones. Only the mouth is judged this way
+   (``REGION_PARTS``): the skin beside an eye wrinkles in a wink (up to 22 % of the eye's
+   ring departed on clean frames of lp_d3), and the brows' ring reaches the hairline, so
+   the same bound would take blinks and raised brows from their own layers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from facewire.models.geometry import Intrinsics
+from facewire.models.mesh import Mesh
+from facewire.models.regions import texel_rect
+from facewire.sender.enroll.fit import Fit, frame_costs
+from facewire.sender.enroll.texture import Fusion
+
+TEXTURE_VIEWS = 9
+MISFIT_RATIO = 2.0
+BLUR_BOX_PX = 128
+BLUR_SCALE = 0.25
+OCCLUDED_FRACTION = 0.3
+PART_MARGIN = 0.25
+RING_INNER = 0.1  # the ring around a part: its box grown by 10 % ...
+RING_OUTER = 0.6  # ... to 60 % of its size on every side
+RING_DEPART_LEVELS = 40.0  # grey levels a ring texel must depart by to count
+RING_OCCLUDED_FRACTION = 0.15  # of the ring's seen texels, beyond which the part is occluded
+RING_MIN_TEXELS = 50
+NEUTRAL_PARTS = ("mouth", "nose")  # the parts whose occlusion makes the neutral taken again
+REGION_PARTS = {"mouth": "mouth"}  # the regions judged per frame, and their parts
+PARTS = {"mouth": np.arange(48, 68), "right_eye": np.arange(36, 42),
+         "left_eye": np.arange(42, 48), "nose": np.arange(27, 36),
+         "brows": np.arange(17, 27)}
+
+
+def sharpness(image: np.ndarray, points: np.ndarray) -> float:
+    """b: the variance of the Laplacian of the grey face box (module docstring, 1).
+
+    Args:
+        image: (h, w, 3) uint8 BGR frame.
+        points: (68, 2) its landmarks, px.
+    """
+    x0, y0 = np.floor(points.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(points.max(axis=0)).astype(int)
+    h, w = image.shape[:2]
+    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(w, x1 + 1), min(h, y1 + 1)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return 0.0
+    grey = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY)
+    size = (BLUR_BOX_PX, max(4, round(BLUR_BOX_PX * (y1 - y0) / (x1 - x0))))
+    grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+
+
+def frame_scores(points: Sequence[np.ndarray | None], fit: Fit, camera: Intrinsics,
+                 blur: Sequence[float]) -> dict[int, float]:
+    """Each candidate frame's cost (module docstring, 1), by its index in ``points``.
+
+    Args:
+        points: per frame, (68, 2) landmarks or None.
+        fit: the fit (its poses and mesh).
+        camera: the intrinsics the fit used.
+        blur: per frame, ``sharpness`` (any value where there are no points).
+
+    Returns:
+        {frame: cost} over the posed frames that are not misfits.
+    """
+    posed = [i for i, (p, q) in enumerate(zip(points, fit.poses))
+             if p is not None and q is not None]
+    if not posed:
+        return {}
+    costs = frame_costs(points, fit.poses, posed, fit.landmarks3d, camera)
+    b = np.array([blur[i] for i in posed], np.float64)
+    ref = max(float(np.median(b)), 1e-9)
+    blur_cost = (np.maximum(0.0, 1.0 - b / ref) / BLUR_SCALE) ** 2
+    residual = costs["residual"]
+    clean = residual <= MISFIT_RATIO * float(np.median(residual))
+    total = costs["total"] + blur_cost
+    return {f: float(c) for f, c, ok in zip(posed, total, clean) if ok}
+
+
+def texture_views(fit: Fit, scores: dict[int, float], count: int = TEXTURE_VIEWS
+                  ) -> tuple[tuple[int, ...], int]:
+    """The frames to fuse, the neutral first, and how many of them are primary (the neutral
+    and the fit's side views: ``sender.enroll.texture``, 3) (module docstring, 2)."""
+    frames = len(fit.poses)
+    gap = max(1, frames // (2 * count))
+    views = [fit.neutral]
+    for v in fit.views[1:]:
+        if v in scores and len(views) < count:
+            views.append(v)
+    primary = len(views)
+    for f in sorted(scores, key=lambda f: (scores[f], f)):
+        if len(views) >= count:
+            break
+        if all(abs(f - v) >= gap for v in views):
+            views.append(f)
+    return tuple(views), primary
+
+
+def part_rect(mesh: Mesh, part: str, grow: float = PART_MARGIN
+              ) -> tuple[float, float, float, float]:
+    """(u0, v0, u1, v1): the UV bounding box of a part's landmark vertices, grown by
+    ``grow`` of its size on every side and clipped to [0, 1]."""
+    uv = mesh.uv[mesh.landmarks[PARTS[part]]].astype(np.float64)
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    margin = grow * (hi - lo)
+    (u0, v0), (u1, v1) = np.clip(lo - margin, 0, 1), np.clip(hi + margin, 0, 1)
+    return float(u0), float(v0), float(u1), float(v1)
+
+
+def part_masks(mesh: Mesh, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Each part's (H, W) bool texel mask (module docstring, 3) in a texture of ``shape``."""
+    out = {}
+    for name in PARTS:
+        mask = np.zeros(shape, bool)
+        mask[texel_rect(part_rect(mesh, name), shape)[1]] = True
+        out[name] = mask
+    return out
+
+
+def ring_mask(mesh: Mesh, part: str, shape: tuple[int, int]
+              ) -> tuple[tuple[float, float, float, float], np.ndarray]:
+    """The skin around a part (module docstring, 4): the UV rectangle grown by
+    ``RING_OUTER``, and the (h, w) bool mask of its texels outside the one grown by
+    ``RING_INNER``."""
+    outer, (rows, cols) = texel_rect(part_rect(mesh, part, RING_OUTER), shape)
+    inner = np.zeros(shape, bool)
+    inner[texel_rect(part_rect(mesh, part, RING_INNER), shape)[1]] = True
+    return outer, ~inner[rows, cols]
+
+
+def ring_occluded(colour: np.ndarray, seen: np.ndarray, base: np.ndarray,
+                  ring: np.ndarray) -> bool:
+    """Whether a frame's ring around a part departs from the base texture (module
+    docstring, 4).
+
+    Args:
+        colour: (h, w, 3) float RGB, the frame read at the ring's texels.
+        seen: (h, w) bool, where the frame sees them.
+        base: (h, w, 3) uint8 RGB, the base texture there.
+        ring: (h, w) bool, the ring's texels (``ring_mask``).
+    """
+    use = seen & ring
+    if use.sum() < RING_MIN_TEXELS:
+        return False
+    c, b = colour[use].astype(np.float64), base[use].astype(np.float64)
+    gain = np.clip(np.median(b, axis=0) / np.maximum(np.median(c, axis=0), 1.0), 0.5, 2.0)
+    luma = np.array([0.299, 0.587, 0.114])
+    depart = np.abs((c * gain) @ luma - b @ luma) > RING_DEPART_LEVELS
+    return bool(depart.mean() > RING_OCCLUDED_FRACTION)
+
+
+def occluded_parts(fusion: Fusion, masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per part, (V,) bool: the view was an outlier over the part (module docstring, 3)."""
+    return {name: fusion.outlier_fraction(mask) > OCCLUDED_FRACTION
+            for name, mask in masks.items()}
+
+
+def clean_views(fusion: Fusion, occluded: dict[str, np.ndarray]) -> np.ndarray:
+    """(V,) bool: the view lined up with the others and was occluded in none of the
+    ``NEUTRAL_PARTS`` (module docstring, 3)."""
+    ok = fusion.aligned.copy()
+    for part in NEUTRAL_PARTS:
+        ok &= ~occluded[part]
+    return ok
+
