@@ -54,7 +54,7 @@ any of them (``h264_face_missing`` 108 of 358), and x264's mean is over the othe
 358 frames: 38 s of the command's 81 s).
 
 Frames the model was built from. A model built by ``model build`` stores the video frames it
-came from (``models.modelfile.SourceRange``: the video's name, size and sha256, frames
+came from (``models.manifest.SourceRange``: the video's name, size and sha256, frames
 [a, b)). Scoring those frames would measure how well the model remembers its enrollment, not
 how it does on new footage, so ``check_overlap`` refuses (``OverlapError``, one line, before
 any work) when the scored range overlaps [a, b) of the same video, unless ``allow_overlap``

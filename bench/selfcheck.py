@@ -1,7 +1,7 @@
 """The build checks itself: the finished model rendered at its own enrollment frames, scored.
 
 Issue 16, part 1. ``facewire model build`` runs it after the build (``facewire.cli``), on
-the model before it is saved, and stores the result in the model (``models.modelfile``'s
+the model before it is saved, and stores the result in the model (``models.manifest``'s
 optional ``self_check``), so that ``model info`` shows it too.
 
 Scoring (``score_frames``). At most ``MAX_FRAMES`` (40) of the build's frames with a face,
@@ -85,7 +85,8 @@ from facewire.models.geometry import Intrinsics, Pose, project
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames, video_info
 from facewire.models.landmarks import outer_eye_distance
-from facewire.models.modelfile import PersonModel, SelfCheck
+from facewire.models.manifest import SelfCheck
+from facewire.models.modelfile import PersonModel
 from facewire.protocol.packet import Flag
 from facewire.protocol.rate import stream_rate
 from facewire.sender.pipeline import SenderPipeline, sender_camera, wire_camera

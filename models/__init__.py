@@ -2,6 +2,6 @@
 their files (``landmarks``, ``landmark_files``), the generic head (``head/``), the mesh
 (``mesh``), the volume morph and the rig (``morph``, ``rig``), texture regions and their draw
 order (``regions``, ``draworder``), how a virtual camera frames a head (``framing``), the
-``.fwm`` file (``modelfile``, its zip container ``archive``, array checks ``arrays``) and glTF
-(``gltf``). ``infra/`` holds what is not the
-model: EGL, the rasteriser, video files, atomic writes, progress."""
+``.fwm`` file (``modelfile``, its manifest ``manifest``, the model's field checks ``fields``,
+its zip container ``archive``, array checks ``arrays``) and glTF (``gltf``). ``infra/`` holds
+what is not the model: EGL, the rasteriser, video files, atomic writes, progress."""

@@ -80,9 +80,9 @@ from functools import cache
 
 import numpy as np
 
+from facewire.models.fields import TEMPLATE_SIZE
 from facewire.models.head import generic_head
 from facewire.models.mesh import Tag
-from facewire.models.modelfile import TEMPLATE_SIZE
 from facewire.protocol.errors import FacewireError
 
 SUPERSAMPLE = 2

@@ -106,7 +106,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facewire.models.modelfile import MAX_LAYERS, TEMPLATE_SIZE
+from facewire.models.fields import MAX_LAYERS, TEMPLATE_SIZE
 
 LEVELS = 4
 N_COEFFS = TEMPLATE_SIZE * TEMPLATE_SIZE

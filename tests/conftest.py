@@ -55,7 +55,8 @@ def generic_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generic head with a flat grey texture, saved as a model file."""
     from facewire.models.geometry import Intrinsics
     from facewire.models.head import generic_head
-    from facewire.models.modelfile import ModelInfo, PersonModel, save_model
+    from facewire.models.manifest import ModelInfo
+    from facewire.models.modelfile import PersonModel, save_model
 
     model = PersonModel(mesh=generic_head(), texture=np.full((64, 128, 3), 170, np.uint8),
                         camera=Intrinsics(640.0, 640.0, 319.5, 239.5, 640, 480),

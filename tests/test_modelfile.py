@@ -1,7 +1,8 @@
 """The .fwm person-model file: round trip, determinism, and refusal of hostile files.
 
 Over 600 lines because it tests, one by one, each way a hostile file can be wrong that
-``models.modelfile`` promises to refuse, with the zip-editing helpers those tests share.
+``models.modelfile`` (with its manifest, ``models.manifest``) promises to refuse, with the
+zip-editing helpers those tests share.
 """
 
 from __future__ import annotations
@@ -20,16 +21,15 @@ import pytest
 from conftest import npy_bytes, write_zip, zip_members
 
 from facewire.models import modelfile
+from facewire.models.fields import ModelError
 from facewire.models.geometry import Intrinsics
+from facewire.models.manifest import MAX_MEMBER_BYTES, ModelInfo, SourceRange
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import (
     Area,
-    ModelError,
     ModelFileError,
-    ModelInfo,
     PersonModel,
     Region,
-    SourceRange,
     load_model,
     load_model_bytes,
     model_sha256,
@@ -329,7 +329,7 @@ def _bomb(path: Path, source: Path, member: str, inflated: int) -> bytes:
 
 def test_member_declaring_more_than_allowed_is_refused(saved: Path, tmp_path: Path) -> None:
     path = tmp_path / "bomb.fwm"
-    _bomb(path, saved, "arrays/vertices.npy", modelfile.MAX_MEMBER_BYTES + 1)
+    _bomb(path, saved, "arrays/vertices.npy", MAX_MEMBER_BYTES + 1)
     _refused(path, "arrays/vertices.npy", "declares")
 
 

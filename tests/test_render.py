@@ -17,8 +17,9 @@ from facewire.models.draworder import draw_order
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.head import generic_head
 from facewire.models.infra.raster import Camera, MeshRenderer, RenderError, orbit_pose
+from facewire.models.manifest import ModelInfo
 from facewire.models.mesh import Mesh
-from facewire.models.modelfile import Area, ModelInfo, PersonModel, Region
+from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.receiver.render import FaceRenderer

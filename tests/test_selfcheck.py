@@ -26,13 +26,9 @@ from facewire.bench.selfcheck import (
     score_frames,
 )
 from facewire.cli import main
-from facewire.models.modelfile import (
-    ModelError,
-    ModelFileError,
-    SelfCheck,
-    load_model,
-    save_model,
-)
+from facewire.models.fields import ModelError
+from facewire.models.manifest import SelfCheck
+from facewire.models.modelfile import ModelFileError, load_model, save_model
 
 KEYS = ("self_check_ssim", "self_check_render_nme", "self_check_frames")
 

@@ -90,17 +90,9 @@ from facewire.models.infra.video import (
     video_info,
 )
 from facewire.models.landmarks import outer_eye_distance
+from facewire.models.manifest import ModelInfo, SelfCheck, SourceRange
 from facewire.models.mesh import Mesh
-from facewire.models.modelfile import (
-    Area,
-    ModelInfo,
-    PersonModel,
-    Region,
-    SelfCheck,
-    SourceRange,
-    model_summary,
-    save_model,
-)
+from facewire.models.modelfile import Area, PersonModel, Region, model_summary, save_model
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage

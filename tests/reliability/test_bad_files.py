@@ -43,7 +43,8 @@ from facewire.cli import main
 from facewire.models import modelfile
 from facewire.models.geometry import Intrinsics
 from facewire.models.head import generic_head
-from facewire.models.modelfile import ModelInfo, PersonModel, Region, save_model
+from facewire.models.manifest import MAX_MEMBER_BYTES, ModelInfo
+from facewire.models.modelfile import PersonModel, Region, save_model
 from facewire.protocol import log as fwlog
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.protocol.control import Hello
@@ -219,7 +220,7 @@ MODEL_CASES: dict[str, tuple[Callable[[Path, Path], None], tuple[str, ...]]] = {
     "oversized-file": (lambda g, b: sparse(b, modelfile.MAX_FILE_BYTES + 1),
                        ("more than the 268435456",)),
     "member-declares-huge-size": (
-        lambda g, b: declared(g, b, "arrays/uv.npy", modelfile.MAX_MEMBER_BYTES + 1),
+        lambda g, b: declared(g, b, "arrays/uv.npy", MAX_MEMBER_BYTES + 1),
         ("arrays/uv.npy", "declares 67108865 bytes")),
     "zip-bomb": (lambda g, b: bomb(g, b, "arrays/vertices.npy", 16 << 20),
                  ("arrays/vertices.npy", "zip bomb")),
