@@ -11,7 +11,7 @@ The steps, in order (``build_model``):
    frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
    blur, pose and expression; frames whose landmarks do not line up are not candidates),
    decode them again, project them onto the fitted mesh's UV layout and fuse them robustly
-   per texel (``sender.enroll.texture.fuse_views``: a weighted median's consensus, views
+   per texel (``sender.enroll.fusion.fuse_views``: a weighted median's consensus, views
    departing from it take no part there, misaligned views none at all) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
    angle. When the neutral frame was an outlier over a part of the face (occluded there),
@@ -113,8 +113,9 @@ from facewire.sender.enroll.evidence import (
     texture_views,
 )
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
+from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
-from facewire.sender.enroll.texture import Fusion, UVSurface, fill_holes, fuse_views, uv_surface
+from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
