@@ -3,11 +3,11 @@
 ``sender.enroll.texture`` projects each view onto the texels (its docstring, 2: each view's
 colour and angle-and-edge weight w per texel); this module fuses them (``fuse_views``).
 
-Every texel is judged by a robust consensus of several views,
-and no frame's colour stays where the consensus says it is wrong. A view may carry an
-occluder (a hand, hair) or a passing expression over part of the face, or not line up
-with the fitted model (a tracking slip: every feature lands a few pixels off), and a
-mean bakes both in: an occluder as a dark patch, a slip as doubled features (ghosting).
+Every texel is judged by a robust consensus of several views, and no frame's colour stays
+where the consensus says it is wrong. A view may carry an occluder (a hand, hair) or a
+passing expression over part of the face, or not line up with the fitted model (a tracking
+slip: every feature lands a few pixels off), and a mean bakes both in: an occluder as a dark
+patch, a slip as doubled features (ghosting).
 
 Exposure first: a camera's automatic exposure and white balance change between frames,
 and a view a fifth darker leaves a soft but visible step where only it sees the skin. So
