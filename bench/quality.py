@@ -2,13 +2,13 @@
 
 Geometry fidelity (docs/DESIGN.md §8, "How the benchmarks judge"). The real sender pipeline
 (``sender.pipeline.SenderPipeline``) encodes every frame of the video; the packets are then
-decoded with ``protocol.packet.decode_frames``, so the measurement goes through quantisation
-and sees only what a receiver sees. ``bench.geometry`` reconstructs the 68 landmarks each
-packet describes and gives the per-frame NME of the 50 points the packet never carries
-against the tracker's, normalised by the outer-eye distance, with pose and residuals
-(held-out) and with the pose alone (rigid-only). Frames without a pose of their own
-(``FACE_PRESENT`` with ``TRACKING_LOST``: face seen, no pose) are left out of the statistics
-and counted (``pose_lost_frames``).
+decoded with ``protocol.packet.decode_frames`` (both in ``bench.encoding``), so the
+measurement goes through quantisation and sees only what a receiver sees. ``bench.geometry``
+reconstructs the 68 landmarks each packet describes and gives the per-frame NME of the 50
+points the packet never carries against the tracker's, normalised by the outer-eye
+distance, with pose and residuals (held-out) and with the pose alone (rigid-only). Frames
+without a pose of their own (``FACE_PRESENT`` with ``TRACKING_LOST``: face seen, no pose)
+are left out of the statistics and counted (``pose_lost_frames``).
 
 Reported (percent of the outer-eye distance): ``nme_heldout_mean``, ``nme_heldout_median``,
 ``nme_heldout_p95`` (95th percentile over measured frames), ``nme_rigid_only_mean``,
@@ -17,10 +17,10 @@ the pose fit, the jaw contour without the chin and the inner lips: ``bench.geome
 ``frames``, ``face_frames`` (packets with ``FACE_PRESENT``), ``payload_kbps`` (packet bits at
 30 Hz; every packet is checked to have ``PACKET_BYTES``).
 
-Appearance fidelity. Every measured frame is rendered by the receiver's renderer
-(``receiver.render.FaceRenderer``) from the sender's camera with the decoded pose,
-residuals and Q (``receiver.views.sender_view``: the Hello's intrinsics, so the rendering
-lines up with the frame), and compared with the real frame on the face
+Appearance fidelity. Every measured frame is rendered (``bench.rendering``) by the
+receiver's renderer (``receiver.render.FaceRenderer``) from the sender's camera with the
+decoded pose, residuals and Q (``receiver.views.sender_view``: the Hello's intrinsics, so
+the rendering lines up with the frame), and compared with the real frame on the face
 (``bench.fidelity.face_box`` and ``face_mask``: inside the landmarks' box grown 10 % and up
 to the forehead, the convex hull of the jaw line and the raised brows, so that the
 background and the hair, which the model does not carry, are not measured): grayscale SSIM
@@ -89,42 +89,43 @@ Targets (printed, informative): ``nme_heldout_mean`` <= 3.0 %, and below
 its first 6 s). A miss does not fail the command (exit 0): the targets are judged over the
 shared videos, not one clip, and on the evaluation clips that no tuning has seen
 (``bench.clips``; ``subset`` says which set the clip is in).
+
+Size: this module is over 600 lines because its docstring states every measure the command
+reports (about 95 lines), and the measures, their report lines and their plots are one
+command's; the encoding and the rendering it measures through are ``bench.encoding`` and
+``bench.rendering``.
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
-import time
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import cv2
 import numpy as np
 
 from facewire.bench.clips import subset
-from facewire.bench.fidelity import face_box, face_mask, gray_ssim, psnr, x264_reference
+from facewire.bench.encoding import Run, decode_run, encode_frames
+from facewire.bench.fidelity import gray_ssim, psnr, x264_reference
 from facewire.bench.geometry import GeometryNME, geometry_nme
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
-from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme, track_fresh
+from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme
 from facewire.bench.render_nme import summary as render_summary
+from facewire.bench.rendering import FreshTracker, grey, render_scores
 from facewire.bench.speed import NoFaceError
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.video import VideoError, VideoFrame, range_text
-from facewire.models.landmarks import eye_aspect_ratio
+from facewire.models.infra.video import VideoError, range_text
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
 from facewire.protocol.control import Camera
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.packet import PACKET_BYTES, Flag, decode_frames
+from facewire.protocol.packet import PACKET_BYTES, Flag
 from facewire.protocol.rate import NOMINAL_HZ, payload_kbps, stream_rate
-from facewire.receiver.render import FaceRenderer
-from facewire.receiver.views import sender_view
 from facewire.sender.capture import open_source
-from facewire.sender.enroll.layers import region_cues, without_closed_eyes
+from facewire.sender.enroll.layers import without_closed_eyes
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 from facewire.sender.tracker import LandmarkTracker
 
@@ -294,73 +295,6 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                             layers, run.eyes, appearance)
 
 
-class Run(NamedTuple):
-    """What the sender pipeline made of each frame of the range, in order (F frames)."""
-
-    indices: list[int]  # video frame indices
-    times: list[float]  # seconds
-    packets: list[bytes]
-    tracked: list[np.ndarray | None]  # (68, 2) tracker points, None without a face
-    images: list[np.ndarray]  # the frames, for the rendering and x264 comparisons
-    brightness: np.ndarray  # (F,) mean grey of the landmarks' box, NaN without a face
-    cues: np.ndarray | None  # (F, regions) enrollment cues, NaN where not sampled; None
-    #                          when the model's regions are not the ones the cues define
-    ratios: np.ndarray  # (F, 2) eye aspect ratios, NaN where not sampled
-    eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
-
-
-def encode_frames(pipeline: SenderPipeline, frames: Iterable[VideoFrame], progress: Progress,
-                  total: int | None = None, keep_eyes: bool = False,
-                  independent: bool = False) -> Run:
-    """Run the sender pipeline over ``frames`` in order, keeping what the measures need.
-
-    With ``independent``, the pipeline is reset before every frame, so each is encoded as
-    the first frame of a stream (a fresh detection, no filter state): the self-check's
-    frames, spread over a range, are not one stream (``bench.selfcheck``).
-    """
-    cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
-    run = Run([], [], [], [], [], np.empty(0), None, np.empty(0), {})
-    brightness: list[float] = []
-    cues: list[np.ndarray] = []
-    ratios: list[np.ndarray] = []
-    for frame in progress(frames, "encoding", total):
-        if independent:
-            pipeline.reset()
-        out = pipeline.process(frame.image, frame.time)
-        if keep_eyes and out.points is not None:
-            run.eyes[len(run.indices)] = _eye_crop(frame.image, out.points)
-        brightness.append(np.nan if out.points is None
-                          else _face_brightness(frame.image, out.points))
-        if cued and out.samples is not None and out.points is not None:
-            cues.append(region_cues(out.samples[:, 0], out.points, out.residuals))
-            ratios.append(eye_aspect_ratio(out.points))
-        else:
-            cues.append(np.full(len(REGION_NAMES), np.nan))
-            ratios.append(np.full(2, np.nan))
-        run.indices.append(frame.index)
-        run.times.append(frame.time)
-        run.images.append(frame.image)
-        run.packets.append(out.packet)
-        run.tracked.append(out.points)
-    return run._replace(brightness=np.array(brightness), cues=np.array(cues) if cued else None,
-                        ratios=np.array(ratios))
-
-
-def decode_run(packets: list[bytes], indices: list[int]) -> np.ndarray:
-    """The sender's packets decoded: (F,) ``FRAME_DTYPE``; every one must be whole and valid.
-    """
-    sizes = {len(p) for p in packets}
-    if sizes != {PACKET_BYTES}:
-        raise ValueError(f"sender produced packets of {sorted(sizes)} bytes, "
-                         f"expected {PACKET_BYTES}")
-    decoded, errors = decode_frames(np.frombuffer(b"".join(packets), np.uint8)
-                                    .reshape(len(packets), PACKET_BYTES))
-    bad = [i for i, e in enumerate(errors) if e is not None]
-    if bad:
-        raise ValueError(f"sender packet of frame {indices[bad[0]]} does not decode: "
-                         f"{errors[bad[0]]} ({len(bad)} such packets)")
-    return decoded
-
 
 def _q_regions(q: dict[str, np.ndarray], layers: dict[str, int], run: Run
                ) -> list[dict[str, Any]]:
@@ -381,110 +315,6 @@ class _Appearance(NamedTuple):
     examples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # k -> real, ours, x264
 
 
-class RenderScores(NamedTuple):
-    """Our rendering of each measured frame against the real frame (``render_scores``).
-
-    Attributes:
-        ssim, psnr: (F,) face SSIM and PSNR (dB); NaN where not measured.
-        seen: ``FaceCounts``: (F, len(PARTS)) render NME fractions and the frames whose
-            rendering showed the tracker no face.
-        real_points: frame position -> (68, 2) the real frame's fresh track.
-        real_missing: measured frames whose real frame showed the fresh tracker no face.
-        boxes, masks: frame position -> the face box and its mask (``bench.fidelity``).
-        faces: frame position -> our rendering cropped to the face box (``keep_faces``).
-        tracking_s: seconds spent in the fresh tracking.
-    """
-
-    ssim: np.ndarray
-    psnr: np.ndarray
-    seen: FaceCounts
-    real_points: dict[int, np.ndarray]
-    real_missing: int
-    boxes: dict[int, tuple[int, int, int, int]]
-    masks: dict[int, np.ndarray]
-    faces: dict[int, np.ndarray]
-    tracking_s: float
-
-
-def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
-                  tracked: list[np.ndarray | None], posed: np.ndarray,
-                  images: list[np.ndarray], progress: Progress, tracker: LandmarkTracker,
-                  keep_faces: bool = False,
-                  truths: list[np.ndarray | None] | None = None) -> RenderScores:
-    """Render every measured frame (a pose of its own and tracked points) with the
-    receiver's renderer from the sender's camera and score it against the real frame: face
-    SSIM and PSNR in the face box, and the fresh tracker's points on both (module
-    docstring, "Appearance fidelity" and "What the viewer sees").
-
-    Args:
-        model: the person model the packets were made with.
-        camera: the sender's camera as the Hello carries it.
-        decoded: (F,) ``FRAME_DTYPE`` decoded packets.
-        tracked: F sender tracker results, (68, 2) pixels or None.
-        posed: (F,) bool, frames with a pose of their own.
-        images: F real frames, (H, W, 3) uint8 BGR.
-        progress: wraps an iterable to show progress.
-        tracker: the tracker for the fresh detections (``bench.render_nme.track_fresh``).
-        keep_faces: keep each rendering's face crop (``RenderScores.faces``).
-        truths: the real frames' fresh tracks when already made (a pipeline reset before
-            every frame detects afresh: ``encode_frames(independent=True)``); else tracked
-            here.
-    """
-    rig = Rig(model.mesh)
-    ssim = np.full(len(decoded), np.nan)
-    peak = np.full(len(decoded), np.nan)
-    boxes: dict[int, tuple[int, int, int, int]] = {}
-    masks: dict[int, np.ndarray] = {}
-    rendered_faces: dict[int, np.ndarray] = {}
-    seen = np.full((len(decoded), len(PARTS)), np.nan)  # render NME per frame and part
-    real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
-    missing = {"real": 0, "render": 0}
-    fresh = _Fresh(tracker)
-    with FaceRenderer(model, camera.width, camera.height) as renderer:
-        for k, image in enumerate(progress(images, "rendering", len(images))):
-            points = tracked[k]
-            if not posed[k] or points is None:
-                continue
-            record = decoded[k]
-            vertices = rig.morph(rig.from_tangent(record["residuals"]))
-            view = sender_view(camera, record["rotation"], record["translation"],
-                               camera.width, camera.height)
-            rendered = renderer.render(vertices, record["q"], view)[..., ::-1]
-            boxes[k] = x0, y0, x1, y1 = face_box(points, camera.width, camera.height)
-            masks[k] = mask = face_mask(points, boxes[k])
-            real, ours = image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]
-            ssim[k] = gray_ssim(real, ours, mask)
-            peak[k] = psnr(_grey(real)[mask], _grey(ours)[mask])
-            if keep_faces:
-                rendered_faces[k] = ours.copy()
-            truth = fresh(image) if truths is None else truths[k]
-            if truth is None:
-                missing["real"] += 1
-                continue
-            real_points[k] = truth
-            drawn = fresh(rendered)
-            if drawn is None:
-                missing["render"] += 1
-            else:
-                seen[k] = picture_nme(truth, drawn)
-    return RenderScores(ssim, peak, FaceCounts(seen, missing["render"]), real_points,
-                        missing["real"], boxes, masks, rendered_faces, fresh.seconds)
-
-
-class _Fresh:
-    """``track_fresh`` with the tracker given, timed: ``seconds`` spent in it so far."""
-
-    def __init__(self, tracker: LandmarkTracker) -> None:
-        self.tracker = tracker
-        self.seconds = 0.0
-
-    def __call__(self, image: np.ndarray) -> np.ndarray | None:
-        start = time.perf_counter()
-        points = track_fresh(self.tracker, image)
-        self.seconds += time.perf_counter() - start
-        return points
-
-
 def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
                 tracked: list[np.ndarray | None], posed: np.ndarray,
                 images: list[np.ndarray], rate_hz: float, payload_kbps: float,
@@ -499,7 +329,7 @@ def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
     ssim, peak, boxes, masks = ours.ssim, ours.psnr, ours.boxes, ours.masks
     rendered_faces, real_points = ours.faces, ours.real_points
     missing = {"real": ours.real_missing, "render": ours.seen.missing, "h264": 0}
-    fresh = _Fresh(tracker)
+    fresh = FreshTracker(tracker)
     h264_ssim = np.full(len(decoded), np.nan)
     h264_peak = np.full(len(decoded), np.nan)
     h264_seen = np.full((len(decoded), len(PARTS)), np.nan)  # x264's render NME
@@ -521,7 +351,7 @@ def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
             if coded.shape != real.shape:  # the box reaches the row or column x264 dropped
                 continue
             h264_ssim[k] = gray_ssim(real, coded, masks[k])
-            h264_peak[k] = psnr(_grey(real)[masks[k]], _grey(coded)[masks[k]])
+            h264_peak[k] = psnr(grey(real)[masks[k]], grey(coded)[masks[k]])
             if k in rendered_faces:
                 triples[k] = (real, rendered_faces[k], coded.copy())
     measured = sorted(triples)
@@ -546,10 +376,6 @@ def _render_at_most_h264(r: dict[str, Any]) -> bool:
     ours, theirs = r["render_nme_mean"], r["h264_render_nme_mean"]
     return (ours is not None and r["render_face_missing"] <= r["h264_face_missing"]
             and (theirs is None or ours <= theirs))
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
 def _mean(values: np.ndarray) -> float | None:
@@ -579,31 +405,9 @@ def _pearson(x: np.ndarray, y: np.ndarray) -> float | None:
     return round(float(np.corrcoef(x[ok], y[ok])[0, 1]), 4)
 
 
-def _face_brightness(image: np.ndarray, points: np.ndarray) -> float:
-    """The mean grey level of the landmarks' bounding box."""
-    h, w = image.shape[:2]
-    x0, y0 = np.clip(np.floor(points.min(axis=0)).astype(int), 0, [w - 1, h - 1])
-    x1, y1 = np.clip(np.ceil(points.max(axis=0)).astype(int) + 1, 1, [w, h])
-    return float(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY).mean())
-
-
 def _at_least(entry: Any, target: float) -> bool:
     value = entry["r"] if isinstance(entry, dict) else entry
     return value is not None and value >= target
-
-
-def _eye_crop(image: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """A 2:1 crop of the frame around both eyes (iBUG 36-47), 240 x 120 px."""
-    eyes = points[36:48]
-    cx, cy = eyes.mean(axis=0)
-    half = max(float(np.ptp(eyes[:, 0])) * 0.7, 8.0)
-    x0, y0 = int(cx - half), int(cy - half / 2)
-    x1, y1 = int(cx + half), int(cy + half / 2)
-    h, w = image.shape[:2]
-    crop = image[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)]
-    if crop.size == 0:
-        return np.zeros((120, 240, 3), np.uint8)
-    return cv2.resize(crop, (240, 120), interpolation=cv2.INTER_AREA)
 
 
 def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:

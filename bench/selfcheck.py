@@ -6,9 +6,9 @@ optional ``self_check``), so that ``model info`` shows it too.
 
 Scoring (``score_frames``). At most ``MAX_FRAMES`` (40) of the build's frames with a face,
 evenly spread over its range (``pick_frames``; a photo: the photo, one frame), go through
-``bench.quality``'s own machinery: the real sender pipeline encodes them
-(``bench.quality.encode_frames``), the packets are decoded, and the receiver's renderer
-draws each from the sender's camera (``bench.quality.render_scores``): face SSIM in the
+``bench quality``'s own machinery: the real sender pipeline encodes them
+(``bench.encoding.encode_frames``), the packets are decoded, and the receiver's renderer
+draws each from the sender's camera (``bench.rendering.render_scores``): face SSIM in the
 face box, and the project's tracker on the rendering against the real frame (render NME,
 ``bench.render_nme``). No x264 reference is made. The frames are spread over the range, so
 they are not one stream: the pipeline is reset before each (``independent``), and each is
@@ -79,8 +79,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.bench.quality import decode_run, encode_frames, render_scores
+from facewire.bench.encoding import decode_run, encode_frames
 from facewire.bench.render_nme import summary as render_summary
+from facewire.bench.rendering import render_scores
 from facewire.models.geometry import Intrinsics, Pose, project
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames, video_info

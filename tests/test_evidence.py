@@ -15,7 +15,8 @@ import pytest
 
 from facewire.models.infra.raster import Camera, MeshRenderer, orbit_pose
 from facewire.models.mesh import Mesh
-from facewire.sender.enroll.texture import project_views, uv_surface
+from facewire.sender.enroll.fusion import project_views
+from facewire.sender.enroll.texture import uv_surface
 
 IMG = 200
 TEX = (128, 256)

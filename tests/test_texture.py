@@ -11,7 +11,8 @@ import pytest
 from facewire.models.gltf import read_glb
 from facewire.models.infra.raster import Camera, MeshRenderer, orbit_pose
 from facewire.models.mesh import Mesh
-from facewire.sender.enroll.texture import TextureError, fill_holes, project_views, uv_surface
+from facewire.sender.enroll.fusion import project_views
+from facewire.sender.enroll.texture import TextureError, fill_holes, uv_surface
 
 TEX_H, TEX_W = 128, 256
 IMG = 256

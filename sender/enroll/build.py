@@ -11,7 +11,7 @@ The steps, in order (``build_model``):
    frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
    blur, pose and expression; frames whose landmarks do not line up are not candidates),
    decode them again, project them onto the fitted mesh's UV layout and fuse them robustly
-   per texel (``sender.enroll.texture.fuse_views``: a weighted median's consensus, views
+   per texel (``sender.enroll.fusion.fuse_views``: a weighted median's consensus, views
    departing from it take no part there, misaligned views none at all) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
    angle. When the neutral frame was an outlier over a part of the face (occluded there),
@@ -105,8 +105,9 @@ from facewire.sender.enroll.evidence import (
     texture_views,
 )
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
+from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
-from facewire.sender.enroll.texture import Fusion, UVSurface, fill_holes, fuse_views, uv_surface
+from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
@@ -280,57 +281,11 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     appearance step); ``where`` names the input in errors; ``source_file`` is the file the
     model says it was built from (``info.source``; None for an image given in memory)."""
     start = time.perf_counter()
-    tracker = LandmarkTracker()
-    indices: list[int] = []
-    points: list[np.ndarray | None] = []
-    blur: list[float] = []
-    for frame in progress(read(frames), "tracking", total):
-        indices.append(frame.index)
-        if photo and points:  # the same image: the detection's points, not the follower's
-            points.append(points[0])
-            blur.append(blur[0])
-            continue
-        found = tracker.track(frame.image).points
-        points.append(found)
-        blur.append(0.0 if found is None else sharpness(frame.image, found))
-    if not indices:
-        raise BuildError(f"{where}: no frames in range {range_text(frames)}")
-    face_frames = sum(p is not None for p in points)
-    if face_frames == 0:
-        raise BuildError(f"{where}: no face found in the photo" if photo else
-                         f"{where}: no face found in frames {indices[0]}..{indices[-1]}")
-
+    indices, points, blur, face_frames = _track(read, frames, total, progress, where, photo)
     camera = intrinsics_guess(width, height)
-    try:
-        fit = fit_person(points, camera, head=generic_head())
-    except FitError as exc:
-        raise BuildError(f"{where}: {exc}") from None
-
-    surface = uv_surface(fit.mesh, TEXTURE_SIZE)
-    chosen, primary = ((fit.neutral,), 1) if photo else texture_views(
-        fit, frame_scores(points, fit, camera, blur))
-    images = _decode(read, {indices[k] for k in chosen})
-    fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
-    clean = clean_views(fusion, occluded)
-    first_neutral = None
-    if not clean[0] and clean.any():  # the neutral was occluded: take it from the clean views
-        first_neutral = indices[fit.neutral]
-        try:
-            fit = fit_person(points, camera, head=generic_head(),
-                             neutral_among=[k for k, ok in zip(chosen, clean) if ok])
-        except FitError as exc:
-            raise BuildError(f"{where}: {exc}") from None
-        surface = uv_surface(fit.mesh, TEXTURE_SIZE)
-        chosen = (fit.neutral, *(k for k in chosen if k != fit.neutral))
-        primary = 1
-        images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
-        fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
-    texture = fill_holes(fusion.texture, fusion.weight > 0)
-    evidence = {"views": [indices[k] for k in chosen],
-                "misaligned": [indices[k] for k, ok in zip(chosen, fusion.aligned) if not ok],
-                "occluded": {part: [indices[k] for k, bad in zip(chosen, flags) if bad]
-                             for part, flags in occluded.items()},
-                "neutral_occluded": first_neutral}
+    fit = _fit(points, camera, where)
+    fit, chosen, images, texture, evidence = _base_texture(read, indices, points, blur, fit,
+                                                           camera, where, photo)
 
     used, neutral = tuple(sorted(indices[k] for k in chosen)), indices[fit.neutral]
     if photo:  # the copies are one frame: frame 0
@@ -359,6 +314,74 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
                        time.perf_counter() - start, report, coverage, checked, evidence)
+
+
+def _track(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: int | None,
+           progress: Progress, where: str, photo: bool
+           ) -> tuple[list[int], list[np.ndarray | None], list[float], int]:
+    """Step 1: each frame's index, 68 points (None: no face) and sharpness, and how many
+    frames show a face; ``BuildError`` when none do."""
+    tracker = LandmarkTracker()
+    indices: list[int] = []
+    points: list[np.ndarray | None] = []
+    blur: list[float] = []
+    for frame in progress(read(frames), "tracking", total):
+        indices.append(frame.index)
+        if photo and points:  # the same image: the detection's points, not the follower's
+            points.append(points[0])
+            blur.append(blur[0])
+            continue
+        found = tracker.track(frame.image).points
+        points.append(found)
+        blur.append(0.0 if found is None else sharpness(frame.image, found))
+    if not indices:
+        raise BuildError(f"{where}: no frames in range {range_text(frames)}")
+    face_frames = sum(p is not None for p in points)
+    if face_frames == 0:
+        raise BuildError(f"{where}: no face found in the photo" if photo else
+                         f"{where}: no face found in frames {indices[0]}..{indices[-1]}")
+    return indices, points, blur, face_frames
+
+
+def _fit(points: list[np.ndarray | None], camera: Intrinsics, where: str,
+         neutral_among: list[int] | None = None) -> Fit:
+    """Step 2: ``fit_person`` on the generic head, its ``FitError`` a ``BuildError``."""
+    try:
+        return fit_person(points, camera, head=generic_head(), neutral_among=neutral_among)
+    except FitError as exc:
+        raise BuildError(f"{where}: {exc}") from None
+
+
+def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[int],
+                  points: list[np.ndarray | None], blur: list[float], fit: Fit,
+                  camera: Intrinsics, where: str, photo: bool
+                  ) -> tuple[Fit, tuple[int, ...], dict[int, np.ndarray], np.ndarray,
+                             dict[str, Any]]:
+    """Step 3: the fit (fitted again when the neutral frame was occluded), the views fused
+    (positions in ``indices``), the decoded images by frame index, the filled base texture
+    and the evidence the build reports."""
+    surface = uv_surface(fit.mesh, TEXTURE_SIZE)
+    chosen, primary = ((fit.neutral,), 1) if photo else texture_views(
+        fit, frame_scores(points, fit, camera, blur))
+    images = _decode(read, {indices[k] for k in chosen})
+    fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
+    clean = clean_views(fusion, occluded)
+    first_neutral = None
+    if not clean[0] and clean.any():  # the neutral was occluded: take it from the clean views
+        first_neutral = indices[fit.neutral]
+        fit = _fit(points, camera, where, [k for k, ok in zip(chosen, clean) if ok])
+        surface = uv_surface(fit.mesh, TEXTURE_SIZE)
+        chosen = (fit.neutral, *(k for k in chosen if k != fit.neutral))
+        primary = 1
+        images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
+        fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
+    texture = fill_holes(fusion.texture, fusion.weight > 0)
+    evidence = {"views": [indices[k] for k in chosen],
+                "misaligned": [indices[k] for k, ok in zip(chosen, fusion.aligned) if not ok],
+                "occluded": {part: [indices[k] for k, bad in zip(chosen, flags) if bad]
+                             for part, flags in occluded.items()},
+                "neutral_occluded": first_neutral}
+    return fit, chosen, images, texture, evidence
 
 
 def _decode(read: Callable[[slice], Iterable[VideoFrame]], wanted: set[int]

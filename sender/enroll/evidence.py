@@ -1,6 +1,6 @@
 """Clean evidence for the base texture: which enrollment frames it is fused from.
 
-The base texture (``sender.enroll.texture.fuse_views``) is a robust estimate across views,
+The base texture (``sender.enroll.fusion.fuse_views``) is a robust estimate across views,
 and a median is only right when the clean views carry more than half of the weight. So the
 views are chosen clean, and spread in time, before they are fused; after the fusion, the
 views that were outliers over a part of the face tell which frames were occluded there.
@@ -74,7 +74,7 @@ from facewire.models.geometry import Intrinsics
 from facewire.models.mesh import Mesh
 from facewire.models.regions import texel_rect
 from facewire.sender.enroll.fit import Fit, frame_costs
-from facewire.sender.enroll.texture import Fusion
+from facewire.sender.enroll.fusion import Fusion
 
 TEXTURE_VIEWS = 9
 MISFIT_RATIO = 2.0
@@ -143,7 +143,7 @@ def frame_scores(points: Sequence[np.ndarray | None], fit: Fit, camera: Intrinsi
 def texture_views(fit: Fit, scores: dict[int, float], count: int = TEXTURE_VIEWS
                   ) -> tuple[tuple[int, ...], int]:
     """The frames to fuse, the neutral first, and how many of them are primary (the neutral
-    and the fit's side views: ``sender.enroll.texture``, 3) (module docstring, 2)."""
+    and the fit's side views: ``sender.enroll.fusion``, colour) (module docstring, 2)."""
     frames = len(fit.poses)
     gap = max(1, frames // (2 * count))
     views = [fit.neutral]

@@ -93,9 +93,9 @@ in OpenCV's camera frame, converted by ``S = diag(1, -1, -1)``. Yaw and pitch ar
 8. Final poses: every frame with points is posed again (step 2) against the fitted mesh's
    landmark vertices, which is what the texture projection needs.
 
-Size: this module is just over 600 lines because this docstring states the method of all
-eight steps (about 100 lines), which the code follows step by step with helpers that no
-other module uses.
+Size: this module is over 600 lines because this docstring states the method of all eight
+steps (about 100 lines), which the code follows step by step with helpers of its own (only
+step 3's frame costs, ``frame_costs``, also serve another module: ``sender.enroll.evidence``).
 """
 
 from __future__ import annotations
