@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, TypeAlias, TypeVar
 
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.rate import NOMINAL_HZ
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
 
 EXIT_USAGE = 2
 # The failures a user can cause: reported as one line, no traceback.
@@ -42,6 +42,18 @@ def _replay(args: argparse.Namespace) -> int:
                f"{s['lost_records']} damaged log records",
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
+
+
+def _rate(text: str) -> float:
+    """``--rate``: a frame rate a Hello may announce (``protocol.rate``), else a usage error."""
+    try:
+        rate = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of Hz, got {text!r}") from None
+    if not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise argparse.ArgumentTypeError(
+            f"expected {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz, got {text}")
+    return rate
 
 
 def _send(args: argparse.Namespace) -> int:
@@ -432,7 +444,8 @@ def _add_send_receive(sub: Commands) -> None:
     s.add_argument("--source", required=True, help="camera:N or a video file")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ address to publish on")
     s.add_argument("--record", help="also write the packets to this log (.fwlog)")
-    s.add_argument("--rate", type=float, default=NOMINAL_HZ, help="target frame rate in Hz")
+    s.add_argument("--rate", type=_rate, default=NOMINAL_HZ,
+                   help=f"target frame rate in Hz, {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g}")
     s.add_argument("--loop", action="store_true", help="play a video file over and over, "
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "

@@ -160,3 +160,13 @@ def child_process(parent: subprocess.Popen, word: str, timeout_s: float) -> int:
         time.sleep(0.2)
     raise AssertionError(f"no child process '{word}' of facewire within {timeout_s} s")
 
+
+
+@pytest.mark.parametrize("rate", ["0", "-5", "1001", "nan", "fast"])
+def test_send_refuses_a_rate_no_hello_may_announce(rate: str) -> None:
+    """A rate outside [1, 1000] Hz is a usage error naming --rate, before anything opens."""
+    result = subprocess.run([sys.executable, "-m", "facewire.cli", "send", "--model", "m.fwm",
+                             "--source", "camera:0", "--rate", rate],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "argument --rate" in result.stderr and "Traceback" not in result.stderr
