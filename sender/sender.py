@@ -90,8 +90,7 @@ from facewire.protocol.control import (
 )
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
-from facewire.protocol.packet import PACKET_BYTES
-from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
+from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps
 from facewire.protocol.transport import (
     ControlServer,
     PacketPublisher,
@@ -344,7 +343,7 @@ def _rates(counts: dict[str, Any]) -> dict[str, Any]:
     per_second = 1.0 / seconds if seconds > 0 else 0.0
     return {**counts, "seconds": round(seconds, 3),
             "fps": round(counts["frames"] * per_second, 2),
-            "payload_kbps": round(counts["packets"] * PACKET_BYTES * 8 * per_second / 1000, 3),
+            "payload_kbps": round(payload_kbps(counts["packets"] * per_second), 3),
             "cpu_percent": round(100 * cpu * per_second, 1)}
 
 
@@ -398,5 +397,5 @@ def _status(counts: dict[str, Any], peers: PeerCounter, elapsed: float, period: 
             frames: int, face: bool) -> dict[str, Any]:
     return {"seconds": round(elapsed, 1), "frames": counts["frames"],
             "fps": round(frames / period, 1),
-            "payload_kbps": round(frames * PACKET_BYTES * 8 / period / 1000, 2),
+            "payload_kbps": round(payload_kbps(frames / period), 2),
             "face": face, "receivers": peers.count()}
