@@ -98,6 +98,9 @@ _HUGE_PAGE = 2 << 20
 # (predictor, bytes of its memory backed by huge pages).
 _PREDICTORS: dict[tuple[str, int, int], tuple[dlib.shape_predictor, int]] = {}
 _PREDICTORS_LOCK = threading.Lock()
+# dlib's HOG face detector, one per thread: making one takes 1-3 s, and a detector keeps its
+# image pyramid between calls, so two threads may not share one.
+_DETECTORS = threading.local()
 
 
 def predictor_path() -> Path:
@@ -218,7 +221,8 @@ class LandmarkTracker:
     """Track the 68 iBUG points of one face (the largest when acquired) through a video.
 
     Not thread-safe; one instance per video stream. See the module docstring for the method.
-    Trackers of one process share the loaded shape predictor (read-only when predicting).
+    Trackers of one process share the loaded shape predictor (read-only when predicting),
+    and the trackers used in one thread share that thread's face detector.
 
     Attributes:
         huge_page_bytes: bytes of the predictor's memory backed by 2 MB pages when it was
@@ -273,7 +277,7 @@ class LandmarkTracker:
         probe = self._predictor(np.zeros((32, 32), np.uint8), dlib.rectangle(0, 0, 31, 31))
         if probe.num_parts != N_LANDMARKS:
             raise ValueError(f"{path}: predicts {probe.num_parts} points, expected {N_LANDMARKS}")
-        self._detector = dlib.get_frontal_face_detector()
+        _detector()  # made now, so that the first frame does not pay for it
         self._detect_width = detect_width
         self._verify_every = verify_every
         self._search_every = search_every
@@ -348,7 +352,7 @@ class LandmarkTracker:
         if scale < 1.0:
             size = (max(round(gray.shape[1] * scale), 1), max(round(gray.shape[0] * scale), 1))
             small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
-        return [_scaled_box(r, scale, 0, 0) for r in self._detector(small)]
+        return [_scaled_box(r, scale, 0, 0) for r in _detector()(small)]
 
     def _acquire(self, gray: np.ndarray, verified: bool) -> TrackResult:
         """Full-frame detection; start a track on the largest face, or report no face."""
@@ -385,7 +389,7 @@ class LandmarkTracker:
         size = (max(round((x1 - x0) * scale), 1), max(round((y1 - y0) * scale), 1))
         interp = cv2.INTER_AREA if scale < 1.0 else cv2.INTER_LINEAR
         roi = cv2.resize(gray[y0:y1, x0:x1], size, interpolation=interp)
-        faces, _, _ = self._detector.run(roi, 0, self._verify_threshold)
+        faces, _, _ = _detector().run(roi, 0, self._verify_threshold)
         best: Box | None = None
         best_iou = 0.0
         for r in faces:
@@ -394,6 +398,14 @@ class LandmarkTracker:
             if overlap > best_iou:
                 best, best_iou = found, overlap
         return best
+
+
+def _detector() -> dlib.fhog_object_detector:
+    """The calling thread's HOG face detector, made on its first use in that thread."""
+    detector = getattr(_DETECTORS, "detector", None)
+    if detector is None:
+        detector = _DETECTORS.detector = dlib.get_frontal_face_detector()
+    return detector
 
 
 def _load_predictor(path: Path) -> tuple[dlib.shape_predictor, int]:

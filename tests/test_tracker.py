@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import pytest
 
 from facewire.models.landmark_files import read_pts
 from facewire.models.landmarks import nme
+from facewire.sender import tracker as module
 from facewire.sender.tracker import LandmarkTracker, TrackResult, box_from_points, predictor_path
 
 
@@ -270,3 +272,17 @@ def test_trackers_share_one_predictor_held_in_huge_pages(tracker: LandmarkTracke
     rollup = Path("/proc/self/smaps_rollup").read_text()
     huge_kb = int(re.search(r"AnonHugePages:\s+(\d+) kB", rollup)[1])
     assert huge_kb << 10 >= 40 << 20, rollup
+
+
+def test_a_thread_makes_its_face_detector_once_and_shares_it_with_no_other_thread() -> None:
+    """Making dlib's detector takes seconds, so the trackers of a thread share one; its scan
+    keeps state between calls, so another thread gets its own."""
+    LandmarkTracker()
+    here = module._detector()
+    LandmarkTracker()
+    assert module._detector() is here
+    other: list[object] = []
+    thread = threading.Thread(target=lambda: other.append(module._detector()))
+    thread.start()
+    thread.join()
+    assert other and other[0] is not here
