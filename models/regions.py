@@ -34,8 +34,8 @@ back wall is some 40 mm behind the lips, so a turned head moves the mouth's samp
 the lips (about 12 mm at 15 degrees of yaw): the mouth classifier is the most
 pose-dependent one. The eyelid and eyeball regions share the eyeball's texture: the
 eyeball region (gaze) is drawn first, the eyelid region over it, and the eyelid's open
-state is transparent (``opacity`` 0), so the gaze shows through an open lid and a closing
-lid covers it.
+states (up to its rest state) are transparent (``opacity`` 0), so the gaze shows through an
+open lid and a closing lid covers it.
 
 Further areas. A region's states may cover more of the face than its own surface: the
 eyelids' states also cover the skin of both lids around the opening (``areas``; the boxes in
@@ -107,7 +107,8 @@ class RegionSpec:
         box: (x0, x1, y0, y1) its template area seen from the front, generic head, mm.
         layers: how many appearance states enrollment gives it.
         axis: what grows with Q, for people.
-        transparent_first: its first state is transparent (the eyelids' open state).
+        transparent_open: its states up to the rest state are transparent (the eyelids' open
+            states: the gaze layers under them show).
         layer_margin: how far, mm, the layer area reaches beyond the template area.
         areas: further layer areas, (surface, front box) each (module docstring).
     """
@@ -117,7 +118,7 @@ class RegionSpec:
     box: tuple[float, float, float, float]
     layers: int
     axis: str
-    transparent_first: bool = False
+    transparent_open: bool = False
     layer_margin: float = LAYER_MARGIN_MM
     areas: tuple[tuple[Tag, tuple[float, float, float, float]], ...] = ()
 
@@ -128,9 +129,9 @@ REGIONS = (
     RegionSpec("forehead", Tag.SKIN, (-30.0, 30.0, 30.0, 55.0), 4, "brows raised"),
     RegionSpec("brow_furrow", Tag.SKIN, (-13.0, 13.0, 4.0, 28.0), 3, "brows drawn together"),
     RegionSpec("eyelid_left", Tag.LEFT_EYEBALL, (24.0, 39.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(LEFT_LIDS,)),
+               transparent_open=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(LEFT_LIDS,)),
     RegionSpec("eyelid_right", Tag.RIGHT_EYEBALL, (-39.0, -24.0, -5.0, 7.0), 4, "eye closed",
-               transparent_first=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(RIGHT_LIDS,)),
+               transparent_open=True, layer_margin=EYE_LAYER_MARGIN_MM, areas=(RIGHT_LIDS,)),
     RegionSpec("eyeball_left", Tag.LEFT_EYEBALL, (23.0, 40.0, -3.0, 4.0), 5,
                "gaze toward the person's left (image right)", layer_margin=EYE_LAYER_MARGIN_MM),
     RegionSpec("eyeball_right", Tag.RIGHT_EYEBALL, (-40.0, -23.0, -3.0, 4.0), 5,

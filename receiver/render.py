@@ -28,7 +28,7 @@ starting from the texture, c = B(uv):
     c <- c (1 - a) + (a B(uv) + d)  =  c + a (B(uv) - c) + d.
 
 a B + d is the premultiplied layer colour a L, so this is the "over" operator with
-premultiplied colour: a transparent state (opacity 0, the eyelids' open state) has a = d = 0,
+premultiplied colour: a transparent state (opacity 0, the eyelids' open states) has a = d = 0,
 and interpolating it with an opaque neighbour never leaks its colour. Storing d relative to B
 (rather than a L) makes a layer equal to the texture under it contribute exactly nothing,
 whatever the filtering: Q = 0 on a model whose first layers are its neutral texture renders

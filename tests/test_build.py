@@ -61,7 +61,10 @@ def test_build_info_export(built, capsys):
         for j, template in enumerate(region.templates):
             samples[r, 0] = template
             assert classifiers.classify(samples).q[r] == j
-        assert region.opacity[0] == (0.0 if region.name.startswith("eyelid") else 1.0)
+        # an eyelid's open states, up to its rest state, are transparent: the gaze shows
+        assert region.opacity == tuple(
+            0.0 if region.name.startswith("eyelid") and j <= region.rest else 1.0
+            for j in range(len(region.layers)))
         assert 0 <= region.rest <= len(region.layers) - 1
         assert report["rest"] == round(region.rest, 4)
     closed = summary["appearance"]["eyelid_left"]["cue"]

@@ -12,6 +12,7 @@ from facewire.models.regions import REGION_NAMES, ramp_mask, spec
 from facewire.sender.enroll.layers import (
     EnrollError,
     _choose_states,
+    _gaze_cost,
     _iris_position,
     enroll_regions,
     region_cues,
@@ -40,6 +41,27 @@ def test_states_prefer_a_frontal_head_and_skip_undefined_cues() -> None:
     assert picks[info["rest"]] == 4
     assert 3 not in picks and 1 not in picks and 6 not in picks
     assert picks == sorted(picks)  # the levels rise with the cue
+
+
+def test_an_eyelid_state_prefers_an_eye_looking_ahead() -> None:
+    """Two frames have the same lid cue; the one whose eye looks aside (its eyeball's gaze
+    cue far from the median) loses, so the lid's template does not carry a gaze."""
+    frames = 40
+    cues = np.full((frames, len(REGION_NAMES)), np.nan)
+    lid, ball = REGION_NAMES.index("eyelid_left"), REGION_NAMES.index("eyeball_left")
+    cues[:, lid] = np.linspace(-0.25, -0.05, frames)  # minus the eye aspect ratio
+    cues[:, ball] = 0.5 + 0.05 * np.sin(np.arange(frames))
+    cues[5:11, lid] = -0.35  # the widest-open lid, the 10th percentile, ...
+    cues[5, ball] = 0.95  # ... and frame 5 looks far aside
+    cost = _gaze_cost(spec("eyelid_left"), cues)
+    assert cost[5] > 5 * cost[6:11].max()
+    picks, _ = _choose_states(spec("eyelid_left"), cues[:, lid], cost, neutral=20)
+    assert 5 not in picks and set(range(6, 11)) & set(picks)
+    plain, _ = _choose_states(spec("eyelid_left"), cues[:, lid], np.zeros(frames), neutral=20)
+    assert 5 in plain  # without the gaze cost, the first of the ties
+    assert not _gaze_cost(spec("mouth"), cues).any()
+    cues[:, ball] = np.nan  # no gaze cue (lids closed): no cost
+    assert not _gaze_cost(spec("eyelid_left"), cues).any()
 
 
 def test_a_cue_the_video_barely_shows_is_weak() -> None:

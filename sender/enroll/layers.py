@@ -37,7 +37,9 @@ the sender's pose and lift.
    nearest to the neutral frame's own cue is the region's *rest* state and takes the
    neutral frame itself (``sender.enroll.build`` chose it, and paints the rest layers into the
    base texture). Every other level takes the frame whose cue is nearest to it (ties broken
-   toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
+   toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|; for an eyelid, also
+   toward an eye looking ahead: + 0.002 ``GAZE_COST`` |gaze - its median| / gaze span, so
+   that its templates do not tie the lid's state to a gaze), each frame at most
    once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
 4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
@@ -52,7 +54,9 @@ the sender's pose and lift.
    area: its only one, or for an eyelid the lid skin, the same skin in every state (the
    eyeball's border under an open lid is eyeball, and matching a closed lid to it darkened
    the closed states). The mask is the region's
-   ``ramp_mask``; the eyelids' first (open) state has opacity 0.
+   ``ramp_mask``; the eyelids' open states, those up to the rest state, have opacity 0: an
+   open lid shows the gaze layers under it (an opaque rest state painted the neutral
+   frame's gaze over every open eye).
 5. Templates: each state's frame's centre sample, 16 x 16 raw grey levels.
 6. Rest: the rest state's index, ``Region.rest``: what a receiver shows for a face at
    rest or lost. The neutral frame's sample is that state's template, so the classifier
@@ -91,6 +95,7 @@ from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
+GAZE_COST = 150.0  # an eyelid state's cost, degrees of yaw, per gaze span off the middle
 MIN_SPAN = {"forehead": 1.5, "brow_furrow": 1.0, "eyelid": 0.08, "eyeball": 0.1,
             "mouth": 0.08}  # cue units (module docstring)
 _LEVELS = {"forehead": (50, 98), "brow_furrow": (50, 98), "eyelid": (10, 99),
@@ -180,7 +185,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     chosen: dict[str, list[int]] = {}
     report: dict[str, dict[str, Any]] = {}
     for r, region in enumerate(REGIONS):
-        picks, info = _choose_states(region, cues[:, r], yaw, neutral)
+        picks, info = _choose_states(region, cues[:, r], yaw + _gaze_cost(region, cues), neutral)
         chosen[region.name] = picks
         report[region.name] = {**info, "frames": [observations[i].index for i in picks],
                                "occluded_frames": int(blocked[:, r].sum())}
@@ -204,7 +209,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
             texels.layers(region.name, images[i], observations[i]) for i in picks))]
         masks = [np.rint(255 * ramp_mask(p.shape[1:3])).astype(np.uint8) for p in parts]
         templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
-        opacity = tuple(0.0 if (j == 0 and region.transparent_first) else 1.0
+        opacity = tuple(0.0 if (region.transparent_open and j <= rest) else 1.0
                         for j in range(len(picks)))
         placement = texels.placements[region.name]
         areas = tuple(Area(*area) for area in zip(placement.areas, parts[1:], masks[1:]))
@@ -295,15 +300,35 @@ def _iris_position(sample: np.ndarray) -> float:
     return float((darkness * columns).sum() / darkness.sum())
 
 
+def _gaze_cost(region: RegionSpec, cues: np.ndarray) -> np.ndarray:
+    """(F,) an eyelid state's extra cost, in degrees of yaw, for a frame whose eye looks away
+    from the middle of the gaze seen: ``GAZE_COST`` times the distance of that eye's gaze cue
+    from its median over the span of ``_LEVELS``; 0 for other regions and for frames
+    without a gaze cue (lid closed). An eyelid's templates then show the eye looking ahead,
+    as it mostly does, and a wide-open eye looking ahead is not read as a lid closing."""
+    cost = np.zeros(len(cues))
+    if _family(region) != "eyelid":
+        return cost
+    gaze = cues[:, REGION_NAMES.index(region.name.replace("eyelid", "eyeball"))]
+    seen = np.isfinite(gaze)
+    if seen.sum() < 2:
+        return cost
+    low, high = np.percentile(gaze[seen], _LEVELS["eyeball"])
+    cost[seen] = GAZE_COST * np.abs(gaze[seen] - np.median(gaze[seen])) / max(high - low, 1e-6)
+    return cost
+
+
 def _family(region: RegionSpec) -> str:
     return region.name.split("_")[0] if region.name.startswith(("eyelid", "eyeball")) \
         else region.name
 
 
-def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray, neutral: int
+def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutral: int
                    ) -> tuple[list[int], dict[str, Any]]:
     """The observation index of each state, and the report entry with the rest state
-    (module docstring, 3); ``neutral`` is the neutral frame's observation."""
+    (module docstring, 3); ``neutral`` is the neutral frame's observation, ``away`` (F,)
+    how far each frame is from a frontal head looking ahead, in degrees (|yaw|, plus
+    ``_gaze_cost`` for an eyelid)."""
     family = _family(region)
     usable = np.isfinite(cue)
     if not usable.any():
@@ -320,7 +345,7 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, yaw: np.ndarray, neutral
     for j, level in enumerate(levels):
         if j == rest_state:
             continue
-        cost = np.abs(cue - level) / scale + 0.002 * yaw
+        cost = np.abs(cue - level) / scale + 0.002 * away
         cost[~usable] = np.inf
         cost[taken] = np.inf
         if np.isinf(cost).all():
