@@ -289,7 +289,7 @@ def _model_build_guided(args: argparse.Namespace) -> int:
             print(f"facewire model build: live view at {live.url}", file=sys.stderr)
         print(f"facewire model build: {len(ROUTINE)} prompts, "
               f"{schedule.lead_s:g} s to get ready and {schedule.record_s:g} s recorded "
-              f"each ({schedule.seconds:.0f} s); Ctrl-C stops", file=sys.stderr)
+              f"each ({schedule.seconds:.1f} s); Ctrl-C stops", file=sys.stderr)
         with _StatusLine(lambda cue: cue.line()) as line:
             def say(text: str) -> None:
                 if line.width:
@@ -327,8 +327,9 @@ def _build_lines(s: dict[str, Any]) -> list[str]:
             f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
             f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
             f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
-            f"built from: {s['source']['video']} frames {s['source']['start']}:"
-            f"{s['source']['stop']}",
+            "built from: " + (f"{s['source']['video']} frames {s['source']['start']}:"
+                              f"{s['source']['stop']}" if s["source"] else
+                              "a camera's recording (not kept)"),
             f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
             f"from the generic head)",
             f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",

@@ -13,8 +13,12 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
+import time
+import urllib.request
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from conftest import write_video
@@ -90,6 +94,9 @@ def test_prompts_appear_in_order_and_each_region_takes_its_prompts_frames(guided
     assert s["appearance"]["forehead"]["frames"][-1] in takes["brows_up"]
     assert s["appearance"]["mouth"]["frames"][-1] in [*takes["smile"], *takes["smile_wide"],
                                                       *takes["mouth_open"]]
+    assert (s["source"]["video"], s["source"]["start"], s["source"]["stop"]) == (
+        "lp_d3.mp4", 18, 297)  # the stand-in's frames, first take (after a lead-in) to last
+    assert "built from: lp_d3.mp4 frames 18:297" in done.stdout
     model = load_model(out)
     assert len(model.regions) == len(REGION_NAMES) and model.coverage == s["coverage"]
     assert "coverage: " in done.stdout and "guided:   " in done.stdout
@@ -150,3 +157,43 @@ def test_a_lost_face_is_prompted_again_then_kept(tmp_path: Path) -> None:
     with open_source(str(short)) as source, pytest.raises(GuidedError, match="short.mp4: ended "
                                                           "0.8 s into the routine"):
         record_routine(source, written.append, Schedule(0.0, take), name=source.name)
+
+
+def test_view_shows_each_prompt_on_the_live_page(tmp_path: Path) -> None:
+    """``--view`` on a faceless video, paced in real time (3.3 s): the page's statistics name
+    the prompts in routine order and its frame has the prompt's band drawn over it; the
+    build then finds no face: one line, exit 2."""
+    video = write_video(tmp_path / "grey.mp4", [np.full((120, 160, 3), 128, np.uint8)] * 90,
+                        25)
+    process = subprocess.Popen(
+        [FACEWIRE, "model", "build", "--guided", str(video), "--lead-seconds", "0",
+         "--prompt-seconds", "0.1", "--view", "--view-port", "0", "-o",
+         str(tmp_path / "m.fwm"), "--no-self-check"],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    assert process.stderr is not None
+    lines: list[str] = []
+    drain = threading.Thread(target=lambda: lines.extend(process.stderr or ()), daemon=True)
+    url = process.stderr.readline().strip().rsplit(" ", 1)[-1]
+    drain.start()
+    assert url.startswith("http://127.0.0.1:"), url
+    seen: list[str] = []
+    frame = None
+    while process.poll() is None:
+        try:
+            with urllib.request.urlopen(url + "stats.json", timeout=2) as reply:
+                prompt = json.load(reply)["stats"].get("prompt")
+            if prompt and (not seen or seen[-1] != prompt):
+                seen.append(prompt)
+            if frame is None and prompt:
+                with urllib.request.urlopen(url + "frame.jpg", timeout=2) as reply:
+                    frame = cv2.imdecode(np.frombuffer(reply.read(), np.uint8), cv2.IMREAD_COLOR)
+        except (OSError, ValueError):
+            pass  # the page closed between the check and the request
+        time.sleep(0.05)
+    drain.join(5)
+    texts = [f"{k}/{len(ROUTINE)}: {p.text}" for k, p in enumerate(ROUTINE, 1)]
+    assert len(seen) >= 5 and seen == sorted(seen, key=texts.index), seen
+    assert frame is not None and frame.shape == (120, 160, 3)
+    assert (frame[:20] < 100).mean() > 0.5 and abs(int(frame[100, 80, 0]) - 128) < 8
+    assert process.returncode == 2
+    assert lines[-1] == f"facewire: {video} (its guided recording): no face found in frames 0..82\n"

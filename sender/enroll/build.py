@@ -30,7 +30,9 @@ The steps, in order (``build_model``):
    state it lacks. A model without regions covers none: only the neutral.
 5. Save the model (``models.modelfile``), with the frames it was built from (the
    video's name, size and sha256, and the range [first, last + 1) of the frames tracked:
-   ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
+   ``info.source``, which ``bench quality`` checks; of a guided recording, the frames of
+   the video file it recorded, or none for a camera: ``Guide.origin_range``), and a
+   preview PNG beside it: the model
    rendered from the front and from three-quarter view, beside the neutral frame cropped to
    the face, so a user can see at a glance whether the model is that person; below, one row
    per region with its layers in order (as drawn over the neutral texture: layer times its
@@ -299,13 +301,15 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     used, neutral = tuple(sorted(indices[k] for k in chosen)), indices[fit.neutral]
     if photo:  # the copies are one frame: frame 0
         used, neutral, indices, face_frames = (0,), 0, [0], 1
+    made_from = None if source_file is None else SourceRange.of_file(
+        source_file, indices[0], indices[-1] + 1)
+    if guide is not None:  # the recording is temporary: name what was recorded
+        source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
         camera=camera,
         info=ModelInfo(name=name, source_video=source, frames_used=used,
-                       neutral_frame=neutral, creator=CREATOR,
-                       source=None if source_file is None else SourceRange.of_file(
-                           source_file, indices[0], indices[-1] + 1)))
+                       neutral_frame=neutral, creator=CREATOR, source=made_from))
     report: dict[str, Any] = {}
     coverage = measure_coverage({}, np.zeros(len(MEASURES)))
     if video is not None:

@@ -45,6 +45,7 @@ import numpy as np
 
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame
+from facewire.models.manifest import SourceRange
 from facewire.protocol.errors import FacewireError
 from facewire.sender.capture import Source
 from facewire.sender.enroll.build import BuildResult, SelfCheckHook, build_model
@@ -59,7 +60,8 @@ TIME_TOLERANCE_S = 1e-6  # a frame this close to a phase's end starts the next p
 
 
 class GuidedError(FacewireError, ValueError):
-    """The guided routine cannot be recorded (a video standing in ended too soon)."""
+    """The guided routine cannot be recorded (a video standing in ended too soon), or its
+    recording cannot give a model; the message names the source."""
 
 
 class FrameWriter(Protocol):
@@ -135,14 +137,21 @@ class Take:
 
 @dataclass(frozen=True)
 class Recording:
-    """The recorded routine: the kept takes in ``ROUTINE`` order, and per recorded frame its
-    prompt (None: a repeated take's)."""
+    """The recorded routine: the kept takes in ``ROUTINE`` order, per recorded frame its
+    prompt (None: a repeated take's), and [start, stop) the source's frame indices from the
+    first frame recorded to the last."""
 
     takes: tuple[Take, ...]
     labels: tuple[str | None, ...]
+    source_frames: tuple[int, int]
 
-    def guide(self) -> Guide:
-        return Guide.of_labels(self.labels)
+    def guide(self, source: Source) -> Guide:
+        """The build's guide; of a video file standing in, the range of its frames the
+        recording spans (first take to last)."""
+        if source.live:
+            return Guide.of_labels(self.labels, source.name)
+        return Guide.of_labels(self.labels, Path(source.name).name,
+                               SourceRange.of_file(source.name, *self.source_frames))
 
 
 @dataclass(frozen=True)
@@ -184,6 +193,7 @@ def record_routine(frames: Iterable[VideoFrame], write: Callable[[np.ndarray], N
     step, attempt, phase = 0, 1, READY
     leads = takes_run = 0  # phases ended so far: their lengths sum to the phase's start
     first, faces, source_start, source_end = len(labels), 0, -1, -1
+    first_read = -1  # the first recorded frame's source index
     t0: float | None = None
 
     def phase_end() -> float:
@@ -217,7 +227,7 @@ def record_routine(frames: Iterable[VideoFrame], write: Callable[[np.ndarray], N
                               (source_start, source_end), faces, attempt))
             step, attempt = step + 1, 1
             if step == len(ROUTINE):
-                return Recording(tuple(takes), tuple(labels))
+                return Recording(tuple(takes), tuple(labels), (first_read, source_end))
             announce()
         face = None
         if phase == RECORD:
@@ -225,6 +235,8 @@ def record_routine(frames: Iterable[VideoFrame], write: Callable[[np.ndarray], N
             faces += face
             if source_start < 0:
                 source_start = frame.index
+            if first_read < 0:
+                first_read = frame.index
             source_end = frame.index + 1
             labels.append(ROUTINE[step].name)
             write(frame.image)
@@ -256,17 +268,23 @@ def build_guided(source: Source, out: str | os.PathLike[str], open_writer: Write
             ``video_check``), or None: no self-check.
 
     Raises:
-        GuidedError: the source ended before the routine did.
-        BuildError, EnrollError: the recording cannot give a model (``build_model``).
+        GuidedError: the source ended before the routine did, or the recording cannot give
+            a model (``build_model``'s error, naming the source).
     """
     with tempfile.TemporaryDirectory(prefix="facewire-guided-") as folder:
         path = Path(folder) / "guided.mp4"
         with open_writer(path, source.width, source.height, source.rate_hz) as writer:
             recording = record_routine(source, lambda bgr: writer.write(bgr[..., ::-1]),
                                        schedule, show, say, source.name)
-        build = build_model(path, out, name=Path(out).stem, progress=progress,
-                            check=None if check is None else check(path),
-                            guide=recording.guide())
+        try:
+            build = build_model(path, out, name=Path(out).stem, progress=progress,
+                                check=None if check is None else check(path),
+                                guide=recording.guide(source))
+        except FacewireError as exc:  # named by the recording's path: name the source
+            text = str(exc).replace(str(path), f"{source.name} (its guided recording)")
+            if text == str(exc):
+                raise
+            raise GuidedError(text) from None
     return GuidedResult(build, recording, source.name)
 
 
@@ -284,7 +302,7 @@ def overlay(image: np.ndarray, cue: Cue) -> np.ndarray:
     """
     out = image.copy()
     h, w = out.shape[:2]
-    scale = max(0.4, w / 900)
+    scale = max(0.5, w / 640)
     band = int(70 * scale)
     out[:band] = (out[:band] * 0.35).astype(np.uint8)
     cv2.putText(out, f"{cue.step}/{len(ROUTINE)}  {cue.prompt.text}", (int(10 * scale),

@@ -37,6 +37,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the command's parser reads this module: no numpy at import
+    from facewire.models.manifest import SourceRange
 
 EYES = ("eyeball_left", "eyeball_right")
 LEAD_S = 1.5  # default lead-in, seconds
@@ -114,13 +118,21 @@ class Guide:
     Attributes:
         neutral: frame indices of the neutral take.
         regions: per region name, the frame indices of the takes that feed it.
+        origin: what was recorded (``camera:0``, a video file's name): the model's
+            ``info.source_video``.
+        origin_range: the frames of that video file the recording spans (the model's
+            ``info.source``, which ``bench quality`` checks), or None for a camera (the
+            recording itself is not kept).
     """
 
     neutral: frozenset[int]
     regions: Mapping[str, frozenset[int]]
+    origin: str = ""
+    origin_range: SourceRange | None = None
 
     @classmethod
-    def of_labels(cls, labels: Sequence[str | None]) -> Guide:
+    def of_labels(cls, labels: Sequence[str | None], origin: str = "",
+                  origin_range: SourceRange | None = None) -> Guide:
         """The guide of a recording whose frame ``i`` was taken for prompt ``labels[i]``
         (a ``Prompt.name``; None: a frame of a take that was repeated)."""
         feeds = {p.name: p.feeds for p in ROUTINE}
@@ -129,4 +141,5 @@ class Guide:
             for region in feeds.get(label or "", ()):
                 regions[region].add(i)
         return cls(frozenset(i for i, label in enumerate(labels) if label == NEUTRAL),
-                   {name: frozenset(frames) for name, frames in regions.items()})
+                   {name: frozenset(frames) for name, frames in regions.items()}, origin,
+                   origin_range)
