@@ -240,7 +240,7 @@ def _model_build(args: argparse.Namespace) -> int:
     from facewire.sender.enroll.build import build_model, is_photo
 
     if (args.video is None) == (args.guided is None):
-        raise CommandError("model build: give a VIDEO or PHOTO, or --guided CAMERA, not both")
+        raise CommandError("model build: give one of VIDEO, PHOTO or --guided CAMERA")
     if args.guided is not None:
         return _model_build_guided(args)
     frames = _frames(args.frames)
@@ -319,8 +319,8 @@ def _build_lines(s: dict[str, Any]) -> list[str]:
     """``model build``'s report from its summary (``BuildResult.summary``)."""
     regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
                + (" (weak: the video barely shows it)" if r["weak"] else "")
-               + (" (not from its prompts: they show no face)" if r.get("prompted") is False
-                  else "")
+               + (" (not all from its prompts: too few of their frames were usable)"
+                  if r.get("prompted") is False else "")
                for name, r in s["appearance"].items()]
     return [f"model:    {s['path']} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
             f"preview:  {s['preview']}",
