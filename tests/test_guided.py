@@ -197,3 +197,27 @@ def test_view_shows_each_prompt_on_the_live_page(tmp_path: Path) -> None:
     assert (frame[:20] < 100).mean() > 0.5 and abs(int(frame[100, 80, 0]) - 128) < 8
     assert process.returncode == 2
     assert lines[-1] == f"facewire: {video} (its guided recording): no face found in frames 0..82\n"
+
+
+def test_a_take_that_loses_the_face_is_taken_again(shared_data: Path, tmp_path: Path) -> None:
+    """lp_d0 with its first 5 frames blanked: the neutral's first take (frames 0-4) has no
+    face, so it is asked again and the second take (5-9) is kept; the blank take's frames
+    stay in the recording without a prompt."""
+    from facewire.models.infra.video import read_frames
+
+    images = [f.image for f in read_frames(shared_data / "video" / "lp_d0.mp4", slice(0, 62))]
+    images[:5] = [np.full_like(images[0], 128)] * 5
+    video = write_video(tmp_path / "blank_start.mp4", images, 25)
+    said: list[str] = []
+    with open_source(str(video)) as source:
+        recording = record_routine(source, lambda image: None, Schedule(0.0, 0.2),
+                                   say=said.append)
+    first = recording.takes[0]
+    assert (first.tries, first.frames, first.source_frames, first.face_frames) == (
+        2, (5, 10), (5, 10), 5)
+    assert said[:2] == [f"[1/{len(ROUTINE)}] {ROUTINE[0].text}",
+                        f"[1/{len(ROUTINE)}] {ROUTINE[0].text} (again: a face in 0 of 5 frames)"]
+    assert recording.labels[:10] == (None,) * 5 + ("neutral",) * 5
+    assert all(t.tries == 1 and t.face_frames == 5 for t in recording.takes[1:])
+    assert recording.source_frames == (0, 60)
+    assert recording.guide(source).origin_range is not None
