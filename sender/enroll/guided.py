@@ -10,8 +10,7 @@ draws it on the terminal's status line and, with ``--view``, on the live page:
 
 Where the frames go. A take's frames are written as they come to a temporary H.264 file
 (the recording; not memory: the whole routine records about 830 frames, 0.8 GB raw at
-640 x 480),
-by the writer the caller opens (``open_writer``: the command passes
+640 x 480), by the writer the caller opens (``open_writer``: the command passes
 ``receiver.output.VideoWriter``, x264 crf 18, since ``sender`` may not import the receiver).
 The build then reads that file like any enrollment video (``sender.enroll.build``), with the
 takes' frames as its ``Guide``, and the file is deleted when the build is done.
@@ -21,8 +20,10 @@ in which fewer than ``MIN_FACE_FRACTION`` of the frames show a face is repeated 
 take again; the announcement says why), up to ``MAX_TRIES`` takes of a prompt; a repeated
 take's frames stay in the recording without a prompt (the fit and texture may use them, no
 region's states come from them). The last try is kept whatever it shows, and the report says
-how many of its frames had a face; a region whose prompts' frames show no face takes its
-states from any frame (the layers' report says ``prompted: false``).
+how many of its frames had a face; a region whose prompts' frames give too few usable
+frames takes its other states from any frame (the layers' report says ``prompted: false``).
+The camera is read on the routine's own thread (each take's frame is tracked, about 10-30
+ms, before the next is read), not on ``sender.framethread``'s.
 
 A video file standing in. It is read as fast as it decodes (in real time with ``--view``,
 so that the page can be watched), and the schedule runs in its frame time, so a file plays
