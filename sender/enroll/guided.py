@@ -22,8 +22,8 @@ take's frames stay in the recording without a prompt (the fit and texture may us
 region's states come from them). The last try is kept whatever it shows, and the report says
 how many of its frames had a face; a region whose prompts' frames give too few usable
 frames takes its other states from any frame (the layers' report says ``prompted: false``).
-The camera is read on the routine's own thread (each take's frame is tracked, about 10-30
-ms, before the next is read), not on ``sender.framethread``'s.
+The camera is read on the routine's own thread (each take's frame is tracked before the
+next is read), not on ``sender.framethread``'s: untried on a real camera.
 
 A video file standing in. It is read as fast as it decodes (in real time with ``--view``,
 so that the page can be watched), and the schedule runs in its frame time, so a file plays
