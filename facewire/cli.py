@@ -239,6 +239,10 @@ def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.enroll.build import build_model, is_photo
 
+    if (args.video is None) == (args.guided is None):
+        raise CommandError("model build: give one of VIDEO, PHOTO or --guided CAMERA")
+    if args.guided is not None:
+        return _model_build_guided(args)
     frames = _frames(args.frames)
     check = None
     if not args.no_self_check:
@@ -248,24 +252,91 @@ def _model_build(args: argparse.Namespace) -> int:
             video_check(args.video, _progress)
     result = build_model(args.video, args.output, frames, progress=_progress, check=check)
     s = result.summary()
+    report(s, _build_lines(s), args.json)
+    return 0
+
+
+def _model_build_guided(args: argparse.Namespace) -> int:
+    """``model build --guided``: the routine recorded from a camera (or a video standing in),
+    shown on the terminal and, with ``--view``, on the live page (``sender.enroll.guided``)."""
+    from contextlib import nullcontext
+
+    import numpy as np
+
+    from facewire.receiver.liveview import LiveView
+    from facewire.receiver.output import VideoWriter
+    from facewire.report import report
+    from facewire.sender.capture import open_source
+    from facewire.sender.enroll.guided import Cue, build_guided, overlay
+    from facewire.sender.enroll.routine import ROUTINE, Schedule
+
+    if args.frames is not None:
+        raise CommandError("--frames: a guided build records its own frames")
+    try:
+        schedule = Schedule(args.lead_seconds, args.prompt_seconds)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    check = None
+    if not args.no_self_check:
+        from facewire.bench.selfcheck import video_check
+
+        def check(path: Any) -> Any:
+            return video_check(path, _progress)
+
+    with open_source(args.guided, pace=True if args.view else None) as source, \
+            (LiveView(args.view_port) if args.view else nullcontext()) as live:
+        if live is not None:
+            print(f"facewire model build: live view at {live.url}", file=sys.stderr)
+        print(f"facewire model build: {len(ROUTINE)} prompts, "
+              f"{schedule.lead_s:g} s to get ready and {schedule.record_s:g} s recorded "
+              f"each ({schedule.seconds:.1f} s); Ctrl-C stops", file=sys.stderr)
+        with _StatusLine(lambda cue: cue.line()) as line:
+            def say(text: str) -> None:
+                if line.width:
+                    print(file=sys.stderr)
+                    line.width = 0
+                print(text, file=sys.stderr, flush=True)
+
+            def show(cue: Cue, image: np.ndarray) -> None:
+                line(cue)
+                if live is not None:
+                    live.publish(overlay(image, cue), cue.stats())
+
+            result = build_guided(source, args.output, VideoWriter, schedule, show, say,
+                                  _progress, check)
+    s = result.summary()
+    takes = [f"          {k}. {t['text']}: frames {t['frames'][0]}:{t['frames'][1]}, "
+             f"{t['face_frames']} with a face"
+             + (f" ({t['tries']} takes: the face was lost)" if t["tries"] > 1 else "")
+             for k, t in enumerate(s["guided"]["prompts"], 1)]
+    report(s, [f"guided:   {s['guided']['source']}, {s['guided']['recorded_frames']} frames "
+               f"recorded (built from a temporary H.264 file, deleted)", *takes,
+               *_build_lines(s)], args.json)
+    return 0
+
+
+def _build_lines(s: dict[str, Any]) -> list[str]:
+    """``model build``'s report from its summary (``BuildResult.summary``)."""
     regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
                + (" (weak: the video barely shows it)" if r["weak"] else "")
+               + (" (not all from its prompts: too few of their frames were usable)"
+                  if r.get("prompted") is False else "")
                for name, r in s["appearance"].items()]
-    report(s, [f"model:    {result.path} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
-               f"preview:  {result.preview}",
-               f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
-               f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
-               f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
-               f"built from: {s['source']['video']} frames {s['source']['start']}:"
-               f"{s['source']['stop']}",
-               f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
-               f"from the generic head)",
-               f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
-               *regions,
-               *_coverage_lines(s["coverage"], s["coverage_lines"]),
-               *_self_check_lines(s),
-               f"time:     {s['seconds']} s"], args.json)
-    return 0
+    return [f"model:    {s['path']} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
+            f"preview:  {s['preview']}",
+            f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
+            f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
+            f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
+            "built from: " + (f"{s['source']['video']} frames {s['source']['start']}:"
+                              f"{s['source']['stop']}" if s["source"] else
+                              "a camera's recording (not kept)"),
+            f"depth:    {s['depth']} (landmark depth changed {s['depth_change_mm']} mm RMS "
+            f"from the generic head)",
+            f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
+            *regions,
+            *_coverage_lines(s["coverage"], s["coverage_lines"]),
+            *_self_check_lines(s),
+            f"time:     {s['seconds']} s"]
 
 
 def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = None
@@ -414,17 +485,39 @@ def _add_json(parser: argparse.ArgumentParser) -> None:
 
 def _add_model(sub: Commands) -> None:
     """``model build``, ``model info`` and ``model export``."""
+    from facewire.sender.enroll.routine import LEAD_S, RECORD_S
+
     model = sub.add_parser("model", help="build, inspect and export a person model (.fwm)")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
     m = msub.add_parser("build", help="build a person model from a short video of that person, "
-                        "or from one photo")
-    m.add_argument("video", metavar="VIDEO|PHOTO", help="enrollment video of the person making "
-                   "faces, or one photo (.jpg, .jpeg, .png, .bmp, .webp): the neutral only")
+                        "or from one photo, or guided from a camera")
+    m.add_argument("video", metavar="VIDEO|PHOTO", nargs="?", help="enrollment video of the "
+                   "person making faces, or one photo (.jpg, .jpeg, .png, .bmp, .webp): the "
+                   "neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
     m.add_argument("--no-self-check", action="store_true",
                    help="skip the self-check (the model rendered at up to 40 of its own "
                    "frames and scored: face SSIM, render NME; about 4 s)")
+    guided = m.add_argument_group(
+        "guided", "--guided camera:N walks the person through 11 prompts (neutral, brows up, "
+        "frown, eyes closed, look left, right, up, down, smile, smile wide, mouth open): each "
+        "a lead-in to get ready, then a recorded take; a take that loses the face is asked "
+        "again (up to 3 takes). The takes go to a temporary H.264 file, deleted after the "
+        "build; each region's states are chosen from the takes of its prompts, the neutral "
+        "from the neutral take. A video file may stand in for the camera: the same schedule "
+        "runs in the file's own frame time, read as fast as it decodes (in real time with "
+        "--view); it must last the whole routine.")
+    guided.add_argument("--guided", metavar="CAMERA|VIDEO",
+                        help="record the routine from camera:N (or a video file) and build")
+    guided.add_argument("--prompt-seconds", type=float, default=RECORD_S,
+                        help=f"seconds recorded per prompt (default {RECORD_S:g})")
+    guided.add_argument("--lead-seconds", type=float, default=LEAD_S,
+                        help=f"seconds to get ready before each take (default {LEAD_S:g})")
+    guided.add_argument("--view", action="store_true", help="also show the camera image with "
+                        "the prompt on a live page on 127.0.0.1")
+    guided.add_argument("--view-port", type=int, default=8765, help="the live page's port "
+                        "(default 8765; 0: any free port)")
     _add_json(m)
     m.set_defaults(run=_model_build)
     m = msub.add_parser("info", help="describe a model file")

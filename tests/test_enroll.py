@@ -64,6 +64,27 @@ def test_an_eyelid_state_prefers_an_eye_looking_ahead() -> None:
     assert not _gaze_cost(spec("eyelid_left"), cues).any()
 
 
+def test_guided_states_come_from_their_prompts_frames() -> None:
+    """Frames 0-9 neutral, 10-19 the region's prompt (half closed at most), 20-29 another
+    prompt's (fully closed): the closed states come from 10-19, the levels from 0-19."""
+    cue = np.concatenate([np.full(10, -0.3), np.linspace(-0.3, -0.15, 10), np.full(10, -0.05)])
+    prompted = np.zeros(30, bool)
+    prompted[10:20] = True
+    calm = np.zeros(30, bool)
+    calm[:10] = True
+    picks, info = _choose_states(spec("eyelid_left"), cue, np.zeros(30), 4, prompted, calm)
+    assert picks[info["rest"]] == 4 and info["prompted"]
+    assert all(10 <= p < 20 for j, p in enumerate(picks) if j != info["rest"])
+    assert info["span"] == pytest.approx(abs(np.percentile(cue[:20], 99)
+                                             - np.percentile(cue[:20], 10)), abs=1e-3)
+    unguided, _ = _choose_states(spec("eyelid_left"), cue, np.zeros(30), 4)
+    assert unguided[-1] >= 20  # without the guide the closed state is another prompt's frame
+    prompted[:] = False
+    prompted[29] = True  # one prompted frame: the other states fall back to any frame
+    picks, info = _choose_states(spec("eyelid_left"), cue, np.zeros(30), 4, prompted, calm)
+    assert 29 in picks and info["prompted"] is False
+
+
 def test_a_cue_the_video_barely_shows_is_weak() -> None:
     cue = np.full(50, 0.3) + np.linspace(0, 0.01, 50)
     _, info = _choose_states(spec("eyelid_left"), cue, np.zeros(50), neutral=0)

@@ -4,7 +4,8 @@ The steps, in order (``build_model``):
 
 1. Track: the 68 points of the largest face in every frame of the range
    (``sender.tracker``); frames without a face are kept as ``None``.
-2. Fit: choose the neutral frame, estimate the head pose in every frame and the person's 3D
+2. Fit: choose the neutral frame (of a guided recording, among the neutral prompt's frames:
+   ``sender.enroll.routine``), estimate the head pose in every frame and the person's 3D
    landmarks, and warp the generic head onto them (``sender.enroll.fit``). The camera is
    unknown, so its intrinsics are a guess (``models.geometry.intrinsics_guess``).
 3. Texture: score the frames and choose up to nine clean views, spread in time, the neutral
@@ -29,7 +30,9 @@ The steps, in order (``build_model``):
    state it lacks. A model without regions covers none: only the neutral.
 5. Save the model (``models.modelfile``), with the frames it was built from (the
    video's name, size and sha256, and the range [first, last + 1) of the frames tracked:
-   ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
+   ``info.source``, which ``bench quality`` checks; of a guided recording, the frames of
+   the video file it recorded, or none for a camera: ``Guide.origin_range``), and a
+   preview PNG beside it: the model
    rendered from the front and from three-quarter view, beside the neutral frame cropped to
    the face, so a user can see at a glance whether the model is that person; below, one row
    per region with its layers in order (as drawn over the neutral texture: layer times its
@@ -107,6 +110,7 @@ from facewire.sender.enroll.evidence import (
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
+from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
@@ -194,7 +198,8 @@ def is_photo(path: str | os.PathLike[str]) -> bool:
 def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
                 progress: Progress = no_progress,
-                appearance: bool = True, check: SelfCheckHook | None = None) -> BuildResult:
+                appearance: bool = True, check: SelfCheckHook | None = None,
+                guide: Guide | None = None) -> BuildResult:
     """Build a person's model from a video, or from one photo, and save it with its preview.
 
     Args:
@@ -209,6 +214,9 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         appearance: run the appearance step (module docstring, 4); False builds geometry and
             the neutral texture only, a model without regions.
         check: the self-check hook (module docstring), or None: no self-check.
+        guide: a guided recording's prompted frames (``sender.enroll.routine``, frame
+            indices of ``video``): the neutral frame is chosen among the neutral prompt's
+            frames, each region's states among its prompts' frames.
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
@@ -223,7 +231,8 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     info = video_info(video)
     return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
                   frames_in_range(frames, info.frames), out, frames, name or video.stem,
-                  progress, video if appearance else None, str(video), video, check=check)
+                  progress, video if appearance else None, str(video), video, check=check,
+                  guide=guide)
 
 
 def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLike[str],
@@ -275,32 +284,36 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
            height: int, total: int | None, out: str | os.PathLike[str], frames: slice,
            name: str, progress: Progress, video: Path | None, where: str,
            source_file: Path | None, photo: bool = False,
-           check: SelfCheckHook | None = None) -> BuildResult:
+           check: SelfCheckHook | None = None, guide: Guide | None = None) -> BuildResult:
     """The build (module docstring, steps 1-5) from a frame source: ``read(frames)`` yields
     the frames of a range; ``video`` is the file the appearance step reads (None: no
     appearance step); ``where`` names the input in errors; ``source_file`` is the file the
-    model says it was built from (``info.source``; None for an image given in memory)."""
+    model says it was built from (``info.source``; None for an image given in memory);
+    ``guide`` the prompted frames of a guided recording."""
     start = time.perf_counter()
     indices, points, blur, face_frames = _track(read, frames, total, progress, where, photo)
     camera = intrinsics_guess(width, height)
-    fit = _fit(points, camera, where)
+    fit = _fit(points, camera, where, None if guide is None else
+               [k for k, i in enumerate(indices) if i in guide.neutral])
     fit, chosen, images, texture, evidence = _base_texture(read, indices, points, blur, fit,
                                                            camera, where, photo)
 
     used, neutral = tuple(sorted(indices[k] for k in chosen)), indices[fit.neutral]
     if photo:  # the copies are one frame: frame 0
         used, neutral, indices, face_frames = (0,), 0, [0], 1
+    made_from = None if source_file is None else SourceRange.of_file(
+        source_file, indices[0], indices[-1] + 1)
+    if guide is not None:  # the recording is temporary: name what was recorded
+        source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
         camera=camera,
         info=ModelInfo(name=name, source_video=source, frames_used=used,
-                       neutral_frame=neutral, creator=CREATOR,
-                       source=None if source_file is None else SourceRange.of_file(
-                           source_file, indices[0], indices[-1] + 1)))
+                       neutral_frame=neutral, creator=CREATOR, source=made_from))
     report: dict[str, Any] = {}
     coverage = measure_coverage({}, np.zeros(len(MEASURES)))
     if video is not None:
-        regions, report, coverage = enroll_regions(model, video, frames, progress)
+        regions, report, coverage = enroll_regions(model, video, frames, progress, guide)
         model = at_rest(replace(model, regions=regions))
     model = replace(model, coverage=coverage.states)
     checked: dict[str, Any] = {}

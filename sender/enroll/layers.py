@@ -42,6 +42,10 @@ the sender's pose and lift.
    that its templates do not tie the lid's state to a gaze), each frame at most
    once per region. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
+   A guided recording (``sender.enroll.routine.Guide``) narrows both steps for each region:
+   the levels are the percentiles over its prompts' frames and the neutral prompt's, and
+   every state but the rest one takes a frame of its prompts (another frame only when its
+   prompts' frames with a cue run out; the report's ``prompted`` says whether they did).
 4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
    of its further areas, the eyelids' lid skin, the same way): every texel's
    surface point (its triangle and barycentric weights, from ``sender.enroll.texture.uv_surface``
@@ -91,6 +95,7 @@ from facewire.sender.enroll.coverage import (
     state_measures,
 )
 from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
+from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
@@ -148,8 +153,8 @@ class Enrollment(NamedTuple):
 
 
 def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
-                   frames: slice = slice(0, None), progress: Progress = no_progress
-                   ) -> Enrollment:
+                   frames: slice = slice(0, None), progress: Progress = no_progress,
+                   guide: Guide | None = None) -> Enrollment:
     """Choose every region's states in a video and extract their layers and templates.
 
     Args:
@@ -158,11 +163,14 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         video: the enrollment video.
         frames: the frame range to use.
         progress: wraps an iterable to show progress.
+        guide: a guided recording's prompted frames (``sender.enroll.routine``): each
+            region's states chosen among its prompts' frames (module docstring, 3).
 
     Returns:
         The regions in ``REGIONS`` order, a report per region (the chosen frames, their
-        cue values, the span, whether it is weak, and the rest state: the neutral frame's),
-        and the states the layers' frames show.
+        cue values, the span, whether it is weak, the rest state: the neutral frame's,
+        and with a guide whether its states came from its prompts' frames), and the
+        states the layers' frames show.
 
     Raises:
         EnrollError: fewer than 2 frames with a pose.
@@ -184,8 +192,14 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
                   key=lambda i: abs(observations[i].index - model.info.neutral_frame))
     chosen: dict[str, list[int]] = {}
     report: dict[str, dict[str, Any]] = {}
+    seen = np.array([o.index for o in observations])
     for r, region in enumerate(REGIONS):
-        picks, info = _choose_states(region, cues[:, r], yaw + _gaze_cost(region, cues), neutral)
+        prompted = calm = None
+        if guide is not None:
+            prompted = np.isin(seen, list(guide.regions.get(region.name, ())))
+            calm = np.isin(seen, list(guide.neutral))
+        picks, info = _choose_states(region, cues[:, r], yaw + _gaze_cost(region, cues),
+                                     neutral, prompted, calm)
         chosen[region.name] = picks
         report[region.name] = {**info, "frames": [observations[i].index for i in picks],
                                "occluded_frames": int(blocked[:, r].sum())}
@@ -323,19 +337,29 @@ def _family(region: RegionSpec) -> str:
         else region.name
 
 
-def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutral: int
+def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutral: int,
+                   prompted: np.ndarray | None = None, calm: np.ndarray | None = None
                    ) -> tuple[list[int], dict[str, Any]]:
     """The observation index of each state, and the report entry with the rest state
     (module docstring, 3); ``neutral`` is the neutral frame's observation, ``away`` (F,)
     how far each frame is from a frontal head looking ahead, in degrees (|yaw|, plus
-    ``_gaze_cost`` for an eyelid)."""
+    ``_gaze_cost`` for an eyelid); ``prompted`` and ``calm`` (bool per observation) mark a
+    guided recording's frames of the region's prompts and of the neutral prompt."""
     family = _family(region)
     usable = np.isfinite(cue)
     if not usable.any():
         usable = np.ones_like(usable)
         cue = np.zeros_like(cue)
+    pools = [usable]  # where each state's frame is looked for, in turn
+    span_of = usable  # the frames whose cue percentiles give the levels
+    guided = prompted is not None and bool((usable & prompted).any())
+    if guided:
+        assert prompted is not None and calm is not None
+        pools.insert(0, usable & prompted)
+        span_of = usable & (prompted | calm)
     rest_pct, extreme_pct = _LEVELS[family]
-    rest, extreme = np.percentile(cue[usable], rest_pct), np.percentile(cue[usable], extreme_pct)
+    rest, extreme = np.percentile(cue[span_of], rest_pct), np.percentile(cue[span_of],
+                                                                       extreme_pct)
     span = float(abs(extreme - rest))
     levels = np.linspace(rest, extreme, region.layers)
     scale = max(span, 1e-6)
@@ -345,17 +369,23 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutra
     for j, level in enumerate(levels):
         if j == rest_state:
             continue
-        cost = np.abs(cue - level) / scale + 0.002 * away
-        cost[~usable] = np.inf
-        cost[taken] = np.inf
-        if np.isinf(cost).all():
+        for pool in pools:
+            cost = np.abs(cue - level) / scale + 0.002 * away
+            cost[~pool] = np.inf
+            cost[taken] = np.inf
+            if not np.isinf(cost).all():
+                break
+        else:
             cost = np.abs(np.nan_to_num(cue) - level)
             cost[taken] = np.inf
         taken.append(int(np.argmin(cost)))
     picks = taken[1:rest_state + 1] + [neutral] + taken[rest_state + 1:]
     weak = span < MIN_SPAN[family]
-    return picks, {"cue": [round(float(cue[i]), 4) for i in picks],
-                   "span": round(span, 4), "weak": bool(weak), "rest": rest_state}
+    info = {"cue": [round(float(cue[i]), 4) for i in picks], "span": round(span, 4),
+            "weak": bool(weak), "rest": rest_state}
+    if prompted is not None:
+        info["prompted"] = all(prompted[i] for i in picks if i != neutral)
+    return picks, info
 
 
 class _RegionTexels:
