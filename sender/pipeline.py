@@ -19,7 +19,8 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
 5. ``sample``: ``sender.appearance.AppearanceSampler`` reads every region's five offset
    16 x 16 samples from the grey frame at the sent pose and residuals.
 6. ``classify``: ``sender.classify.RegionClassifiers`` -> one Q per region, in the model's
-   region order (the packet's Q slots).
+   region order (the packet's Q slots); an open eye's eyelid Q is then held at most at its
+   rest state (``sender.eyegate``).
 7. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
@@ -73,6 +74,7 @@ from facewire.sender.capture import (
     scale_intrinsics,
 )
 from facewire.sender.classify import RegionClassifiers
+from facewire.sender.eyegate import EyeGate
 from facewire.sender.heuristics import ResidualFilter
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
@@ -156,6 +158,7 @@ class SenderPipeline:
                                          tuple(r.name for r in regions))
         self.classifiers = RegionClassifiers([r.templates for r in regions]) if regions \
             else None
+        self.eye_gate = EyeGate(regions, landmarks)
         self.reset()
 
     def hello(self) -> Hello:
@@ -213,7 +216,8 @@ class SenderPipeline:
                                               residuals)
                 t5 = clock()
                 result = self.classifiers.classify(samples)
-                self._q, offsets = result.q, result.offset
+                assert points is not None
+                self._q, offsets = self.eye_gate.apply(result.q, points), result.offset
         t6 = clock()
         packed = self._pack(flags, tangent)
         t7 = clock()
