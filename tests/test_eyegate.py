@@ -24,7 +24,7 @@ def test_an_open_eye_holds_its_eyelid_at_rest_and_a_closed_one_does_not(
     points = neutral[:, :2] * [4.0, -4.0] + 300.0  # the neutral face, seen from the front
     q = np.array([len(r.layers) - 1 for r in model.regions], np.float32)  # all at the end
     gated = gate.apply(q, points)
-    for name, r in lids.items():
+    for r in lids.values():
         assert gated[r] == min(q[r], model.regions[r].rest)
     others = [r for r in range(len(q)) if r not in lids.values()]
     np.testing.assert_array_equal(gated[others], q[others])
