@@ -165,22 +165,6 @@ def test_generic_depth_without_turning(head):
     assert all(p is not None for p in fit.poses)
 
 
-def test_a_wink_is_not_neutral(head):
-    """Frames with the lips a little apart, and one with the lips closed but one eye a third
-    shut: the mean of the two eyes' aspect ratios stays near open, the less open eye does
-    not, so the wink is not the neutral frame."""
-    rng = np.random.default_rng(5)
-    person = _person(head.vertices[head.landmarks].astype(np.float64))
-    apart = person.copy()
-    apart[[65, 66, 67], 1] -= 3.0  # lower inner lip down: a gap of about 3 % of eye distance
-    wink = person.copy()
-    wink[[37, 38]] = 0.7 * person[[37, 38]] + 0.3 * person[[41, 40]]  # right upper lid
-    points = [_frame(rng, apart, 0.0, 0.0)[0] for _ in range(11)]
-    points.append(_frame(rng, wink, 0.0, 0.0)[0])
-    fit = fit_person(points, CAMERA, head=head)
-    assert fit.neutral < 11
-
-
 def test_errors(head):
     with pytest.raises(FitError, match="no face"):
         fit_person([None] * 20, CAMERA, head=head)

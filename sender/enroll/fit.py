@@ -27,8 +27,7 @@ in OpenCV's camera frame, converted by ``S = diag(1, -1, -1)``. Yaw and pitch ar
 3. Neutral frame (``choose_neutral``): among posed frames, the smallest sum of squared,
    scaled penalties (``_neutral_costs``): |yaw| / 10 deg; pitch away from the video's median
    pitch / 10 deg (the person's natural head carriage, not the generic head's, is level);
-   either eye less open than 85 % of its 90th-percentile aspect ratio in the video (per
-   0.1; the less open eye counts, so a wink is not neutral);
+   eyes less open than 85 % of the video's 90th-percentile eye aspect ratio (per 0.1);
    inner-lip gap / 4 % of the eye distance; mouth width away from the video's median / 5 %;
    expression residual (RMS reprojection error of the non-contour points after pose) above
    the video's median, per 50 % of that median. The build may restrict the choice to given
@@ -449,7 +448,7 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
     """Per posed frame: ``total`` and ``expression`` (total without the pose terms) costs."""
     pts = np.stack([_present(frames, i) for i in posed])
     eye = np.linalg.norm(pts[:, 36] - pts[:, 45], axis=1)
-    ears = np.array([eye_aspect_ratio(p) for p in pts])  # (n, 2): a wink closes one
+    ear = np.array([eye_aspect_ratio(p).mean() for p in pts])
     gap = np.linalg.norm(pts[:, [61, 62, 63]] - pts[:, [67, 66, 65]], axis=2).mean(axis=1) / eye
     width = np.linalg.norm(pts[:, 48] - pts[:, 54], axis=1) / eye
     stable = np.arange(17, 68)
@@ -458,9 +457,9 @@ def _neutral_costs(frames: Sequence[np.ndarray | None], poses: Sequence[Pose | N
                                 - _present(frames, i)[stable]) ** 2, axis=1)))
         for i in posed]) / eye
     angles = np.array([(p.yaw_deg, p.pitch_deg) for p in (_present(poses, i) for i in posed)])
-    openness = (ears / np.maximum(np.percentile(ears, 90, axis=0), 1e-9)).min(axis=1)
+    ear_ref = np.percentile(ear, 90)
     expression = (
-        (np.maximum(0.0, 0.85 - openness) / 0.1) ** 2
+        (np.maximum(0.0, 0.85 - ear / max(ear_ref, 1e-9)) / 0.1) ** 2
         + (gap / 0.04) ** 2
         + ((width / np.median(width) - 1.0) / 0.05) ** 2
         + (np.maximum(0.0, resid / np.median(resid) - 1.0) / 0.5) ** 2
