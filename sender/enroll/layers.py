@@ -54,7 +54,14 @@ the sender's pose and lift.
    mouth interior, which is what the sender's camera sees there). Texels off the image or
    facing away keep the neutral texture. Each layer is then scaled per colour channel by
    g = sum(base) / sum(layer) over the border ramp (clipped to [0.5, 2]), so an exposure
-   change between frames leaves no step at the border. The ramp is that of the region's last
+   change between frames leaves no step at the border. The skin regions' layers
+   (``SHADED``: forehead, brow furrow) then take the base texture's broad shading: each is
+   multiplied by the smooth field f = (G*(B w) / G*w + 1) / (G*(g L w) / G*w + 1), clipped
+   to ``SHADING_LIMITS``, G a Gaussian of sigma ``SHADING_SIGMA`` times the area's shorter
+   side (some 19 texels), B the base, g L the scaled layer, w 1 on the texels read. A
+   wrinkle, finer than G, stays; a frame's own light on the skin (a highlight, the shadow of
+   hair), broader than G, goes, and the rendered layer shows no lighter box (on lp_d14 the
+   brow furrow's was plain between the brows). The ramp is that of the region's last
    area: its only one, or for an eyelid the lid skin, the same skin in every state (the
    eyeball's border under an open lid is eyeball, and matching a closed lid to it darkened
    the closed states). The mask is the region's
@@ -100,6 +107,9 @@ from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
+SHADED = ("forehead", "brow_furrow")  # skin regions whose layers take the base's shading
+SHADING_SIGMA = 0.15  # the shading field's Gaussian, times the area's shorter side
+SHADING_LIMITS = (0.8, 1.25)  # the shading field's bounds
 GAZE_COST = 150.0  # an eyelid state's cost, degrees of yaw, per gaze span off the middle
 MIN_SPAN = {"forehead": 1.5, "brow_furrow": 1.0, "eyelid": 0.08, "eyeball": 0.1,
             "mouth": 0.08}  # cue units (module docstring)
@@ -428,8 +438,34 @@ class _RegionTexels:
         gain = np.ones(3, np.float32)
         if border.sum() >= 50:
             gain = base[-1][border].sum(axis=0) / np.maximum(colour[border].sum(axis=0), 1.0)
-        return [np.clip(np.rint(np.where(ok[..., None], colour * np.clip(gain, 0.5, 2.0), b)),
-                        0, 255).astype(np.uint8) for (colour, ok), b in zip(reads, base)]
+        gain = np.clip(gain, 0.5, 2.0)
+        out = []
+        for (colour, ok), b in zip(reads, base):
+            colour = colour * gain
+            if name in SHADED:
+                colour = colour * _shading(colour, ok, b)
+            out.append(np.clip(np.rint(np.where(ok[..., None], colour, b)), 0, 255)
+                       .astype(np.uint8))
+        return out
+
+
+def _shading(layer: np.ndarray, seen: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 the field f that matches a layer's broad shading to the base
+    texture's (module docstring, step 4).
+
+    Args:
+        layer: (h, w, 3) float32 the layer's colours, exposure-scaled.
+        seen: (h, w) bool the texels read from the frame.
+        base: (h, w, 3) float32 the base texture there.
+    """
+    sigma = SHADING_SIGMA * min(seen.shape)
+    weight = seen.astype(np.float32)
+    total = np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-3)[..., None]
+
+    def local(x: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(x * weight[..., None], (0, 0), sigma) / total + 1.0
+
+    return np.clip(local(base) / local(layer), *SHADING_LIMITS).astype(np.float32)
 
 
 class _AreaTexels:
