@@ -91,6 +91,7 @@ import numpy as np
 
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
+from facewire.sender.enroll.registration import doubled_fraction, local_misfit
 from facewire.sender.enroll.texture import (
     TextureError,
     UVSurface,
@@ -127,6 +128,11 @@ class Fusion:
             when it shares too few texels with it).
         aligned: (V,) bool, the view lined up with the others (False: dropped whole).
         covered: (H, W) bool, the covered texels (the K columns of ``seen`` and ``kept``).
+        consensus: (H, W) float32, the consensus's luma m (0 where fewer than
+            ``MIN_VIEWS_FOR_CONSENSUS`` views that line up see the texel).
+        judged: (H, W) bool, the texels that have a consensus.
+        holds: (H, W) bool, where the consensus holds: most views judged there line up
+            with it (``sender.enroll.registration.local_misfit``).
     """
 
     texture: np.ndarray
@@ -136,6 +142,17 @@ class Fusion:
     agreement: np.ndarray
     aligned: np.ndarray
     covered: np.ndarray
+    consensus: np.ndarray
+    judged: np.ndarray
+    holds: np.ndarray
+
+    def doubled_fraction(self, area: np.ndarray) -> float:
+        """The doubled-feature measure of the texture over ``area`` ((H, W) bool):
+        ``sender.enroll.registration.doubled_fraction`` against the consensus, over the
+        texels a view made and where the consensus holds."""
+        luma = self.texture.astype(np.float32) @ _LUMA_BGR[::-1]
+        return doubled_fraction(luma, self.consensus, self.judged & (self.weight > 0),
+                                area & self.holds)
 
     def outlier_fraction(self, area: np.ndarray) -> np.ndarray:
         """(V,) float64: of the texels in ``area`` ((H, W) bool) that view i sees and that at
@@ -161,7 +178,7 @@ def project_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, 
 
 def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Camera]], *,
                sharpness: float = 4.0, cos_min: float = 0.1, feather_px: float = 8.0,
-               primary: int | None = None) -> Fusion:
+               primary: int | None = None, features: np.ndarray | None = None) -> Fusion:
     """Project camera images onto the texture (``sender.enroll.texture``, 2) and fuse them
     robustly (module docstring).
 
@@ -179,6 +196,8 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
         primary: how many of the first views make the texture where none of them is an
             outlier (module docstring); all of them when None. The others only judge
             and replace.
+        features: (H, W) bool, the texels where views are judged for local alignment
+            (``sender.enroll.registration``: the parts of the face); all when None.
 
     Returns:
         The ``Fusion``: texture (H, W, 3) uint8 RGB, black where no view saw the texel, the
@@ -200,11 +219,19 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
     covered = surface.covered
+    centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
+    misfit, holds = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
+                                 features)
     first = len(views) if primary is None else primary
-    blend, total, kept = _colour(colours, weight_v, kept, seen & aligned[:, None], covered,
-                                 first)
+    blend, total, kept = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
+                                 covered, first, misfit)
     texture, weight = _to_texture(blend, total, covered)
-    return Fusion(texture, weight, seen, kept, agreement, aligned, covered)
+    consensus = np.zeros(covered.shape, np.float32)
+    consensus[covered] = np.where(judged, centre, 0.0)
+    judged_grid = np.zeros(covered.shape, bool)
+    judged_grid[covered] = judged
+    return Fusion(texture, weight, seen, kept, agreement, aligned, covered, consensus,
+                  judged_grid, holds)
 
 
 def _match_exposure(colours: list[np.ndarray], weights: list[np.ndarray]) -> None:
@@ -235,12 +262,24 @@ def _judge(luma: np.ndarray, weight_v: np.ndarray
     return kept, agreement, aligned
 
 
+def _consensus(luma: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) float32 the consensus m (the weighted median luma of the views taking part, with
+    their (V, K) weights ``use``), and (K,) bool where at least ``MIN_VIEWS_FOR_CONSENSUS``
+    views take part (m is 0 elsewhere)."""
+    judged = (use > 0).sum(axis=0) >= MIN_VIEWS_FOR_CONSENSUS
+    centre = np.zeros(luma.shape[1], np.float32)
+    if judged.any():
+        centre[judged] = _weighted_median(luma[:, judged], use[:, judged])
+    return centre, judged
+
+
 def _colour(colours: list[np.ndarray], weight_v: np.ndarray, kept: np.ndarray,
-            judged: np.ndarray, covered: np.ndarray, first: int
+            judged: np.ndarray, covered: np.ndarray, first: int, misfit: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each texel's colour (K, 3) float32 BGR, its summed weight (K,) and which views took
     part there after the coherence test (V, K) bool (module docstring, colour); ``judged``:
-    seen by a view that lines up, ``first``: the number of primary views."""
+    seen by a view that lines up, ``first``: the number of primary views, ``misfit``: (V, K)
+    where a view does not line up locally (``sender.enroll.registration``)."""
     seen = weight_v > 0
     strong = weight_v >= REPLACE_MIN_WEIGHT
     patches = _coherent(kept, judged, covered, REPLACE_WINDOW)
@@ -248,9 +287,10 @@ def _colour(colours: list[np.ndarray], weight_v: np.ndarray, kept: np.ndarray,
     use = np.where(kept, weight_v, 0.0).astype(np.float32)
     plain = _mean(colours[:first], weight_v[:first])  # the primary views, as they are
     robust = _first_kept(colours, kept & strong)  # the best view that takes part, seen well
-    rejected = (strong[:first] & seen[:first] & ~patches[:first]).any(axis=0) \
-        & (kept & strong).any(axis=0)
-    r = _replaced(rejected, covered)[:, None]
+    replaceable = (kept & strong).any(axis=0)
+    rejected = (strong[:first] & seen[:first] & (~patches[:first] | misfit[:first])).any(
+        axis=0) & replaceable
+    r = (_replaced(rejected, covered) * replaceable)[:, None]
     blend = (1.0 - r) * plain + r * robust
     total = np.where(r[:, 0] > 0, use.sum(axis=0), weight_v[:first].sum(axis=0))
     return blend, total, kept
