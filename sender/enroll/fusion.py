@@ -285,14 +285,15 @@ def _colour(colours: list[np.ndarray], weight_v: np.ndarray, kept: np.ndarray,
     patches = _coherent(kept, judged, covered, REPLACE_WINDOW)
     kept = _coherent(kept, judged, covered, OUTLIER_WINDOW)
     use = np.where(kept, weight_v, 0.0).astype(np.float32)
-    plain = _mean(colours[:first], weight_v[:first])  # the primary views, as they are
+    plain_w = np.where(judged[:first], weight_v[:first], 0.0)
+    plain = _mean(colours[:first], plain_w)  # the primary views that line up, as they are
     robust = _first_kept(colours, kept & strong)  # the best view that takes part, seen well
     replaceable = (kept & strong).any(axis=0)
-    rejected = (strong[:first] & seen[:first] & (~patches[:first] | misfit[:first])).any(
-        axis=0) & replaceable
+    rejected = (seen[:first] & ((strong[:first] & ~patches[:first]) | misfit[:first]
+                                | ~judged[:first])).any(axis=0) & replaceable
     r = (_replaced(rejected, covered) * replaceable)[:, None]
     blend = (1.0 - r) * plain + r * robust
-    total = np.where(r[:, 0] > 0, use.sum(axis=0), weight_v[:first].sum(axis=0))
+    total = np.where(r[:, 0] > 0, use.sum(axis=0), plain_w.sum(axis=0))
     return blend, total, kept
 
 
