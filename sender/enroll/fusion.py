@@ -47,10 +47,23 @@ d_i > ``ALIGN_RATIO`` (3) x median_j d_j + 0.02 is a misfit and takes no part an
 and the consensus is computed again without it. (A single outlying view over a small part
 of the face, an occluder, hardly moves r_i; that is the per-texel test's job.)
 
+Local alignment. A view can line up as a whole and not over one feature: lips in another
+expression, glasses or lids a few pixels off in a frame of fast motion. Its colours there
+are the skin's and the feature's, as the others', so the per-texel test keeps them, and
+blended or shown beside the others' they show the feature twice. So each view is also
+judged by structure (``sender.enroll.registration``, 2): within the parts of the face
+(``features``: the build's eyes, brows, nose and mouth boxes), where its windowed
+correlation with the consensus m falls below ``MIN_NCC`` (0.7) while most views line up
+with m there, it takes no part over that window, and a primary view's texels there are
+replaced (below) as an occluded patch's are. Where most views do not line up with m (a
+mouth that talks in every frame), m is no consensus and nobody is dropped: the primary
+views make the texture, as they are.
+
 Colour. The first P views are the *primary* ones (the build's: the neutral frame and
 the side views beyond 15 degrees of yaw, ``sender.enroll.fit``); the rest only give
 evidence. Where no primary view is an outlier, the texture is the primaries' weighted
-mean, sum_{i<P} w_i c_i / sum_{i<P} w_i, exactly as the views are; where one is, it is
+mean, sum_{i<P} w_i c_i / sum_{i<P} w_i over those that line up, exactly as the views
+are; where one is, it is
 replaced by c_robust, the colour of the first view in the given order (the build's: the
 primaries, then the others by their cost, cleanest first) that takes part at the texel
 and sees it well (w >= ``REPLACE_MIN_WEIGHT`` = 0.3):
@@ -61,9 +74,14 @@ r the indicator of the texels where a primary view that sees the texel well was 
 outlier over a large patch (the coherence test above over a ``REPLACE_WINDOW`` = 33
 texel square: an occluder over a mouth, an eye closed in a wink; not a mouth corner a
 millimetre off, nor the jaw's silhouette, where the mesh is wider than the face and the
-other views see the background), and some view that sees it well took part, grown by
-``REPLACE_GROW`` = 3 texels and feathered by a Gaussian of
-``REPLACE_FEATHER`` = 2 texels, so no seam shows where the replacement stops. Why not
+other views see the background), or where a primary view that sees it at all does not
+line up locally or was dropped whole (a dropped primary makes no texel: it once still made
+those it saw weakly, a ring of doubled features around the replaced middle), and some
+view that sees it well took part, grown by ``REPLACE_GROW`` = 3 texels and feathered by
+a Gaussian of ``REPLACE_FEATHER`` = 2 texels, so no seam shows where the replacement
+stops (0 where no view that sees the texel well takes part: nothing to replace with; 1
+wherever it is not 0 and no primary view that lines up sees the texel: nothing to blend
+with). Why not
 a mean of the views: the views are warped onto the neutral mesh, not onto each frame's
 expression, so lips that moved a millimetre between frames double in a mean (measured
 on lp_d14 0:178 with nine views blended everywhere: the viewer's mouth NME on the
@@ -78,7 +96,8 @@ difference of light or registration as a seam). A texel seen by one or two views
 them: nothing contradicts them. The summed weight of the views that made the texel is
 returned (0: no view saw it). ``Fusion`` also keeps which view took part where, so the
 caller can tell, per part of the face, which views were outliers there
-(``Fusion.outlier_fraction``).
+(``Fusion.outlier_fraction``), and the consensus, so the texture's doubled features can be
+measured against it (``Fusion.doubled_fraction``, ``sender.enroll.registration``, 3).
 
 """
 
@@ -291,7 +310,8 @@ def _colour(colours: list[np.ndarray], weight_v: np.ndarray, kept: np.ndarray,
     replaceable = (kept & strong).any(axis=0)
     rejected = (seen[:first] & ((strong[:first] & ~patches[:first]) | misfit[:first]
                                 | ~judged[:first])).any(axis=0) & replaceable
-    r = (_replaced(rejected, covered) * replaceable)[:, None]
+    r = _replaced(rejected, covered) * replaceable
+    r = np.where(plain_w.sum(axis=0) > 0, r, np.ceil(r))[:, None]  # no primary: all robust
     blend = (1.0 - r) * plain + r * robust
     total = np.where(r[:, 0] > 0, use.sum(axis=0), plain_w.sum(axis=0))
     return blend, total, kept
