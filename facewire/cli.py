@@ -453,6 +453,19 @@ def _bench_quality(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_reproductions(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from facewire.bench.reproductions import format_table, run_reproductions
+    from facewire.report import report
+
+    with tempfile.TemporaryDirectory(prefix="facewire-repro-") as scratch:
+        summary = run_reproductions(args.data, args.work or scratch, models=args.models,
+                                    only=args.only, limit=args.limit, progress=_progress)
+    report(summary, format_table(summary), args.json)
+    return 0
+
+
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
 
@@ -597,8 +610,8 @@ def _add_encode_replay(sub: Commands) -> None:
 
 
 def _add_bench(sub: Commands) -> None:
-    """``bench bandwidth``, ``bench speed`` and ``bench quality``."""
-    b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality")
+    """``bench bandwidth``, ``bench speed``, ``bench quality`` and ``bench reproductions``."""
+    b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality, reproductions")
     bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
     bb = bsub.add_parser("bandwidth", help="payload, wire and IP bit rates of a packet log "
                          "(exit 1 when its worst 1-s payload is >= 12 kbit/s)")
@@ -626,6 +639,19 @@ def _add_bench(sub: Commands) -> None:
     _add_json(bq)
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
     bq.set_defaults(run=_bench_quality)
+    br = bsub.add_parser("reproductions", help="issue 16's reproductions (occluded mouth, no "
+                         "open mouth, fast head motion): models built and scored, one table")
+    br.add_argument("--data", required=True, help="the shared data folder (holds video/)")
+    br.add_argument("--work", help="folder to keep the models and the occluded copy in "
+                    "(default: a temporary one)")
+    br.add_argument("--models", help="folder of models KEY.fwm to score instead of building "
+                    "(occluded, closed, motion)")
+    br.add_argument("--only", action="append", metavar="KEY",
+                    help="run this reproduction only (repeatable)")
+    br.add_argument("--limit", type=int, metavar="N",
+                    help="score only the first N held-out frames of each")
+    _add_json(br)
+    br.set_defaults(run=_bench_reproductions)
 
 
 def _add_tools(sub: Commands) -> None:

@@ -4,21 +4,25 @@ The steps, in order (``build_model``):
 
 1. Track: the 68 points of the largest face in every frame of the range
    (``sender.tracker``); frames without a face are kept as ``None``.
-2. Fit: choose the neutral frame (of a guided recording, among the neutral prompt's frames:
-   ``sender.enroll.routine``), estimate the head pose in every frame and the person's 3D
-   landmarks, and warp the generic head onto them (``sender.enroll.fit``). The camera is
-   unknown, so its intrinsics are a guess (``models.geometry.intrinsics_guess``).
+2. Fit: choose the neutral frame, among the sharp frames (``sender.enroll.registration``:
+   a motion-blurred neutral frame doubles every edge of the texture and rest layers; of a
+   guided recording, among the neutral prompt's sharp frames: ``sender.enroll.routine``),
+   estimate the head pose in every frame and the person's 3D landmarks, and warp the
+   generic head onto them (``sender.enroll.fit``). The camera is unknown, so its
+   intrinsics are a guess (``models.geometry.intrinsics_guess``).
 3. Texture: score the frames and choose up to nine clean views, spread in time, the neutral
    frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
    blur, pose and expression; frames whose landmarks do not line up are not candidates),
    decode them again, project them onto the fitted mesh's UV layout and fuse them robustly
    per texel (``sender.enroll.fusion.fuse_views``: a weighted median's consensus, views
-   departing from it take no part there, misaligned views none at all) at
+   departing from it or not lining up with it locally take no part there, misaligned
+   views none at all) at
    ``TEXTURE_SIZE``, and fill every texel no view saw, so no black gap or seam shows from any
    angle. When the neutral frame was an outlier over a part of the face (occluded there),
    the fit is run again with the neutral frame taken among the clean views, and the views
    are fused again on its mesh. ``BuildResult.evidence`` says which views were used, which
-   were dropped and where each was occluded. A photo has one view.
+   were dropped, where each was occluded and, per part, how much of the texture shows a
+   feature twice (``sender.enroll.registration``). A photo has one view.
 4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
@@ -110,6 +114,7 @@ from facewire.sender.enroll.evidence import (
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
+from facewire.sender.enroll.registration import sharp_frames
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.tracker import LandmarkTracker
@@ -154,7 +159,8 @@ class BuildResult:
         evidence: the base texture's views (video indices, the neutral first), those
             dropped as misaligned, per part of the face those that were occluded there, and
             the first neutral frame when it was occluded and taken again
-            (``sender.enroll.evidence``).
+            (``sender.enroll.evidence``), and per part the doubled-feature measure of the
+            texture (``sender.enroll.registration``, 3).
     """
 
     model: PersonModel
@@ -293,8 +299,11 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     start = time.perf_counter()
     indices, points, blur, face_frames = _track(read, frames, total, progress, where, photo)
     camera = intrinsics_guess(width, height)
-    fit = _fit(points, camera, where, None if guide is None else
-               [k for k, i in enumerate(indices) if i in guide.neutral])
+    sharp = sharp_frames(blur, [p is not None for p in points])
+    if guide is not None:
+        calm = [k for k, i in enumerate(indices) if i in guide.neutral]
+        sharp = [k for k in calm if k in sharp] or calm
+    fit = _fit(points, camera, where, sharp)
     fit, chosen, images, texture, evidence = _base_texture(read, indices, points, blur, fit,
                                                            camera, where, photo)
 
@@ -393,7 +402,9 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
                 "misaligned": [indices[k] for k, ok in zip(chosen, fusion.aligned) if not ok],
                 "occluded": {part: [indices[k] for k, bad in zip(chosen, flags) if bad]
                              for part, flags in occluded.items()},
-                "neutral_occluded": first_neutral}
+                "neutral_occluded": first_neutral,
+                "doubled": {part: round(fusion.doubled_fraction(mask), 3)
+                            for part, mask in part_masks(fit.mesh, surface.size).items()}}
     return fit, chosen, images, texture, evidence
 
 
@@ -417,8 +428,10 @@ def _fuse(fit: Fit, chosen: tuple[int, ...], primary: int, images: dict[int, np.
         pose = fit.poses[k]
         assert pose is not None  # the views are chosen among the posed frames
         views.append((images[indices[k]], ViewCamera(camera, pose)))
-    fusion = fuse_views(fit.mesh, surface, views, primary=primary)
-    return fusion, occluded_parts(fusion, part_masks(fit.mesh, surface.size))
+    parts = part_masks(fit.mesh, surface.size)
+    fusion = fuse_views(fit.mesh, surface, views, primary=primary,
+                        features=np.logical_or.reduce(list(parts.values())))
+    return fusion, occluded_parts(fusion, parts)
 
 
 def at_rest(model: PersonModel) -> PersonModel:

@@ -47,10 +47,23 @@ d_i > ``ALIGN_RATIO`` (3) x median_j d_j + 0.02 is a misfit and takes no part an
 and the consensus is computed again without it. (A single outlying view over a small part
 of the face, an occluder, hardly moves r_i; that is the per-texel test's job.)
 
+Local alignment. A view can line up as a whole and not over one feature: lips in another
+expression, glasses or lids a few pixels off in a frame of fast motion. Its colours there
+are the skin's and the feature's, as the others', so the per-texel test keeps them, and
+blended or shown beside the others' they show the feature twice. So each view is also
+judged by structure (``sender.enroll.registration``, 2): within the parts of the face
+(``features``: the build's eyes, brows, nose and mouth boxes), where its windowed
+correlation with the consensus m falls below ``MIN_NCC`` (0.7) while most views line up
+with m there, it takes no part over that window, and a primary view's texels there are
+replaced (below) as an occluded patch's are. Where most views do not line up with m (a
+mouth that talks in every frame), m is no consensus and nobody is dropped: the primary
+views make the texture, as they are.
+
 Colour. The first P views are the *primary* ones (the build's: the neutral frame and
 the side views beyond 15 degrees of yaw, ``sender.enroll.fit``); the rest only give
 evidence. Where no primary view is an outlier, the texture is the primaries' weighted
-mean, sum_{i<P} w_i c_i / sum_{i<P} w_i, exactly as the views are; where one is, it is
+mean, sum_{i<P} w_i c_i / sum_{i<P} w_i over those that line up, exactly as the views
+are; where one is, it is
 replaced by c_robust, the colour of the first view in the given order (the build's: the
 primaries, then the others by their cost, cleanest first) that takes part at the texel
 and sees it well (w >= ``REPLACE_MIN_WEIGHT`` = 0.3):
@@ -61,9 +74,14 @@ r the indicator of the texels where a primary view that sees the texel well was 
 outlier over a large patch (the coherence test above over a ``REPLACE_WINDOW`` = 33
 texel square: an occluder over a mouth, an eye closed in a wink; not a mouth corner a
 millimetre off, nor the jaw's silhouette, where the mesh is wider than the face and the
-other views see the background), and some view that sees it well took part, grown by
-``REPLACE_GROW`` = 3 texels and feathered by a Gaussian of
-``REPLACE_FEATHER`` = 2 texels, so no seam shows where the replacement stops. Why not
+other views see the background), or where a primary view that sees it at all does not
+line up locally or was dropped whole (a dropped primary makes no texel: it once still made
+those it saw weakly, a ring of doubled features around the replaced middle), and some
+view that sees it well took part, grown by ``REPLACE_GROW`` = 3 texels and feathered by
+a Gaussian of ``REPLACE_FEATHER`` = 2 texels, so no seam shows where the replacement
+stops (0 where no view that sees the texel well takes part: nothing to replace with; 1
+wherever it is not 0 and no primary view that lines up sees the texel: nothing to blend
+with). Why not
 a mean of the views: the views are warped onto the neutral mesh, not onto each frame's
 expression, so lips that moved a millimetre between frames double in a mean (measured
 on lp_d14 0:178 with nine views blended everywhere: the viewer's mouth NME on the
@@ -78,7 +96,8 @@ difference of light or registration as a seam). A texel seen by one or two views
 them: nothing contradicts them. The summed weight of the views that made the texel is
 returned (0: no view saw it). ``Fusion`` also keeps which view took part where, so the
 caller can tell, per part of the face, which views were outliers there
-(``Fusion.outlier_fraction``).
+(``Fusion.outlier_fraction``), and the consensus, so the texture's doubled features can be
+measured against it (``Fusion.doubled_fraction``, ``sender.enroll.registration``, 3).
 
 """
 
@@ -91,6 +110,7 @@ import numpy as np
 
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
+from facewire.sender.enroll.registration import doubled_fraction, local_misfit
 from facewire.sender.enroll.texture import (
     TextureError,
     UVSurface,
@@ -127,6 +147,11 @@ class Fusion:
             when it shares too few texels with it).
         aligned: (V,) bool, the view lined up with the others (False: dropped whole).
         covered: (H, W) bool, the covered texels (the K columns of ``seen`` and ``kept``).
+        consensus: (H, W) float32, the consensus's luma m (0 where fewer than
+            ``MIN_VIEWS_FOR_CONSENSUS`` views that line up see the texel).
+        judged: (H, W) bool, the texels that have a consensus.
+        holds: (H, W) bool, where the consensus holds: most views judged there line up
+            with it (``sender.enroll.registration.local_misfit``).
     """
 
     texture: np.ndarray
@@ -136,6 +161,17 @@ class Fusion:
     agreement: np.ndarray
     aligned: np.ndarray
     covered: np.ndarray
+    consensus: np.ndarray
+    judged: np.ndarray
+    holds: np.ndarray
+
+    def doubled_fraction(self, area: np.ndarray) -> float:
+        """The doubled-feature measure of the texture over ``area`` ((H, W) bool):
+        ``sender.enroll.registration.doubled_fraction`` against the consensus, over the
+        texels a view made and where the consensus holds."""
+        luma = self.texture.astype(np.float32) @ _LUMA_BGR[::-1]
+        return doubled_fraction(luma, self.consensus, self.judged & (self.weight > 0),
+                                area & self.holds)
 
     def outlier_fraction(self, area: np.ndarray) -> np.ndarray:
         """(V,) float64: of the texels in ``area`` ((H, W) bool) that view i sees and that at
@@ -161,7 +197,7 @@ def project_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, 
 
 def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Camera]], *,
                sharpness: float = 4.0, cos_min: float = 0.1, feather_px: float = 8.0,
-               primary: int | None = None) -> Fusion:
+               primary: int | None = None, features: np.ndarray | None = None) -> Fusion:
     """Project camera images onto the texture (``sender.enroll.texture``, 2) and fuse them
     robustly (module docstring).
 
@@ -179,6 +215,8 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
         primary: how many of the first views make the texture where none of them is an
             outlier (module docstring); all of them when None. The others only judge
             and replace.
+        features: (H, W) bool, the texels where views are judged for local alignment
+            (``sender.enroll.registration``: the parts of the face); all when None.
 
     Returns:
         The ``Fusion``: texture (H, W, 3) uint8 RGB, black where no view saw the texel, the
@@ -200,11 +238,19 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
     covered = surface.covered
+    centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
+    misfit, holds = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
+                                 features)
     first = len(views) if primary is None else primary
-    blend, total, kept = _colour(colours, weight_v, kept, seen & aligned[:, None], covered,
-                                 first)
+    blend, total, kept = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
+                                 covered, first, misfit)
     texture, weight = _to_texture(blend, total, covered)
-    return Fusion(texture, weight, seen, kept, agreement, aligned, covered)
+    consensus = np.zeros(covered.shape, np.float32)
+    consensus[covered] = np.where(judged, centre, 0.0)
+    judged_grid = np.zeros(covered.shape, bool)
+    judged_grid[covered] = judged
+    return Fusion(texture, weight, seen, kept, agreement, aligned, covered, consensus,
+                  judged_grid, holds)
 
 
 def _match_exposure(colours: list[np.ndarray], weights: list[np.ndarray]) -> None:
@@ -235,24 +281,39 @@ def _judge(luma: np.ndarray, weight_v: np.ndarray
     return kept, agreement, aligned
 
 
+def _consensus(luma: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) float32 the consensus m (the weighted median luma of the views taking part, with
+    their (V, K) weights ``use``), and (K,) bool where at least ``MIN_VIEWS_FOR_CONSENSUS``
+    views take part (m is 0 elsewhere)."""
+    judged = (use > 0).sum(axis=0) >= MIN_VIEWS_FOR_CONSENSUS
+    centre = np.zeros(luma.shape[1], np.float32)
+    if judged.any():
+        centre[judged] = _weighted_median(luma[:, judged], use[:, judged])
+    return centre, judged
+
+
 def _colour(colours: list[np.ndarray], weight_v: np.ndarray, kept: np.ndarray,
-            judged: np.ndarray, covered: np.ndarray, first: int
+            judged: np.ndarray, covered: np.ndarray, first: int, misfit: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each texel's colour (K, 3) float32 BGR, its summed weight (K,) and which views took
     part there after the coherence test (V, K) bool (module docstring, colour); ``judged``:
-    seen by a view that lines up, ``first``: the number of primary views."""
+    seen by a view that lines up, ``first``: the number of primary views, ``misfit``: (V, K)
+    where a view does not line up locally (``sender.enroll.registration``)."""
     seen = weight_v > 0
     strong = weight_v >= REPLACE_MIN_WEIGHT
     patches = _coherent(kept, judged, covered, REPLACE_WINDOW)
     kept = _coherent(kept, judged, covered, OUTLIER_WINDOW)
     use = np.where(kept, weight_v, 0.0).astype(np.float32)
-    plain = _mean(colours[:first], weight_v[:first])  # the primary views, as they are
+    plain_w = np.where(judged[:first], weight_v[:first], 0.0)
+    plain = _mean(colours[:first], plain_w)  # the primary views that line up, as they are
     robust = _first_kept(colours, kept & strong)  # the best view that takes part, seen well
-    rejected = (strong[:first] & seen[:first] & ~patches[:first]).any(axis=0) \
-        & (kept & strong).any(axis=0)
-    r = _replaced(rejected, covered)[:, None]
+    replaceable = (kept & strong).any(axis=0)
+    rejected = (seen[:first] & ((strong[:first] & ~patches[:first]) | misfit[:first]
+                                | ~judged[:first])).any(axis=0) & replaceable
+    r = _replaced(rejected, covered) * replaceable
+    r = np.where(plain_w.sum(axis=0) > 0, r, np.ceil(r))[:, None]  # no primary: all robust
     blend = (1.0 - r) * plain + r * robust
-    total = np.where(r[:, 0] > 0, use.sum(axis=0), weight_v[:first].sum(axis=0))
+    total = np.where(r[:, 0] > 0, use.sum(axis=0), plain_w.sum(axis=0))
     return blend, total, kept
 
 

@@ -1,0 +1,159 @@
+"""Whether a view's pixels line up with the others', texel by texel: sharp frames, local
+correlation with the consensus, and the doubled-feature measure.
+
+Issue 16's third reproduction (``bench.reproductions``: openface_multi_face, the man with
+glasses talking and laughing, his head moving at some 220 mm/s, enrolled from 2.4 s) built
+a texture with a doubled glasses rim and smeared lips: the neutral frame the fit chose
+(frame 211) was motion-blurred (its sharpness b, ``sender.enroll.evidence.sharpness``,
+72 against the range's median of 138), and the base texture is that frame wherever it is
+not an outlier. A blurred or slipped view is no outlier in colour: its skin is the skin
+every view sees, only its edges are elsewhere. So two tests, both on structure:
+
+1. Sharp frames (``sharp_frames``). A frame is sharp when b >= ``SHARP_RATIO`` (1) times
+   the median b of the frames with a face: the sharper half. The build chooses the
+   neutral frame among the sharp frames (``sender.enroll.fit.fit_person``'s
+   ``neutral_among``), so the frame that makes most of the texture and every rest layer
+   is not smeared. Measured (``bench.reproductions``, docs/DESIGN.md §8): on the fast
+   motion the fit's own choice, frame 211 (b 72), is replaced by 201 (b 151), the texture
+   shows one glasses rim and one mouth; with 0.8 the neutral was 241 (b 136, the lips
+   apart), with 0.6 208 (b 88, still smeared). The price: 201 is a less neutral frame,
+   and the held-out geometry got worse there (held-out NME 3.38 % against 2.80 %), while
+   on lp_d14 (2.28 to 2.05 %), openface_default (3.18 to 2.98 %) and the occluded mouth
+   (3.86 to 3.73 %) the sharper neutral did better.
+
+2. Local alignment (``local_misfit``). Per covered texel seen by at least three views,
+   the consensus m is the weighted median of the luma of the views that take part there
+   (``sender.enroll.fusion``). For each view i, over the texels it shares with the
+   consensus, the normalised cross-correlation in the ``WINDOW`` x ``WINDOW`` (31 x 31)
+   texel square around each texel,
+
+       ncc = cov(y_i, m) / sqrt(var(y_i) var(m)),
+
+   box-filtered sums over the shared texels only (at least half the square), is judged
+   where the consensus has structure there: its local standard deviation at least
+   ``STRUCTURE_STD`` (8 grey levels; skin alone has 2-5 in these clips, an eye, a brow, a
+   lip line or a glasses rim 15-40). Where ncc < ``MIN_NCC`` (0.5), the view does not
+   line up with the others (a feature slipped, smeared or doubled in it; lips in another
+   expression), and it takes no part in the square's texels (the square around each
+   misfit centre: the misplaced copy of a feature may lie anywhere in the window). One
+   view is judged against a median of all, so a single doubled view cannot pull the
+   consensus to itself; the fusion then takes the texel from a view that lines up (its
+   ``replace`` step), one view per patch, and no feature is shown twice. At 1024 x 2048
+   texels a face of 70 px between the eyes spans some 5 texels per pixel, so the window
+   is six pixels of the image: wide enough to hold a feature and its copy two or three
+   pixels away.
+
+3. The doubled-feature measure (``doubled_fraction``): the same correlation between a
+   texture's luma and the consensus, over a part of the face (the eyes, the brows, the
+   mouth), as the fraction of its structured texels where ncc < ``MIN_NCC``: a texture
+   that blends two misaligned views, or shows a smeared one, has its features where the
+   consensus has none and the other way round. The build reports it (``texture_evidence``
+   ``doubled``) and the tests assert on it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+SHARP_RATIO = 1.0  # a frame is sharp when its sharpness is at least this times the median
+WINDOW = 31  # texels: the square of the local correlation
+MIN_NCC = 0.7  # a view (or a texture) correlating less with the consensus does not line up
+STRUCTURE_STD = 8.0  # grey levels: the consensus's local deviation for a window to be judged
+_MIN_SHARE = 0.5  # of the window's texels a view must share with the consensus there
+
+
+def sharp_frames(sharpness: Sequence[float], present: Sequence[bool]) -> list[int]:
+    """The frames whose sharpness is at least ``SHARP_RATIO`` times the median of the
+    ``present`` frames' (module docstring, 1): indices into ``sharpness``; all present
+    frames when their median is 0."""
+    b = np.asarray(sharpness, np.float64)
+    ok = np.asarray(present, bool)
+    if not ok.any():
+        return []
+    ref = float(np.median(b[ok]))
+    return [int(i) for i in np.flatnonzero(ok & (b >= SHARP_RATIO * ref))]
+
+
+def local_ncc(y: np.ndarray, m: np.ndarray, shared: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The windowed correlation of two (H, W) float32 images over their ``shared`` (H, W)
+    bool texels (module docstring, 2): (H, W) float32 ncc, and (H, W) bool where it is
+    judged (enough shared texels, and the consensus ``m`` structured there)."""
+    size = (WINDOW, WINDOW)
+    s = shared.astype(np.float32)
+    ys, ms = y * s, m * s
+
+    def box(a: np.ndarray) -> np.ndarray:
+        return np.asarray(cv2.boxFilter(a, -1, size, normalize=False,
+                                        borderType=cv2.BORDER_CONSTANT), np.float32)
+
+    n = box(s)
+    safe = np.maximum(n, 1.0)
+    my, mm = box(ys) / safe, box(ms) / safe
+    vy = box(ys * y) / safe - my * my
+    vm = box(ms * m) / safe - mm * mm
+    cov = box(ys * m) / safe - my * mm
+    ncc = cov / np.sqrt(np.maximum(vy, 1e-6) * np.maximum(vm, 1e-6))
+    judged = shared & (n >= _MIN_SHARE * WINDOW * WINDOW) & (vm >= STRUCTURE_STD ** 2)
+    return ncc, judged
+
+
+def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
+                 consensus: np.ndarray, covered: np.ndarray, features: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each view does not line up with the consensus (module docstring, 2).
+
+    Args:
+        luma: (V, K) float32 each view's luma at the covered texels.
+        seen: (V, K) bool, the view sees the texel.
+        centre: (K,) float32 the consensus's luma (any value where not ``consensus``).
+        consensus: (K,) bool, the texels with a consensus (seen by at least three views).
+        covered: (H, W) bool, the covered texels (the K columns, row-major).
+        features: (H, W) bool, the texels judged (the parts of the face); all when None.
+
+    Returns:
+        (V, K) bool: the view takes no part at the texel; and (H, W) bool, the windows
+        where the consensus holds (most judged views line up with it).
+    """
+    m = np.zeros(covered.shape, np.float32)
+    m[covered] = np.where(consensus, centre, 0.0)
+    good = np.zeros(covered.shape, np.int32)
+    count = np.zeros(covered.shape, np.int32)
+    bads = []
+    for i in range(len(luma)):
+        shared = np.zeros(covered.shape, bool)
+        shared[covered] = seen[i] & consensus
+        y = np.zeros(covered.shape, np.float32)
+        y[covered] = luma[i]
+        ncc, judged = local_ncc(y, m, shared)
+        if features is not None:
+            judged &= features
+        bad = judged & (ncc < MIN_NCC)
+        good += judged & ~bad
+        count += judged
+        bads.append(bad)
+    holds = (count > 0) & (2 * good > count)
+    out = np.zeros(seen.shape, bool)
+    grow = np.ones((WINDOW, WINDOW), np.uint8)
+    for i, bad in enumerate(bads):
+        bad &= holds
+        if bad.any():
+            out[i] = cv2.dilate(bad.astype(np.uint8), grow)[covered].astype(bool) & seen[i]
+    return out, holds
+
+
+def doubled_fraction(texture_luma: np.ndarray, consensus: np.ndarray, judged: np.ndarray,
+                     area: np.ndarray) -> float:
+    """The doubled-feature measure (module docstring, 3): of the texels in ``area`` where
+    the (H, W) float32 ``consensus`` is judged and structured, the fraction where the (H, W)
+    float32 ``texture_luma`` correlates with it below ``MIN_NCC``; 0 when none is judged.
+    ``judged``: (H, W) bool, the texels that have a consensus; ``area`` (H, W) bool, best
+    restricted to where it holds (``local_misfit``)."""
+    ncc, ok = local_ncc(texture_luma, consensus, judged)
+    ok &= area
+    if not ok.any():
+        return 0.0
+    return float((ncc[ok] < MIN_NCC).mean())
