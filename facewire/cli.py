@@ -251,6 +251,7 @@ def _model_build(args: argparse.Namespace) -> int:
     regions = [f"          {name}: frames {r['frames']}, span {r['span']}"
                + (" (weak: the video barely shows it)" if r["weak"] else "")
                for name, r in s["appearance"].items()]
+    usage = _region_frames_lines(result.model.region_frames)
     report(s, [f"model:    {result.path} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
                f"preview:  {result.preview}",
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
@@ -262,10 +263,23 @@ def _model_build(args: argparse.Namespace) -> int:
                f"from the generic head)",
                f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
                *regions,
+               *usage,
                *_coverage_lines(s["coverage"], s["coverage_lines"]),
                *_self_check_lines(s),
                f"time:     {s['seconds']} s"], args.json)
     return 0
+
+
+def _region_frames_lines(frames: dict[str, Any] | None) -> list[str]:
+    """One line per region: the enrollment frames its layers used, and why the others were
+    rejected (``sender.enroll.usage``)."""
+    if frames is None:
+        return ["frames:   per region not recorded (a model without regions, or built before "
+                "they were stored)"]
+    from facewire.sender.enroll.usage import usage_line
+
+    return ["frames per region (used, rejected and why):",
+            *(f"          {name}: {usage_line(f)}" for name, f in frames.items())]
 
 
 def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = None
@@ -302,6 +316,7 @@ def _self_check_text(ssim: float | None, nme: float | None, frames: int) -> str:
 def _model_info(args: argparse.Namespace) -> int:
     from facewire.models.modelfile import load_model, model_summary
     from facewire.report import report
+    from facewire.sender.enroll.usage import region_frames_summary
 
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,
@@ -309,7 +324,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
          "source": None if model.info.source is None else model.info.source.as_dict(),
          "coverage": model.coverage,
-         "self_check": None if model.self_check is None else model.self_check.as_dict()}
+         "self_check": None if model.self_check is None else model.self_check.as_dict(),
+         "region_frames": region_frames_summary(model)}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -321,6 +337,7 @@ def _model_info(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
+               *_region_frames_lines(model.region_frames),
                *_coverage_lines(model.coverage),
                _stored_self_check(model.self_check),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
