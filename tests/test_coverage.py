@@ -69,6 +69,17 @@ def test_coverage_on_real_clips(shared_data, tmp_path, capsys, case):
     assert json.loads(info_text.strip().splitlines()[-1])["coverage"] == coverage
     for line in missing_lines(coverage):
         assert line in info_text
+    # the frames per region (sender.enroll.usage): in the build's JSON, a line each in its
+    # text and in model info's; a wink or a blink is not an occluded eye
+    used = summary["region_frames"]
+    assert set(used) == set(summary["appearance"])
+    for name, entry in used.items():
+        assert entry["candidates"] == summary["frames"] and entry["used"], (name, entry)
+        assert f"          {name}: {len(entry['used'])} of {summary['frames']} frames used" \
+            in text and f"{name}: {len(entry['used'])} of" in info_text
+    if "eyes_closed" in covered:
+        for name in ("eyelid_left", "eyelid_right"):
+            assert used[name]["rejected"].get("occluded", 0) <= 0.05 * summary["frames"]
 
 
 def test_photo_reports_only_the_neutral(shared_data, tmp_path, capsys):

@@ -21,8 +21,10 @@ The steps, in order (``build_model``):
 4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
-   templates are what the sender will sample at run time; a frame whose mouth is occluded
-   (``sender.enroll.evidence``, 4) gives the mouth no layer. With them, the coverage
+   templates are what the sender will sample at run time; a frame whose mouth or an eye is
+   occluded (``sender.enroll.evidence``, 4) gives that region no layer, and the model
+   records per region the frames used and rejected, and why (``PersonModel.region_frames``,
+   ``sender.enroll.usage``). With them, the coverage
    (``sender.enroll.coverage``): which expression states (eyes closed, gaze, brows, mouth
    open or wide, teeth) the layers' frames show; the model stores it
    (``PersonModel.coverage``) and ``model build`` says what the rendering does for each
@@ -32,9 +34,11 @@ The steps, in order (``build_model``):
    ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
    rendered from the front and from three-quarter view, beside the neutral frame cropped to
    the face, so a user can see at a glance whether the model is that person; below, one row
-   per region with its layers in order (as drawn over the neutral texture: layer times its
-   opacity and alpha ramp); last, the coverage (``sender.enroll.coverage``): which
-   expression states the layers show, and which they do not.
+   per region with, under its name, the frames its layers used and those rejected per
+   reason (and a bar of the same in proportion), then its layers in order (as drawn over
+   the neutral texture: layer times its opacity and alpha ramp); last, the coverage
+   (``sender.enroll.coverage``): which expression states the layers show, and which they
+   do not.
 
 One photo (``build_photo``; ``build_model`` sends a path with a ``PHOTO_SUFFIXES`` suffix
 there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go through

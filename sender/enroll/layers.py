@@ -36,9 +36,14 @@ the sender's pose and lift.
    the 5th to the 98th percentile; gaze from the 5th to the 95th percentile. The level
    nearest to the neutral frame's own cue is the region's *rest* state and takes the
    neutral frame itself (``sender.enroll.build`` chose it, and paints the rest layers into the
-   base texture). Every other level takes the frame whose cue is nearest to it (ties broken
-   toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|), each frame at most
-   once per region. A region whose span is below ``MIN_SPAN`` (the video
+   base texture) unless that frame is unusable for the region (its cue undefined: its
+   part occluded there); then the rest state is chosen like the others. Every other level
+   takes the frame whose cue is nearest to it (ties broken toward a frontal head: cost
+   |cue - level| / span + 0.002 |yaw deg|), among the usable frames, each at most once per
+   region while any is left (with fewer usable frames than states, some serve twice). A
+   region with no usable frame takes none: its states are all the neutral frame's, with
+   opacity 0, so it draws the base texture; ``sender.enroll.usage`` counts the frames each
+   region used and rejected. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
 4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
    of its further areas, the eyelids' lid skin, the same way): every texel's
