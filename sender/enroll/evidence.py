@@ -77,10 +77,16 @@ views that were outliers over a part of the face tell which frames were occluded
    covers. The brows are not judged: their ring reaches the hairline, and on clean frames
    of lp_d3 it departs on up to 34 % of its texels (the brows raised, the frown), so no
    bound keeps raised brows in the forehead's layers and an occluder out. The test is
-   relative to the base texture: when an eye is occluded in most of the base texture's
-   views (lp_d3 0:140 with the patch over the right eye in 61 frames of the first 84: 6 of
-   the 9 views), the fusion keeps the patch, the occluded frames match it and the clean
-   ones depart; the neutral is taken again only for the mouth and the nose (3).
+   relative to the base texture, so it holds only where the base texture is clean: when
+   the neutral frame's eye is occluded, the fusion kept the patch (lp_d3 0:140 with the
+   patch over the right eye in 32 of the first 42 frames: the neutral frame 33 and two
+   more of the 9 views carry it, and the fusion flagged no view over the right eye; with
+   61 frames of the first 84, 6 of the 9 views), the occluded frames match it, the clean
+   ones depart, and the eye's layers take patched frames (the neutral taken again for the
+   mouth and the nose only, 3). A consensus of the frames' own rings instead of the base
+   texture (per texel, the median over the frames, exposure matched) kept winks and
+   blinks (at most 14 % departed, lp_d3 and lp_d14 clean) but found 7-22 % on the
+   patched frames of the first case: no bound between them.
 """
 
 from __future__ import annotations
