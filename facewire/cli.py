@@ -334,9 +334,25 @@ def _build_lines(s: dict[str, Any]) -> list[str]:
             f"from the generic head)",
             f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
             *regions,
+            *_region_frames_lines(s["region_frames"]),
             *_coverage_lines(s["coverage"], s["coverage_lines"]),
             *_self_check_lines(s),
             f"time:     {s['seconds']} s"]
+
+
+def _region_frames_lines(frames: dict[str, Any] | None) -> list[str]:
+    """One line per region: the enrollment frames its layers used, and why the others were
+    rejected (``sender.enroll.usage``); ``frames`` is the JSON's ``region_frames``."""
+    if frames is None:
+        return ["frames:   per region not recorded (a model without regions, or built before "
+                "they were stored)"]
+    from facewire.models.manifest import RegionFrames
+    from facewire.sender.enroll.usage import usage_line
+
+    return ["frames per region (used, rejected and why):",
+            *(f"          {name}: "
+              f"{usage_line(RegionFrames(f['candidates'], tuple(f['used']), f['rejected']))}"
+              for name, f in frames.items())]
 
 
 def _coverage_lines(coverage: dict[str, bool] | None, lines: list[str] | None = None
@@ -373,6 +389,7 @@ def _self_check_text(ssim: float | None, nme: float | None, frames: int) -> str:
 def _model_info(args: argparse.Namespace) -> int:
     from facewire.models.modelfile import load_model, model_summary
     from facewire.report import report
+    from facewire.sender.enroll.usage import region_frames_summary
 
     model = load_model(args.model)
     s = {**model_summary(model), "name": model.info.name,
@@ -380,7 +397,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "texture": list(model.texture.shape[:2]), "creator": model.info.creator,
          "source": None if model.info.source is None else model.info.source.as_dict(),
          "coverage": model.coverage,
-         "self_check": None if model.self_check is None else model.self_check.as_dict()}
+         "self_check": None if model.self_check is None else model.self_check.as_dict(),
+         "region_frames": region_frames_summary(model)}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -392,6 +410,7 @@ def _model_info(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
+               *_region_frames_lines(s["region_frames"]),
                *_coverage_lines(model.coverage),
                _stored_self_check(model.self_check),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)

@@ -34,6 +34,15 @@ frames, its mean face SSIM and render NME (percent of the outer-eye distance) ov
 ``frames`` frames, whether that is poor and its likely causes (at most 8, each at most 64
 characters), absent when it was not run (``model build --no-self-check``, older models).
 
+A third is optional in the same way: ``"region_frames": {region: {"candidates": int, "used":
+[frame, ...], "rejected": {reason: int, ...}}}``, per region how the enrollment frames were
+spent (``RegionFrames``; ``sender.enroll.usage``): of the ``candidates`` frames of the build's
+range, the frames its layers were taken from (strictly increasing; empty when no frame was
+clean for it: its layers then draw the base texture), and per reason (a name as a region's,
+at most 16 of them) how many were rejected; the remaining ``candidates - len(used) - sum of
+rejected`` were clean but not chosen (never below 0). At most ``MAX_REGIONS`` regions; absent
+in models built before it, and for a model without regions.
+
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
 empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
@@ -77,6 +86,7 @@ from facewire.models.fields import (
     MAX_IMAGE_SIDE,
     MAX_LAYERS,
     MAX_REGIONS,
+    REGION_NAME,
     TEMPLATE_SIZE,
     ModelError,
     ModelFileError,
@@ -95,6 +105,7 @@ FORMAT_VERSION = 4
 READ_VERSIONS = (1, 2, 3, 4)
 MAX_MEMBER_BYTES = 64 * 1024**2
 MAX_SMALL_BYTES = 1024**2
+MAX_REASONS = 16
 
 MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
 TEXTURE_MEMBER = "textures/neutral.png"
@@ -271,6 +282,76 @@ class SelfCheck:
                 "poor": self.poor, "causes": list(self.causes)}
 
 
+@dataclass(frozen=True)
+class RegionFrames:
+    """How a region's layers spent the enrollment frames (module docstring,
+    ``region_frames``; ``sender.enroll.usage``).
+
+    Attributes:
+        candidates: the frames of the build's range, >= 0.
+        used: the video frame indices its layers were taken from, strictly increasing; ()
+            when none was clean (its layers draw the base texture).
+        rejected: {reason: frames rejected for it}, at most ``MAX_REASONS`` reasons named as
+            regions, each count >= 1.
+
+    Checked where it enters a model (``check_region_frames``: ``PersonModel`` and the
+    manifest reader), where its region's name is known for the messages.
+    """
+
+    candidates: int
+    used: tuple[int, ...]
+    rejected: dict[str, int]
+
+    def check(self, field: str) -> RegionFrames:
+        """The record with its fields validated and normalised; ``ModelError`` names
+        ``field``."""
+        candidates = check_integer(self.candidates, f"{field}.candidates", 0, 2**31)
+        if not isinstance(self.used, (tuple, list)) or len(self.used) > MAX_LAYERS * 2:
+            raise ModelError(f"{field}.used: expected a list of at most {MAX_LAYERS * 2} frame "
+                             f"indices, got {type_name(self.used)}")
+        used = tuple(check_integer(f, f"{field}.used[{i}]", 0, 2**53)
+                     for i, f in enumerate(self.used))
+        if any(b <= a for a, b in zip(used, used[1:])):
+            raise ModelError(f"{field}.used: not strictly increasing")
+        if not isinstance(self.rejected, dict) or len(self.rejected) > MAX_REASONS:
+            raise ModelError(f"{field}.rejected: expected an object of at most {MAX_REASONS} "
+                             f"reasons, got {type_name(self.rejected)}")
+        rejected = {}
+        for reason, count in self.rejected.items():
+            if not isinstance(reason, str) or not REGION_NAME.fullmatch(reason):
+                raise ModelError(f"{field}.rejected: bad reason {reason!r:.40}")
+            rejected[reason] = check_integer(count, f"{field}.rejected.{reason}", 1, 2**31)
+        if len(used) + sum(rejected.values()) > candidates:
+            raise ModelError(f"{field}: {len(used)} used and {sum(rejected.values())} rejected "
+                             f"of {candidates} candidates")
+        return RegionFrames(candidates, used, rejected)
+
+    @property
+    def clean(self) -> int:
+        """The frames neither used nor rejected: clean, but not chosen."""
+        return self.candidates - len(self.used) - sum(self.rejected.values())
+
+    def as_dict(self) -> dict[str, Any]:
+        """The manifest's entry (also ``model build/info --json``'s ``region_frames``)."""
+        return {"candidates": self.candidates, "used": list(self.used),
+                "rejected": dict(self.rejected)}
+
+
+def check_region_frames(value: object) -> dict[str, RegionFrames]:
+    """The ``region_frames`` field, from the manifest (objects) or in memory (records)."""
+    if not isinstance(value, dict) or len(value) > MAX_REGIONS:
+        raise ModelError(f"region_frames: expected an object of at most {MAX_REGIONS} regions, "
+                         f"got {type_name(value)}")
+    out = {}
+    for name, entry in value.items():
+        check_region_name(name, "region_frames")
+        field = f"region_frames.{name}"
+        if not isinstance(entry, RegionFrames):
+            entry = RegionFrames(**check_keys(entry, field, {"candidates", "used", "rejected"}))
+        out[name] = entry.check(field)
+    return out
+
+
 # ---- the schema table -------------------------------------------------------------------
 
 class Spec(NamedTuple):
@@ -344,6 +425,7 @@ class Manifest(NamedTuple):
     regions: list[RegionEntry]
     coverage: dict[str, bool] | None
     self_check: SelfCheck | None
+    region_frames: dict[str, RegionFrames] | None
 
 
 def parse_manifest(raw: bytes) -> Manifest:
@@ -351,10 +433,11 @@ def parse_manifest(raw: bytes) -> Manifest:
 
     The fields are checked in the order they are listed here: the keys, ``format``,
     ``format_version``, ``camera``, ``info``, ``members``, ``regions``, then the optional
-    ``coverage`` and ``self_check``.
+    ``coverage``, ``self_check`` and ``region_frames``.
     """
     doc = _decode_json(raw)
-    optional = {"coverage", "self_check"} & (doc.keys() if isinstance(doc, dict) else set())
+    optional = {"coverage", "self_check", "region_frames"} & (
+        doc.keys() if isinstance(doc, dict) else set())
     check_keys(doc, "manifest", {"format", "format_version", "camera", "info", "members",
                                  "regions"} | optional)
     version = _version(doc)
@@ -364,7 +447,8 @@ def parse_manifest(raw: bytes) -> Manifest:
     regions = _regions(doc["regions"], version)
     coverage = check_coverage(doc["coverage"]) if "coverage" in optional else None
     check = _self_check(doc["self_check"]) if "self_check" in optional else None
-    return Manifest(camera, info, members, regions, coverage, check)
+    frames = check_region_frames(doc["region_frames"]) if "region_frames" in optional else None
+    return Manifest(camera, info, members, regions, coverage, check, frames)
 
 
 def _decode_json(raw: bytes) -> Any:

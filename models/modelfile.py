@@ -114,9 +114,11 @@ from facewire.models.manifest import (
     TEXTURE_MEMBER,
     Manifest,
     ModelInfo,
+    RegionFrames,
     SelfCheck,
     Spec,
     area_folders,
+    check_region_frames,
     expected_members,
     member_spec,
     parse_manifest,
@@ -253,6 +255,10 @@ class PersonModel:
             not measured (older models). The manifest's optional ``coverage`` key.
         self_check: the build's self-check, or None when it was not run. The manifest's
             optional ``self_check`` key.
+        region_frames: {region: how its layers spent the enrollment frames}
+            (``sender.enroll.usage``), or None when not recorded (older models, models
+            without regions). The manifest's optional ``region_frames`` key; every name is
+            one of ``regions``.
     """
 
     mesh: Mesh
@@ -264,6 +270,7 @@ class PersonModel:
     file_bytes: int = 0
     coverage: dict[str, bool] | None = None
     self_check: SelfCheck | None = None
+    region_frames: dict[str, RegionFrames] | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -293,6 +300,12 @@ class PersonModel:
         if self.self_check is not None and not isinstance(self.self_check, SelfCheck):
             raise ModelError(f"self_check: expected a SelfCheck or None, got "
                              f"{type_name(self.self_check)}")
+        if self.region_frames is not None:
+            frames = check_region_frames(self.region_frames)
+            unknown = sorted(frames.keys() - set(names))
+            if unknown:
+                raise ModelError(f"region_frames.{unknown[0]}: not a region of the model")
+            object.__setattr__(self, "region_frames", frames)
 
 
 def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
@@ -385,7 +398,7 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
                                   r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
-                           manifest.coverage, manifest.self_check)
+                           manifest.coverage, manifest.self_check, manifest.region_frames)
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -465,6 +478,9 @@ def _encode(model: PersonModel) -> bytes:
         manifest["coverage"] = dict(model.coverage)
     if model.self_check is not None:
         manifest["self_check"] = model.self_check.as_dict()
+    if model.region_frames is not None:
+        manifest["region_frames"] = {name: frames.as_dict()
+                                     for name, frames in model.region_frames.items()}
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
                                            allow_nan=False) + "\n").encode("ascii")
     return zip_bytes(members)

@@ -32,8 +32,9 @@ CASES = {
     # lp_d3 170:260: the frown with the eyes shut; the mouth closed, no teeth, brows down
     ("lp_d3.mp4", "170:260"): ({"brows_furrowed"},
                                {"mouth_open", "smile_teeth", "brows_raised"}),
-    # lp_d3 240:330: the end of the frown, then the surprise: brows up, mouth open
-    ("lp_d3.mp4", "240:330"): ({"brows_raised", "mouth_open"}, {"smile_teeth", "mouth_wide"}),
+    # lp_d3 200:330: the frown, then the surprise: brows up, mouth open (from 240, with no
+    # calm face, the neutral among the sharp frames is one of the surprise's, brows up)
+    ("lp_d3.mp4", "200:330"): ({"brows_raised", "mouth_open"}, {"smile_teeth", "mouth_wide"}),
     # openface_gaze 40:100: gaze shifts to either side; a neutral mouth
     ("openface_gaze.avi", "40:100"): ({"gaze_left", "gaze_right"},
                                       {"mouth_open", "smile_teeth", "brows_furrowed"}),
@@ -69,6 +70,17 @@ def test_coverage_on_real_clips(shared_data, tmp_path, capsys, case):
     assert json.loads(info_text.strip().splitlines()[-1])["coverage"] == coverage
     for line in missing_lines(coverage):
         assert line in info_text
+    # the frames per region (sender.enroll.usage): in the build's JSON, a line each in its
+    # text and in model info's; a wink or a blink is not an occluded eye
+    used = summary["region_frames"]
+    assert set(used) == set(summary["appearance"])
+    for name, entry in used.items():
+        assert entry["candidates"] == summary["frames"] and entry["used"], (name, entry)
+        assert f"          {name}: {len(entry['used'])} of {summary['frames']} frames used" \
+            in text and f"{name}: {len(entry['used'])} of" in info_text
+    if "eyes_closed" in covered:
+        for name in ("eyelid_left", "eyelid_right"):
+            assert used[name]["rejected"].get("occluded", 0) <= 0.05 * summary["frames"]
 
 
 def test_photo_reports_only_the_neutral(shared_data, tmp_path, capsys):

@@ -45,6 +45,22 @@ def test_states_prefer_a_frontal_head_and_skip_undefined_cues() -> None:
     assert picks == sorted(picks)  # the levels rise with the cue
 
 
+def test_a_region_takes_nothing_from_a_frame_it_cannot_use() -> None:
+    """Frames whose cue is undefined (occluded there, ``sender.enroll.usage``) give no state,
+    not even the rest state when the neutral frame is one of them; with fewer usable frames
+    than states, the usable ones serve twice; with none, no frame at all (the region then
+    draws the base texture). On main (9691a01) the occluded neutral kept the rest state and
+    the other states fell back to occluded frames."""
+    cue = np.array([np.nan, 0.0, np.nan, 1.0, np.nan, 2.0, 3.0])
+    picks, info = _choose_states(spec("mouth"), cue, np.zeros(7), neutral=0)
+    assert 0 not in picks and not set(picks) & {2, 4}
+    assert len(set(picks)) == len(picks) == 4 and picks == sorted(picks)
+    few = np.array([np.nan, 0.0, np.nan, 1.0, np.nan, np.nan])
+    picks, _ = _choose_states(spec("mouth"), few, np.zeros(6), neutral=1)
+    assert len(picks) == 4 and set(picks) == {1, 3}
+    assert _choose_states(spec("mouth"), np.full(5, np.nan), np.zeros(5), neutral=2)[0] == []
+
+
 def test_an_eyelid_state_prefers_an_eye_looking_ahead() -> None:
     """Two frames have the same lid cue; the one whose eye looks aside (its eyeball's gaze
     cue far from the median) loses, so the lid's template does not carry a gaze."""

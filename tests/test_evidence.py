@@ -164,3 +164,61 @@ def test_a_blurred_face_box_scores_less_sharp():
     assert blurred < 0.3 * sharp
     half = cv2.resize(frame, (200, 200), interpolation=cv2.INTER_AREA)
     assert 0.5 < sharpness(half, points / 2) / sharp < 2.0
+
+
+@pytest.fixture(scope="module")
+def occluded_eye(shared_data: Path, occluded_models, tmp_path_factory: pytest.TempPathFactory):
+    """lp_d3 frames 0:90 with the dark patch over the right eye (``bench.occluded --over
+    right_eye``), and the layers enrolled from it on the clean model of the same frames."""
+    from facewire.bench.occluded import occlude
+    from facewire.sender.enroll.layers import enroll_regions
+
+    work = tmp_path_factory.mktemp("occluded_eye")
+    made = occlude(shared_data / "video" / "lp_d3.mp4", work / "eye.mp4", slice(0, 90),
+                   over="right_eye")
+    return made, enroll_regions(occluded_models[1], made.path)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: since the neutral frame is chosen among the sharp frames (lp_d3 0:90's is "
+    "frame 4, eyes wide open, no longer the blurred wink 33), the patched frames depart "
+    "from the base texture on 5-17 % of the right eye's ring and the clean ones on 0-7 %; "
+    "the 15 % bound catches 4-7 of 38 patched frames. A smaller ring (30 % of the eye's "
+    "box) separates them better (10-22 % against 0-7 %) but a squint departs 16 %"))
+def test_an_occluded_eye_gives_its_layers_nothing(occluded_eye):
+    """The right eye's eyelid and eyeball take no patched frame (on main, 9691a01, where
+    the eyes were not judged, they did), the ring test finds most patched frames and says
+    so in the region's counts, and the left eye, not patched, loses few frames."""
+    made, enrolled = occluded_eye
+    patched = set(made.occluded)
+    for name in ("eyelid_right", "eyeball_right"):
+        frames = enrolled.usage[name]
+        assert frames.used and not set(frames.used) & patched, (name, frames)
+        assert frames.rejected.get("occluded", 0) >= 0.8 * len(patched), (name, frames)
+    for name in ("eyelid_left", "eyeball_left"):
+        assert enrolled.usage[name].rejected.get("occluded", 0) <= 0.1 * made.frames
+    assert enrolled.usage["mouth"].rejected.get("occluded", 0) <= 0.1 * made.frames
+
+
+def test_a_region_with_no_clean_frame_draws_the_base_texture(shared_data: Path,
+                                                               occluded_models, tmp_path):
+    """Every frame of lp_d3 0:30 with the patch over the mouth, enrolled on the model of the
+    clean frames: no frame is clean for the mouth. The enrollment still succeeds; the mouth
+    uses no frame, says why, and its layers are transparent (the receiver draws the base
+    texture there); the eyes keep their layers. On main (9691a01) the mouth fell back to
+    the occluded frames."""
+    from facewire.bench.occluded import occlude
+    from facewire.sender.enroll.layers import enroll_regions
+    from facewire.sender.enroll.usage import usage_line
+
+    made = occlude(shared_data / "video" / "lp_d3.mp4", tmp_path / "all.mp4", slice(0, 30),
+                   part=1.0, gap=0.0)
+    assert len(made.occluded) == 30
+    enrolled = enroll_regions(occluded_models[1], made.path)
+    frames = enrolled.usage["mouth"]
+    assert frames.used == () and frames.rejected == {"occluded": 30}
+    assert usage_line(frames).startswith("no clean frame of 30")
+    mouth = {r.name: r for r in enrolled.regions}["mouth"]
+    assert all(o == 0.0 for o in mouth.opacity)
+    assert enrolled.report["mouth"]["frames"] == []
+    assert all(enrolled.usage[name].used for name in ("eyelid_left", "eyelid_right"))

@@ -26,8 +26,10 @@ The steps, in order (``build_model``):
 4. Appearance (``sender.enroll.layers.enroll_regions``, unless ``appearance=False``): the
    texture regions' layers and classification templates, from the same frames. It runs the
    sender's own pipeline (pose, lift, filters) and sampler on the video, so that the
-   templates are what the sender will sample at run time; a frame whose mouth is occluded
-   (``sender.enroll.evidence``, 4) gives the mouth no layer. With them, the coverage
+   templates are what the sender will sample at run time; a frame whose mouth or an eye is
+   occluded (``sender.enroll.evidence``, 4) gives that region no layer, and the model
+   records per region the frames used and rejected, and why (``PersonModel.region_frames``,
+   ``sender.enroll.usage``). With them, the coverage
    (``sender.enroll.coverage``): which expression states (eyes closed, gaze, brows, mouth
    open or wide, teeth) the layers' frames show; the model stores it
    (``PersonModel.coverage``) and ``model build`` says what the rendering does for each
@@ -39,9 +41,11 @@ The steps, in order (``build_model``):
    preview PNG beside it: the model
    rendered from the front and from three-quarter view, beside the neutral frame cropped to
    the face, so a user can see at a glance whether the model is that person; below, one row
-   per region with its layers in order (as drawn over the neutral texture: layer times its
-   opacity and alpha ramp); last, the coverage (``sender.enroll.coverage``): which
-   expression states the layers show, and which they do not.
+   per region with, under its name, the frames its layers used and those rejected per
+   reason (and a bar of the same in proportion), then its layers in order (as drawn over
+   the neutral texture: layer times its opacity and alpha ramp); last, the coverage
+   (``sender.enroll.coverage``): which expression states the layers show, and which they
+   do not.
 
 One photo (``build_photo``; ``build_model`` sends a path with a ``PHOTO_SUFFIXES`` suffix
 there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go through
@@ -97,7 +101,7 @@ from facewire.models.infra.video import (
     video_info,
 )
 from facewire.models.landmarks import outer_eye_distance
-from facewire.models.manifest import ModelInfo, SelfCheck, SourceRange
+from facewire.models.manifest import ModelInfo, RegionFrames, SelfCheck, SourceRange
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region, model_summary, save_model
 from facewire.models.regions import texel_rect
@@ -117,6 +121,9 @@ from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.enroll.registration import sharp_frames
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
+from facewire.sender.enroll.usage import LABELS as USAGE_LABELS
+from facewire.sender.enroll.usage import ordered as usage_order
+from facewire.sender.enroll.usage import region_frames_summary
 from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
@@ -126,7 +133,11 @@ PREVIEW_BACKGROUND = (40, 40, 40)
 PREVIEW_SAMPLES = 4  # multisampling of the preview's renders
 CREATOR = "facewire 0.1.0"
 REGION_ROW_HEIGHT = 96  # preview rows of region layers, px
-REGION_LABEL_WIDTH = 150
+REGION_LABEL_WIDTH = 190
+# the preview's bar of how a region spent the frames (sender.enroll.usage), BGR per kind
+USAGE_COLOURS = {"used": (110, 230, 110), "clean": (70, 110, 70), "no_face": (110, 110, 110),
+                 "occluded": (70, 70, 235), "lid_closed": (230, 160, 80),
+                 "no_cue": (170, 170, 170)}
 COVERAGE_ROW_HEIGHT = 60  # the preview's last row: the states covered and not seen
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp")  # what ``model build`` takes as a photo
 STILL_FRAMES = 10  # a photo is fitted as this many copies: sender.enroll.fit needs 10 face frames
@@ -186,7 +197,9 @@ class BuildResult:
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
                 "texture_evidence": self.evidence,
-                "appearance": self.appearance, **self.coverage.summary(),
+                "appearance": self.appearance,
+                "region_frames": region_frames_summary(self.model),
+                **self.coverage.summary(),
                 **self.self_check, "seconds": round(self.seconds, 2)}
 
 
@@ -322,8 +335,9 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     report: dict[str, Any] = {}
     coverage = measure_coverage({}, np.zeros(len(MEASURES)))
     if video is not None:
-        regions, report, coverage = enroll_regions(model, video, frames, progress, guide)
-        model = at_rest(replace(model, regions=regions))
+        regions, report, coverage, usage = enroll_regions(model, video, frames, progress,
+                                                          guide)
+        model = at_rest(replace(model, regions=regions, region_frames=usage))
     model = replace(model, coverage=coverage.states)
     checked: dict[str, Any] = {}
     if check is not None:
@@ -505,7 +519,9 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
         for camera in preview_cameras(mesh):
             panels.append(renderer.render(mesh.vertices, camera)[..., ::-1])
     top = np.hstack(panels)
-    rows = [_region_row(model.texture, r, top.shape[1]) for r in model.regions]
+    usage = model.region_frames or {}
+    rows = [_region_row(model.texture, r, top.shape[1], usage.get(r.name))
+            for r in model.regions]
     if model.coverage is not None:
         rows.append(_coverage_row(model.coverage, top.shape[1]))
     return np.vstack([top, *rows])
@@ -534,16 +550,21 @@ def preview_cameras(mesh: Mesh) -> list[ViewCamera]:
                                fov_y_deg=FOV_DEG) for yaw in PREVIEW_YAWS]
 
 
-def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
-    """(REGION_ROW_HEIGHT, width, 3) BGR: the region's name, then its layers in order, each
-    drawn over the neutral texture as the receiver blends it (its areas side by side)."""
+def _region_row(texture: np.ndarray, region: Region, width: int,
+                frames: RegionFrames | None = None) -> np.ndarray:
+    """(REGION_ROW_HEIGHT, width, 3) BGR: the region's name and how its layers spent the
+    enrollment frames (``_usage_label``), then its layers in order, each drawn over the
+    neutral texture as the receiver blends it (its areas side by side)."""
     drawn = [_drawn_layers(texture, part, region.opacity) for part in region.parts()]
     height = max(d.shape[1] for d in drawn)
     layers = np.concatenate([_to_height(d, height) for d in drawn], axis=2)
     h, w = layers.shape[1:3]
     row = np.full((REGION_ROW_HEIGHT, width, 3), 24, np.uint8)
-    cv2.putText(row, region.name, (6, REGION_ROW_HEIGHT // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX,
-                0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    if frames is None:
+        cv2.putText(row, region.name, (6, REGION_ROW_HEIGHT // 2 + 5),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    else:
+        _usage_label(row, region.name, frames)
     k = len(region.layers)
     room = width - REGION_LABEL_WIDTH - 4 * k
     scale = min((REGION_ROW_HEIGHT - 4) / h, room / (k * w))
@@ -555,6 +576,35 @@ def _region_row(texture: np.ndarray, region: Region, width: int) -> np.ndarray:
         row[y:y + size[1], x:x + size[0]] = tile
         x += size[0] + 4
     return row
+
+
+def _usage_label(row: np.ndarray, name: str, frames: RegionFrames) -> None:
+    """Draw into a region row's label area: the name, ``used k / N`` (or ``no clean frame:
+    base texture``), the clean frames not chosen, a line per reason of rejection with its
+    count (as many as fit), and at the bottom a bar
+    ``REGION_LABEL_WIDTH - 12`` px wide split in proportion to the frames used, clean but not
+    chosen, and rejected per reason (``USAGE_COLOURS``)."""
+    font, small = cv2.FONT_HERSHEY_SIMPLEX, 0.38
+    cv2.putText(row, name, (6, 15), font, 0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    if frames.used:
+        head, colour = f"used {len(frames.used)} / {frames.candidates}", USAGE_COLOURS["used"]
+    else:
+        head, colour = "no clean frame: base texture", (60, 160, 250)
+    lines = [(head, colour), (f"{frames.clean} clean, not chosen", (110, 170, 110))]
+    lines += [(f"{count} {USAGE_LABELS.get(reason, reason)}",
+               USAGE_COLOURS.get(reason, (200, 200, 200)))
+              for reason, count in usage_order(frames.rejected)]
+    for y, (text, colour) in zip(range(30, REGION_ROW_HEIGHT - 12, 13), lines):
+        cv2.putText(row, text, (6, y), font, small, colour, 1, cv2.LINE_AA)
+    parts = [("used", len(frames.used)), ("clean", frames.clean),
+             *usage_order(frames.rejected)]
+    x, bar = 6.0, (REGION_LABEL_WIDTH - 12) / max(frames.candidates, 1)
+    for kind, count in parts:
+        x1 = x + count * bar
+        if count:
+            row[REGION_ROW_HEIGHT - 10:REGION_ROW_HEIGHT - 3, int(round(x)):max(
+                int(round(x1)), int(round(x)) + 1)] = USAGE_COLOURS.get(kind, (200, 200, 200))
+        x = x1
 
 
 def _drawn_layers(texture: np.ndarray, part: Area, opacity: tuple[float, ...]) -> np.ndarray:

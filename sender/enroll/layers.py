@@ -36,11 +36,16 @@ the sender's pose and lift.
    the 5th to the 98th percentile; gaze from the 5th to the 95th percentile. The level
    nearest to the neutral frame's own cue is the region's *rest* state and takes the
    neutral frame itself (``sender.enroll.build`` chose it, and paints the rest layers into the
-   base texture). Every other level takes the frame whose cue is nearest to it (ties broken
-   toward a frontal head: cost |cue - level| / span + 0.002 |yaw deg|; for an eyelid, also
-   toward an eye looking ahead: + 0.002 ``GAZE_COST`` |gaze - its median| / gaze span, so
-   that its templates do not tie the lid's state to a gaze), each frame at most
-   once per region. A region whose span is below ``MIN_SPAN`` (the video
+   base texture) unless that frame is unusable for the region (its cue undefined: its
+   part occluded there); then the rest state is chosen like the others. Every other level
+   takes the frame whose cue is nearest to it (ties broken toward a frontal head: cost
+   |cue - level| / span + 0.002 |yaw deg|; for an eyelid, also toward an eye looking
+   ahead: + 0.002 ``GAZE_COST`` |gaze - its median| / gaze span, so that its templates do
+   not tie the lid's state to a gaze), among the usable frames, each at most once per
+   region while any is left (with fewer usable frames than states, some serve twice). A
+   region with no usable frame takes none: its states are all the neutral frame's, with
+   opacity 0, so it draws the base texture; ``sender.enroll.usage`` counts the frames each
+   region used and rejected. A region whose span is below ``MIN_SPAN`` (the video
    does not show that expression) still gets its k states, and the report says it is weak.
    A guided recording (``sender.enroll.routine.Guide``) narrows both steps for each region:
    the levels are the percentiles over its prompts' frames and the neutral prompt's, and
@@ -88,6 +93,7 @@ from facewire.models.geometry import Intrinsics
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
+from facewire.models.manifest import RegionFrames
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
@@ -104,6 +110,7 @@ from facewire.sender.enroll.coverage import (
 from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, uv_surface
+from facewire.sender.enroll.usage import region_frames
 from facewire.sender.pipeline import SenderPipeline
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
@@ -154,12 +161,14 @@ class Observation:
 
 class Enrollment(NamedTuple):
     """What ``enroll_regions`` made: the regions, per region how they were chosen (the
-    report is ``BuildResult.appearance``, ``sender.enroll.build``), and which states their
-    layers show (``sender.enroll.coverage``)."""
+    report is ``BuildResult.appearance``, ``sender.enroll.build``), which states their
+    layers show (``sender.enroll.coverage``), and per region the frames used and rejected
+    (``sender.enroll.usage``)."""
 
     regions: tuple[Region, ...]
     report: dict[str, dict[str, Any]]
     coverage: Coverage
+    usage: dict[str, RegionFrames]
 
 
 def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
@@ -179,8 +188,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     Returns:
         The regions in ``REGIONS`` order, a report per region (the chosen frames, their
         cue values, the span, whether it is weak, the rest state: the neutral frame's,
-        and with a guide whether its states came from its prompts' frames), and the
-        states the layers' frames show.
+        and with a guide whether its states came from its prompts' frames), the states
+        the layers' frames show, and per region the frames used and rejected.
 
     Raises:
         EnrollError: fewer than 2 frames with a pose.
@@ -188,12 +197,13 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     """
     video = Path(video)
     texels = _RegionTexels(model, model.camera)
-    observations = _observe(model, model.camera, video, frames, progress, texels)
+    observations, candidates = _observe(model, model.camera, video, frames, progress, texels)
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
                           f"{range_text(frames)}; appearance needs at least 2")
-    cues = without_closed_eyes(np.array([o.cues for o in observations]),
-                               np.array([o.eye_ratio for o in observations]))
+    raw = np.array([o.cues for o in observations])
+    cues = without_closed_eyes(raw, np.array([o.eye_ratio for o in observations]))
+    lid_closed = np.isnan(cues) & ~np.isnan(raw)
     blocked = np.array([[REGION_PARTS.get(r.name, "") in o.occluded for r in REGIONS]
                         for o in observations])
     cues[blocked] = np.nan  # an occluded part gives its regions nothing (step 1)
@@ -213,9 +223,14 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         chosen[region.name] = picks
         report[region.name] = {**info, "frames": [observations[i].index for i in picks],
                                "occluded_frames": int(blocked[:, r].sum())}
+    usage = region_frames(candidates, blocked, lid_closed, np.isnan(cues),
+                          [o.index for o in observations],
+                          [report[r.name]["frames"] for r in REGIONS], REGION_NAMES)
     measures = np.array([o.measures for o in observations])
     coverage = measure_coverage({name: measures[picks] for name, picks in chosen.items()},
                                 reference(measures))
+    for region in REGIONS:  # no clean frame: every state the neutral's, drawn transparent
+        chosen[region.name] = chosen[region.name] or [neutral] * region.layers
 
     wanted = sorted({i for picks in chosen.values() for i in picks})
     images = {}
@@ -233,25 +248,27 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
             texels.layers(region.name, images[i], observations[i]) for i in picks))]
         masks = [np.rint(255 * ramp_mask(p.shape[1:3])).astype(np.uint8) for p in parts]
         templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
-        opacity = tuple(0.0 if (region.transparent_open and j <= rest) else 1.0
-                        for j in range(len(picks)))
+        opacity = tuple(0.0 if (region.transparent_open and j <= rest) or not usage[
+            region.name].used else 1.0 for j in range(len(picks)))
         placement = texels.placements[region.name]
         areas = tuple(Area(*area) for area in zip(placement.areas, parts[1:], masks[1:]))
         regions.append(Region(region.name, placement.uv_rect, placement.template_rect, parts[0],
                               masks[0], templates, opacity, float(rest), areas))
-    return Enrollment(tuple(regions), report, coverage)
+    return Enrollment(tuple(regions), report, coverage, usage)
 
 
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
-             progress: Progress, texels: _RegionTexels) -> list[Observation]:
-    """Run the sender over the frames (module docstring, step 1)."""
+             progress: Progress, texels: _RegionTexels) -> tuple[list[Observation], int]:
+    """Run the sender over the frames (module docstring, step 1); the frames with a pose,
+    and how many frames were read."""
     info = video_info(video)
     pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(info.rate_hz))
     names = tuple(r.name for r in REGIONS)
     sampler = AppearanceSampler(model.mesh, pipeline.rig, camera, names)
     total = frames_in_range(frames, info.frames)
-    out = []
+    out, read = [], 0
     for frame in progress(read_frames(video, frames), "appearance", total):
+        read += 1
         sent = pipeline.process(frame.image, frame.time)
         if sent.rotation is None or sent.translation is None or sent.points is None:
             continue
@@ -267,7 +284,7 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
             eye_ratio=eye_aspect_ratio(sent.points),
             yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures)
         out.append(replace(seen, occluded=texels.occluded(frame.image, seen)))
-    return out
+    return out, read
 
 
 def region_cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
@@ -358,8 +375,7 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutra
     family = _family(region)
     usable = np.isfinite(cue)
     if not usable.any():
-        usable = np.ones_like(usable)
-        cue = np.zeros_like(cue)
+        return [], {"cue": [], "span": 0.0, "weak": True, "rest": 0}
     pools = [usable]  # where each state's frame is looked for, in turn
     span_of = usable  # the frames whose cue percentiles give the levels
     guided = prompted is not None and bool((usable & prompted).any())
@@ -373,23 +389,24 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutra
     span = float(abs(extreme - rest))
     levels = np.linspace(rest, extreme, region.layers)
     scale = max(span, 1e-6)
-    at_rest = cue[neutral] if np.isfinite(cue[neutral]) else np.median(cue[usable])
+    at_rest = cue[neutral] if usable[neutral] else np.median(cue[usable])
     rest_state = int(np.argmin(np.abs(levels - at_rest)))
-    taken: list[int] = [neutral]
+    picks = [neutral] * region.layers
+    taken = [neutral] if usable[neutral] else []
     for j, level in enumerate(levels):
-        if j == rest_state:
+        if j == rest_state and usable[neutral]:
             continue
         for pool in pools:
-            cost = np.abs(cue - level) / scale + 0.002 * away
-            cost[~pool] = np.inf
+            cost = np.where(pool, np.abs(np.nan_to_num(cue) - level) / scale + 0.002 * away,
+                            np.inf)
             cost[taken] = np.inf
-            if not np.isinf(cost).all():
+            if np.isfinite(cost).any():
                 break
-        else:
-            cost = np.abs(np.nan_to_num(cue) - level)
-            cost[taken] = np.inf
-        taken.append(int(np.argmin(cost)))
-    picks = taken[1:rest_state + 1] + [neutral] + taken[rest_state + 1:]
+        else:  # the usable frames ran out: they serve again
+            cost = np.where(usable, np.abs(np.nan_to_num(cue) - level) / scale + 0.002 * away,
+                            np.inf)
+        picks[j] = int(np.argmin(cost))
+        taken.append(picks[j])
     weak = span < MIN_SPAN[family]
     info = {"cue": [round(float(cue[i]), 4) for i in picks], "span": round(span, 4),
             "weak": bool(weak), "rest": rest_state}
