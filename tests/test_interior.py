@@ -20,6 +20,7 @@ from facewire.receiver.render import FaceRenderer
 from facewire.sender.enroll.build import build_model, preview_cameras
 from facewire.sender.enroll.interior import (
     MIN_WEIGHT,
+    continued,
     disc_polar,
     fuse_seen,
     palette,
@@ -113,9 +114,9 @@ def test_a_model_without_an_open_mouth_opens_onto_a_dark_interior(
     assert mask.sum() > 300  # the mouth is open on the screen
     lip, skin = palette(model.texture, model.mesh)
     inside = image[mask].astype(np.float32)
-    # neither lips nor skin: the old code showed them stretched there (0 % far from both)
-    far = (np.linalg.norm(inside - lip, axis=1) > 30) & (np.linalg.norm(inside - skin, axis=1) > 30)
-    assert far.mean() > 0.7
+    # neither lips nor skin: the old code showed them stretched there (all of it near them)
+    near = np.minimum(np.linalg.norm(inside - lip, axis=1), np.linalg.norm(inside - skin, axis=1))
+    assert (near < 20).mean() < 0.2, (near < 20).mean()
     assert (_grey(inside) < 0.6 * _grey(lip[None])[0]).mean() > 0.1  # a dark inside (0 %)
     assert (_grey(inside) > 0.9 * _grey(skin[None])[0]).mean() > 0.03  # and teeth
 
@@ -133,8 +134,13 @@ def test_an_open_mouth_frame_gives_the_persons_own_teeth_where_it_saw_them(
     w = weights[0]
     assert (w > 0.95).sum() > 500  # frame 125: a wide-open grin, upper teeth showing
     colour, _ = cavity.area.read(model.camera, image, seen[125])
-    c = np.where(w >= MIN_WEIGHT, w, 0.0)[..., None]  # a mere brush of the polygon: unseen
-    expected = c * colour + (1.0 - c) * cavity.synthetic
+    c = np.where(w >= MIN_WEIGHT, w, 0.0)  # a mere brush of the polygon: unseen
+    walls = continued(colour * (c > 0)[..., None], c, cavity.inside)
+    assert walls is not None  # its colours carry over the unseen walls, under made-up teeth
+    made_up = synthetic(*cavity.polar, *cavity.palette, walls)
+    expected = c[..., None] * colour + (1.0 - c[..., None]) * made_up
     np.testing.assert_allclose(inside[cavity.inside], expected[cavity.inside], atol=1e-3)
     assert (_grey(inside[w > 0.95]) > 170).sum() >= 50  # its own pixels: its own teeth
     assert (w[~cavity.inside] == 0).all()
+    unseen = cavity.inside & (c == 0)
+    assert np.abs(made_up[unseen] - cavity.synthetic[unseen]).max() > 20  # not the lip's walls

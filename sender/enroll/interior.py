@@ -28,13 +28,16 @@ cavity texel takes one of two colours:
    median of their colours (weights w_f), which keeps the person's own teeth and tongue
    and drops a frame where a hand, a lip or a misplaced landmark crossed the opening. The
    texel's coverage is c = max_f w_f.
-2. Synthetic (``synthetic``), everywhere else: a mouth in shadow, from the person's own lip
+2. Synthetic (``synthetic``), everywhere else: the walls, and two teeth bands over them.
+   The walls are the seen interior carried over the unseen texels (``continued``: the
+   push-pull fill of ``sender.enroll.texture`` from the texels of coverage c >= 1/2) when
+   at least ``MIN_SEEN`` were seen; else a mouth in shadow, from the person's own lip
    colour L (``palette``; RGB), much darker toward the back,
 
        I = L (0.2 + 0.4 s(0, 0.25, rho)),     s the smoothstep,
 
-   at most 0.6 of the lip's colour, and two teeth bands of the colour
-   T = min(1.15 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
+   at most 0.6 of the lip's colour. The teeth have the colour
+   T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
    are lit like the face): the upper one over rho > 0.17 and 40 < alpha < 140 degrees, the
    lower one over rho > 0.185 and -140 < alpha < -40 degrees (the lips hide their outer
    parts; what shows is a band under the upper lip and a thinner one over the lower), each
@@ -56,10 +59,12 @@ from facewire.models.head.primitives import sstep
 from facewire.models.head.uvlayout import MOUTH_UV, MOUTH_UV_RADIUS
 from facewire.models.mesh import Mesh
 from facewire.sender.appearance import bilinear
+from facewire.sender.enroll.texture import fill_holes
 
 INSET = 0.08  # the inner-lip polygon shrinks by this fraction of the gap
 SOFT = 0.04  # and its edge softens over a Gaussian of this fraction of the gap
 MIN_WEIGHT = 0.05  # a frame's weight below this: it did not see the texel
+MIN_SEEN = 200  # cavity texels seen: fewer, and the walls under the teeth stay the lip's
 TEETH = np.array([1.0, 0.95, 0.82], np.float32)  # RGB of the teeth over the skin's grey
 _UPPER_LIP = ((50, 61), (51, 62), (52, 63))  # outer, inner landmark pairs across the lips
 _LOWER_LIP = ((58, 67), (57, 66), (56, 65))
@@ -110,20 +115,23 @@ def palette(texture: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return median(_UPPER_LIP + _LOWER_LIP), median(_CHEEKS)
 
 
-def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndarray
-              ) -> np.ndarray:
+def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndarray,
+              walls: np.ndarray | None = None) -> np.ndarray:
     """The synthetic interior (module docstring, 2).
 
     Args:
         rho, alpha: (h, w) the texels' disc coordinates (``disc_polar``).
         lip, skin: (3,) RGB colours (``palette``).
+        walls: (h, w, 3) the colour under the teeth (``continued``); None: the lip's,
+            darkened toward the back.
 
     Returns:
         (h, w, 3) float32 RGB.
     """
     lip = np.asarray(lip, np.float32)
-    out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None]
-    teeth = min(1.15 * float(np.mean(skin)), 235.0) * TEETH
+    out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None] if walls is None \
+        else np.asarray(walls, np.float32)
+    teeth = min(1.35 * float(np.mean(skin)), 235.0) * TEETH
     degrees = np.degrees(alpha)
     for lo, a0, a1, most in ((0.17, 40.0, 140.0, 0.9), (0.185, -140.0, -40.0, 0.6)):
         band = sstep(lo - 0.03, lo, rho) * sstep(a0 - 15.0, a0, degrees) \
@@ -132,6 +140,26 @@ def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndar
         mask = (most * band)[..., None]
         out = out + mask * (teeth * shade[..., None] - out)
     return out.astype(np.float32)
+
+
+def continued(fused: np.ndarray, coverage: np.ndarray, cavity: np.ndarray
+              ) -> np.ndarray | None:
+    """The seen interior carried over the cavity's unseen texels (module docstring, 2).
+
+    Args:
+        fused, coverage: ``fuse_seen``'s results, (h, w, 3) and (h, w).
+        cavity: (h, w) bool, the texels on the cavity.
+
+    Returns:
+        (h, w, 3) float32 RGB: the fused colour where the coverage is at least 1/2, the
+        push-pull fill of it elsewhere (``sender.enroll.texture.fill_holes``); None when
+        fewer than ``MIN_SEEN`` cavity texels were seen.
+    """
+    valid = (coverage >= 0.5) & cavity
+    if int(valid.sum()) < MIN_SEEN:
+        return None
+    colour = np.clip(np.rint(fused), 0, 255).astype(np.uint8)
+    return fill_holes(colour, valid).astype(np.float32)
 
 
 def seen_weight(lips: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -101,6 +101,7 @@ from facewire.sender.enroll.coverage import (
 )
 from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
 from facewire.sender.enroll.interior import (
+    continued,
     disc_polar,
     fuse_seen,
     interior,
@@ -477,8 +478,9 @@ class _Cavity:
         tri = surface.triangles[rows, cols]
         tags = np.asarray(model.mesh.tags)
         self.inside = (tri >= 0) & (tags[np.maximum(tri, 0)] == Tag.MOUTH_INTERIOR)
-        rho, alpha = disc_polar(rows, cols, shape)
-        self.synthetic = synthetic(rho, alpha, *palette(model.texture, model.mesh))
+        self.polar = disc_polar(rows, cols, shape)
+        self.palette = palette(model.texture, model.mesh)
+        self.synthetic = synthetic(*self.polar, *self.palette)
         self.camera = camera
         self.shape = shape
 
@@ -496,7 +498,10 @@ class _Cavity:
             colours.append(colour)
             weights.append(weight.astype(np.float32))
         fused, coverage = fuse_seen(np.stack(colours), np.stack(weights))
-        return interior(self.synthetic, fused, coverage), weights
+        walls = continued(fused, coverage, self.inside)
+        made_up = self.synthetic if walls is None else synthetic(*self.polar, *self.palette,
+                                                                 walls)
+        return interior(made_up, fused, coverage), weights
 
     def layers(self, layers: np.ndarray, rect: tuple[float, float, float, float],
                inside: np.ndarray, weights: list[np.ndarray]) -> np.ndarray:
