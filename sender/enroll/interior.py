@@ -38,8 +38,8 @@ cavity texel takes one of two colours:
 
    at most 0.6 of the lip's colour. The teeth have the colour
    T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
-   are lit like the face): the upper one over rho > 0.17 and 40 < alpha < 140 degrees, the
-   lower one over rho > 0.185 and -140 < alpha < -40 degrees (the lips hide their outer
+   are lit like the face): the upper one over rho > 0.2 and 40 < alpha < 140 degrees, the
+   lower one over rho > 0.2 and -140 < alpha < -40 degrees (the lips hide their outer
    parts; what shows is a band under the upper lip and a thinner one over the lower), each
    with smoothstep edges (0.03 in rho, 15 degrees in alpha) and shaded toward the mouth
    corners (0.55 + 0.45 |sin alpha|) and toward the back (0.75 at the band's inner edge,
@@ -133,7 +133,7 @@ def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndar
         else np.asarray(walls, np.float32)
     teeth = min(1.35 * float(np.mean(skin)), 235.0) * TEETH
     degrees = np.degrees(alpha)
-    for lo, a0, a1, most in ((0.17, 40.0, 140.0, 0.9), (0.185, -140.0, -40.0, 0.6)):
+    for lo, a0, a1, most in ((0.2, 40.0, 140.0, 0.9), (0.2, -140.0, -40.0, 0.6)):
         band = sstep(lo - 0.03, lo, rho) * sstep(a0 - 15.0, a0, degrees) \
             * sstep(a1 + 15.0, a1, degrees)
         shade = (0.55 + 0.45 * np.abs(np.sin(alpha))) * (0.75 + 0.25 * sstep(lo, lo + 0.05, rho))
