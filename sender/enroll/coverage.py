@@ -153,8 +153,8 @@ STATES: tuple[StateTest, ...] = (
               "a wide-open mouth shows the widest opening's layer, stretched, and the "
               "made-up interior where that frame did not see into the mouth"),
     StateTest("smile_teeth", "a smile showing teeth", ("mouth",), ("teeth",), TEETH_SHARE,
-              _INF, "a smile shows the lips' or the open mouth's layer; its teeth are "
-              "the made-up interior's, not the person's own"),
+              _INF, "a smile shows the lips' or the open mouth's layer: the teeth an "
+              "open-mouth frame showed, or the made-up interior's, not the smile's"),
 )
 STATE_NAMES = tuple(s.name for s in STATES)
 NEUTRAL_INSTEAD = "the neutral texture shows (the mesh still moves)"

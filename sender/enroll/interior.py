@@ -28,15 +28,16 @@ cavity texel takes one of two colours:
    median of their colours (weights w_f), which keeps the person's own teeth and tongue
    and drops a frame where a hand, a lip or a misplaced landmark crossed the opening. The
    texel's coverage is c = max_f w_f.
-2. Synthetic (``synthetic``), everywhere else: the walls, and two teeth bands over them.
-   The walls are the seen interior carried over the unseen texels (``continued``: the
-   push-pull fill of ``sender.enroll.texture`` from the texels of coverage c >= 1/2) when
-   at least ``MIN_SEEN`` were seen; else a mouth in shadow, from the person's own lip
-   colour L (``palette``; RGB), much darker toward the back,
+2. Made up, everywhere else. When at least ``MIN_SEEN`` cavity texels were seen, the seen
+   interior is carried over the unseen ones (``continued``: the push-pull fill of
+   ``sender.enroll.texture`` from the texels of coverage c >= 1/2): the person's own
+   colours, and teeth only where they were seen (teeth made up beside a seen palate showed
+   as fangs at the mouth's corners). Else (``synthetic``) a mouth in shadow, from the
+   person's own lip colour L (``palette``; RGB), much darker toward the back,
 
        I = L (0.2 + 0.4 s(0, 0.25, rho)),     s the smoothstep,
 
-   at most 0.6 of the lip's colour. The teeth have the colour
+   at most 0.6 of the lip's colour, with two teeth bands. The teeth have the colour
    T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
    are lit like the face): the upper one over rho > 0.2 and 40 < alpha < 140 degrees, the
    lower one over rho > 0.2 and -140 < alpha < -40 degrees (the lips hide their outer
@@ -115,22 +116,19 @@ def palette(texture: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return median(_UPPER_LIP + _LOWER_LIP), median(_CHEEKS)
 
 
-def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndarray,
-              walls: np.ndarray | None = None) -> np.ndarray:
+def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndarray
+              ) -> np.ndarray:
     """The synthetic interior (module docstring, 2).
 
     Args:
         rho, alpha: (h, w) the texels' disc coordinates (``disc_polar``).
         lip, skin: (3,) RGB colours (``palette``).
-        walls: (h, w, 3) the colour under the teeth (``continued``); None: the lip's,
-            darkened toward the back.
 
     Returns:
         (h, w, 3) float32 RGB.
     """
     lip = np.asarray(lip, np.float32)
-    out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None] if walls is None \
-        else np.asarray(walls, np.float32)
+    out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None]
     teeth = min(1.35 * float(np.mean(skin)), 235.0) * TEETH
     degrees = np.degrees(alpha)
     for lo, a0, a1, most in ((0.2, 40.0, 140.0, 0.9), (0.2, -140.0, -40.0, 0.6)):

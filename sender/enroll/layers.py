@@ -63,7 +63,8 @@ the sender's pose and lift.
    states' frames as in step 4, with each frame's weight: how far the texel's projection
    lies inside that frame's inner-lip polygon (0 unless the frame's mouth cue is at least
    ``sender.enroll.coverage.OPEN_GAP`` and its mouth is not occluded). Their weighted median
-   where seen, the synthetic interior elsewhere, is the interior; it replaces the base
+   where seen, the seen colours carried over the rest (or, with too little seen, the
+   made-up interior) elsewhere, is the interior; it replaces the base
    texture's cavity (``Enrollment.texture``), and in each mouth layer a texel takes
    w L + (1 - w) I (L the layer, I the interior, w its own frame's weight), so a layer
    keeps its frame's pixels only where that frame saw into the mouth. The templates stay
@@ -478,9 +479,8 @@ class _Cavity:
         tri = surface.triangles[rows, cols]
         tags = np.asarray(model.mesh.tags)
         self.inside = (tri >= 0) & (tags[np.maximum(tri, 0)] == Tag.MOUTH_INTERIOR)
-        self.polar = disc_polar(rows, cols, shape)
-        self.palette = palette(model.texture, model.mesh)
-        self.synthetic = synthetic(*self.polar, *self.palette)
+        self.synthetic = synthetic(*disc_polar(rows, cols, shape),
+                                   *palette(model.texture, model.mesh))
         self.camera = camera
         self.shape = shape
 
@@ -499,8 +499,7 @@ class _Cavity:
             weights.append(weight.astype(np.float32))
         fused, coverage = fuse_seen(np.stack(colours), np.stack(weights))
         walls = continued(fused, coverage, self.inside)
-        made_up = self.synthetic if walls is None else synthetic(*self.polar, *self.palette,
-                                                                 walls)
+        made_up = self.synthetic if walls is None else walls
         return interior(made_up, fused, coverage), weights
 
     def layers(self, layers: np.ndarray, rect: tuple[float, float, float, float],
