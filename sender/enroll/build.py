@@ -26,10 +26,10 @@ The steps, in order (``build_model``):
    (``sender.enroll.coverage``): which expression states (eyes closed, gaze, brows, mouth
    open or wide, teeth) the layers' frames show; the model stores it
    (``PersonModel.coverage``) and ``model build`` says what the rendering does for each
-   state it lacks. A model without regions covers none: only the neutral. Either way the
-   mouth cavity's texture becomes its interior (``sender.enroll.interior``: the person's
-   own where an open-mouth frame saw it, else a dark made-up one with teeth), never the
-   lips or skin that the base texture's hole filling put there.
+   state it lacks. A model without regions covers none: only the neutral. With
+   the layers, the mouth cavity's texture becomes its interior (``sender.enroll.interior``:
+   the person's own where an open-mouth frame saw it, else a dark made-up one with teeth),
+   never the lips or skin that the base texture's hole filling put there.
 5. Save the model (``models.modelfile``), with the frames it was built from (the
    video's name, size and sha256, and the range [first, last + 1) of the frames tracked:
    ``info.source``, which ``bench quality`` checks), and a preview PNG beside it: the model
@@ -44,10 +44,11 @@ there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go 
 steps 1-3 and 5 (the fit needs 10 face frames). Each copy takes the points the tracker
 detects on the first: its follower, fed the same image again, moved points by up to 27 px
 on the demo's portrait, so the copies would disagree and the fit would take whichever
-looked most neutral. One view gives the generic head's depth. Step 4 is skipped but for
-the made-up mouth interior: one expression gives no states to choose, so the model has no
-regions, only the neutral; a receiver draws the neutral texture on the morphed mesh
-whatever the packet's Q.
+looked most neutral. One view gives the generic head's depth. Step 4 is
+skipped: one expression gives no states to choose, so the model has no regions, only the
+neutral; a receiver draws the neutral texture on the morphed mesh whatever the packet's Q
+(its mouth cavity keeps the base texture's filling: giving it the made-up interior moved
+the demo's received yaw off the script, r 0.83 against 0.85, for a reason not found).
 The demo's performer (``facewire.performer``) builds its portrait's model this way.
 
 The self-check (``check``, a hook: ``sender.enroll`` may not render with the receiver or
@@ -110,7 +111,7 @@ from facewire.sender.enroll.evidence import (
 )
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.fusion import Fusion, fuse_views
-from facewire.sender.enroll.layers import enroll_regions, with_interior
+from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.tracker import LandmarkTracker
 
@@ -306,8 +307,6 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     if video is not None:
         regions, report, coverage, texture = enroll_regions(model, video, frames, progress)
         model = at_rest(replace(model, texture=texture, regions=regions))
-    else:
-        model = replace(model, texture=with_interior(model))
     model = replace(model, coverage=coverage.states)
     checked: dict[str, Any] = {}
     if check is not None:

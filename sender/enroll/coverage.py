@@ -159,8 +159,7 @@ STATES: tuple[StateTest, ...] = (
 STATE_NAMES = tuple(s.name for s in STATES)
 NEUTRAL_INSTEAD = "the neutral texture shows (the mesh still moves)"
 NEUTRAL_ONLY = ("only the neutral: the model has no layers (one photo, or no appearance "
-                "step); every expression moves the mesh over the neutral texture, an open "
-                "mouth over a made-up interior")
+                "step); every expression moves the mesh over the neutral texture")
 
 
 @dataclass(frozen=True)

@@ -245,21 +245,6 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     return Enrollment(tuple(regions), report, coverage, texels.cavity.paint(model.texture, inside))
 
 
-def with_interior(model: PersonModel) -> np.ndarray:
-    """The base texture with the synthetic mouth interior in its cavity, for a model without
-    appearance states (one photo: no frame sees into the mouth; module docstring, step 7).
-
-    Args:
-        model: the geometry model (mesh, base texture, camera).
-
-    Returns:
-        (H, W, 3) uint8 RGB texture.
-    """
-    cavity = _Cavity(model, model.camera, uv_surface(model.mesh, model.texture.shape[:2]),
-                     Rig(model.mesh))
-    return cavity.paint(model.texture, cavity.synthetic)
-
-
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
              progress: Progress, texels: _RegionTexels) -> list[Observation]:
     """Run the sender over the frames (module docstring, step 1)."""
