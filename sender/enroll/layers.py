@@ -46,10 +46,10 @@ the sender's pose and lift.
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there; step 7 puts the interior
-   back). Texels off the image or
-   facing away keep the neutral texture. Each layer is then scaled per colour channel by
-   g = sum(base) / sum(layer) over the border ramp (clipped to [0.5, 2]), so an exposure
-   change between frames leaves no step at the border. The ramp is that of the region's last
+   back). Texels off the image or facing away keep the neutral texture. Each layer is
+   then scaled per colour channel by g = sum(base) / sum(layer) over the border ramp
+   (clipped to [0.5, 2]), so an exposure change between frames leaves no step at the
+   border. The ramp is that of the region's last
    area: its only one, or for an eyelid the lid skin, the same skin in every state (the
    eyeball's border under an open lid is eyeball, and matching a closed lid to it darkened
    the closed states). The mask is the region's
@@ -64,8 +64,8 @@ the sender's pose and lift.
    lies inside that frame's inner-lip polygon (0 unless the frame's mouth cue is at least
    ``sender.enroll.coverage.OPEN_GAP`` and its mouth is not occluded). Their weighted median
    where seen, the seen colours carried over the rest (or, with too little seen, the
-   made-up interior) elsewhere, is the interior; it replaces the base
-   texture's cavity (``Enrollment.texture``), and in each mouth layer a texel takes
+   made-up interior) elsewhere, is the interior; it replaces the base texture's cavity
+   (``Enrollment.texture``), and in each mouth layer a texel takes
    w L + (1 - w) I (L the layer, I the interior, w its own frame's weight), so a layer
    keeps its frame's pixels only where that frame saw into the mouth. The templates stay
    the frames' samples (step 5): what the sender's camera sees, lips and all.
@@ -458,8 +458,7 @@ class _Cavity:
         u, v = MOUTH_UV
         disc = (u - MOUTH_UV_RADIUS, v - 2 * MOUTH_UV_RADIUS, u + MOUTH_UV_RADIUS,
                 v + 2 * MOUTH_UV_RADIUS)
-        self.rect = texel_rect(disc, shape)[0]
-        self.area = _AreaTexels(model.mesh, rig, surface, self.rect, shape)
+        self.area = _AreaTexels(model.mesh, rig, surface, texel_rect(disc, shape)[0], shape)
         rows, cols = self.area.slices
         tri = surface.triangles[rows, cols]
         tags = np.asarray(model.mesh.tags)
