@@ -29,8 +29,9 @@ regions lie on the eyeball seen through the lid opening (a closed lid hides that
 the eyeball in the camera image, which is what the eyelid classifier sees; the eyelid
 boxes reach a little under the lids, so their top and bottom rows read lid skin on an open
 eye too), and the mouth region lies on the back wall of the mouth's interior, seen between
-the lips (the teeth and tongue of an open mouth; a closed mouth shows its lips there). The
-back wall is some 40 mm behind the lips, so a turned head moves the mouth's samples against
+the lips (the teeth and tongue of an open mouth; a closed mouth shows its lips there to
+the templates, while its layers show the interior, ``sender.enroll.interior``). The back
+wall is some 40 mm behind the lips, so a turned head moves the mouth's samples against
 the lips (about 12 mm at 15 degrees of yaw): the mouth classifier is the most
 pose-dependent one. The eyelid and eyeball regions share the eyeball's texture: the
 eyeball region (gaze) is drawn first, the eyelid region over it, and the eyelid's open

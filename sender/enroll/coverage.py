@@ -147,12 +147,14 @@ STATES: tuple[StateTest, ...] = (
     StateTest("brows_furrowed", "brows furrowed", ("brow_furrow",), ("furrow",), FURROW_MM,
               _INF, "the brows draw together with the mesh, without the frown's creases"),
     StateTest("mouth_open", "mouth open", ("mouth",), ("gap",), OPEN_GAP, _INF,
-              "the lips part with the mesh over the closed mouth's texture: stretched "
-              "lips, no inside of the mouth"),
+              "the lips part over a made-up mouth interior (dark, with teeth), not the "
+              "person's own"),
     StateTest("mouth_wide", "mouth wide open", ("mouth",), ("gap",), WIDE_GAP, _INF,
-              "a wide-open mouth shows the widest opening seen, stretched"),
+              "a wide-open mouth shows the widest opening's layer, stretched, and the "
+              "made-up interior where that frame did not see into the mouth"),
     StateTest("smile_teeth", "a smile showing teeth", ("mouth",), ("teeth",), TEETH_SHARE,
-              _INF, "a smile shows the lips' or the open mouth's layer, no teeth"),
+              _INF, "a smile shows the lips' or the open mouth's layer: the teeth an "
+              "open-mouth frame showed, or the made-up interior's, not the smile's"),
 )
 STATE_NAMES = tuple(s.name for s in STATES)
 NEUTRAL_INSTEAD = "the neutral texture shows (the mesh still moves)"

@@ -56,10 +56,11 @@ the sender's pose and lift.
    surface point (its triangle and barycentric weights, from ``sender.enroll.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
-   mouth interior, which is what the sender's camera sees there). Texels off the image or
-   facing away keep the neutral texture. Each layer is then scaled per colour channel by
-   g = sum(base) / sum(layer) over the border ramp (clipped to [0.5, 2]), so an exposure
-   change between frames leaves no step at the border. The skin regions' layers
+   mouth interior, which is what the sender's camera sees there; step 7 puts the interior
+   back). Texels off the image or facing away keep the neutral texture. Each layer is
+   then scaled per colour channel by g = sum(base) / sum(layer) over the border ramp
+   (clipped to [0.5, 2]), so an exposure change between frames leaves no step at the
+   border. The skin regions' layers
    (``SHADED``: forehead, brow furrow) then take the base texture's broad shading: each is
    multiplied by the smooth field f = (G*(B w) / G*w + 1) / (G*(g L w) / G*w + 1), clipped
    to ``SHADING_LIMITS``, G a Gaussian of sigma ``SHADING_SIGMA`` times the area's shorter
@@ -77,6 +78,17 @@ the sender's pose and lift.
 6. Rest: the rest state's index, ``Region.rest``: what a receiver shows for a face at
    rest or lost. The neutral frame's sample is that state's template, so the classifier
    gives exactly this Q on it.
+7. Interior (``sender.enroll.interior``). The mouth cavity's texels (its disc's bounding
+   rectangle, the texels on ``MOUTH_INTERIOR`` triangles) are read from each of the mouth
+   states' frames as in step 4, with each frame's weight: how far the texel's projection
+   lies inside that frame's inner-lip polygon (0 unless the frame's mouth cue is at least
+   ``sender.enroll.coverage.OPEN_GAP`` and its mouth is not occluded). Their weighted median
+   where seen, the seen colours carried over the rest (or, with too little seen, the
+   made-up interior) elsewhere, is the interior; it replaces the base texture's cavity
+   (``Enrollment.texture``), and in each mouth layer a texel takes
+   w L + (1 - w) I (L the layer, I the interior, w its own frame's weight), so a layer
+   keeps its frame's pixels only where that frame saw into the mouth. The templates stay
+   the frames' samples (step 5): what the sender's camera sees, lips and all.
 """
 
 from __future__ import annotations
@@ -90,11 +102,12 @@ import cv2
 import numpy as np
 
 from facewire.models.geometry import Intrinsics
+from facewire.models.head.uvlayout import MOUTH_UV, MOUTH_UV_RADIUS
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
 from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
 from facewire.models.manifest import RegionFrames
-from facewire.models.mesh import Mesh
+from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
 from facewire.models.rig import Rig
@@ -102,12 +115,22 @@ from facewire.protocol.errors import FacewireError
 from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
 from facewire.sender.enroll.coverage import (
+    OPEN_GAP,
     Coverage,
     measure_coverage,
     reference,
     state_measures,
 )
 from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
+from facewire.sender.enroll.interior import (
+    continued,
+    disc_polar,
+    fuse_seen,
+    interior,
+    palette,
+    seen_weight,
+    synthetic,
+)
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.enroll.usage import region_frames
@@ -124,6 +147,7 @@ _LEVELS = {"forehead": (50, 98), "brow_furrow": (50, 98), "eyelid": (10, 99),
            "eyeball": (5, 95), "mouth": (5, 98)}  # percentiles: rest, extreme
 _EYEBALL_LEFT = REGION_NAMES.index("eyeball_left")
 _EYEBALL_RIGHT = REGION_NAMES.index("eyeball_right")
+_MOUTH = REGION_NAMES.index("mouth")
 
 
 class EnrollError(FacewireError, ValueError):
@@ -143,6 +167,7 @@ class Observation:
         eye_ratio: (2,) the eye aspect ratios (right eye, left eye).
         yaw_deg: the head's yaw, degrees.
         measures: (M,) float64 the frame's ``sender.enroll.coverage.state_measures``.
+        lips: (8, 2) float32 the inner-lip landmarks 60..67, px.
         occluded: the parts of the face (``sender.enroll.evidence.PARTS``) occluded in the
             frame (``sender.enroll.evidence.ring_occluded``).
     """
@@ -156,19 +181,22 @@ class Observation:
     eye_ratio: np.ndarray
     yaw_deg: float
     measures: np.ndarray
+    lips: np.ndarray
     occluded: frozenset[str] = frozenset()
 
 
 class Enrollment(NamedTuple):
     """What ``enroll_regions`` made: the regions, per region how they were chosen (the
     report is ``BuildResult.appearance``, ``sender.enroll.build``), which states their
-    layers show (``sender.enroll.coverage``), and per region the frames used and rejected
-    (``sender.enroll.usage``)."""
+    layers show (``sender.enroll.coverage``), per region the frames used and rejected
+    (``sender.enroll.usage``), and the model's base texture with the mouth's interior in
+    its cavity (step 7)."""
 
     regions: tuple[Region, ...]
     report: dict[str, dict[str, Any]]
     coverage: Coverage
     usage: dict[str, RegionFrames]
+    texture: np.ndarray
 
 
 def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
@@ -240,6 +268,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
                           "layers", None):
         if frame.index in by_index:
             images[by_index[frame.index]] = frame.image
+    inside, weights = texels.cavity.interior(
+        [(images[i], observations[i]) for i in chosen["mouth"]])
     regions = []
     for r, region in enumerate(REGIONS):
         picks = chosen[region.name]
@@ -252,9 +282,12 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
             region.name].used else 1.0 for j in range(len(picks)))
         placement = texels.placements[region.name]
         areas = tuple(Area(*area) for area in zip(placement.areas, parts[1:], masks[1:]))
+        if region.name == "mouth":
+            parts[0] = texels.cavity.layers(parts[0], placement.uv_rect, inside, weights)
         regions.append(Region(region.name, placement.uv_rect, placement.template_rect, parts[0],
                               masks[0], templates, opacity, float(rest), areas))
-    return Enrollment(tuple(regions), report, coverage, usage)
+    return Enrollment(tuple(regions), report, coverage, usage,
+                      texels.cavity.paint(model.texture, inside))
 
 
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
@@ -282,7 +315,8 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
             index=frame.index, rotation=sent.rotation, translation=sent.translation,
             residuals=sent.residuals, samples=samples[:, 0].copy(), cues=cues,
             eye_ratio=eye_aspect_ratio(sent.points),
-            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures)
+            yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures,
+            lips=np.asarray(sent.points[60:68], np.float32))
         out.append(replace(seen, occluded=texels.occluded(frame.image, seen)))
     return out, read
 
@@ -430,6 +464,7 @@ class _RegionTexels:
             placement = self.placements[r.name]
             self.areas[r.name] = [_AreaTexels(model.mesh, rig, surface, rect, shape)
                                   for rect in (placement.uv_rect, *placement.areas)]
+        self.cavity = _Cavity(model, camera, surface, rig)
         self.rings: dict[str, tuple[_AreaTexels, np.ndarray]] = {}
         for part in sorted(set(REGION_PARTS.values())):
             rect, ring = ring_mask(model.mesh, part, shape)
@@ -505,14 +540,88 @@ class _AreaTexels:
              ) -> tuple[np.ndarray, np.ndarray]:
         """The area's texels read from ``image``: (h, w, 3) float32 RGB, and (h, w) bool,
         where they are seen (on the image, facing the camera)."""
+        colour, ok, _, _ = self.read_at(camera, image, seen)
+        return colour, ok
+
+    def read_at(self, camera: Intrinsics, image: np.ndarray, seen: Observation
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``read``, and the texels' projections x, y: (h, w) float32 px each."""
         h, w = self.valid.shape
         x, y = project(self.points.positions(seen.residuals), seen.rotation, seen.translation,
                        camera)
-        colour = bilinear(image[..., ::-1].copy(), x.reshape(h, w), y.reshape(h, w))
+        x, y = x.reshape(h, w), y.reshape(h, w)
+        colour = bilinear(image[..., ::-1].copy(), x, y)
         normals = self.normals @ seen.rotation.T.astype(np.float32)  # camera frame
         facing = normals[..., 2] > 0.05
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
-        return colour, self.valid & facing & on_image.reshape(h, w)
+        return colour, self.valid & facing & on_image, x, y
+
+
+class _Cavity:
+    """The mouth cavity's texels: its interior from the mouth's frames, painted into its
+    layers and the base texture (module docstring, step 7; ``sender.enroll.interior``)."""
+
+    def __init__(self, model: PersonModel, camera: Intrinsics, surface: UVSurface,
+                 rig: Rig) -> None:
+        shape = model.texture.shape[:2]
+        u, v = MOUTH_UV
+        disc = (u - MOUTH_UV_RADIUS, v - 2 * MOUTH_UV_RADIUS, u + MOUTH_UV_RADIUS,
+                v + 2 * MOUTH_UV_RADIUS)
+        self.area = _AreaTexels(model.mesh, rig, surface, texel_rect(disc, shape)[0], shape)
+        rows, cols = self.area.slices
+        tri = surface.triangles[rows, cols]
+        tags = np.asarray(model.mesh.tags)
+        self.inside = (tri >= 0) & (tags[np.maximum(tri, 0)] == Tag.MOUTH_INTERIOR)
+        self.synthetic = synthetic(*disc_polar(rows, cols, shape),
+                                   *palette(model.texture, model.mesh))
+        self.camera = camera
+        self.shape = shape
+
+    def interior(self, frames: list[tuple[np.ndarray, Observation]]
+                 ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The interior (h, w, 3) float32 RGB over the cavity's rectangle, and per frame
+        (its image and observation) its weights (h, w) float32: how much of each texel it
+        saw (0 for a frame whose mouth is not open)."""
+        colours, weights = [], []
+        for image, seen in frames:
+            colour, ok, x, y = self.area.read_at(self.camera, image, seen)
+            weight = np.zeros(ok.shape, np.float32)
+            if seen.cues[_MOUTH] >= OPEN_GAP and REGION_PARTS["mouth"] not in seen.occluded:
+                weight = np.where(ok & self.inside, seen_weight(seen.lips, x, y), 0.0)
+            colours.append(colour)
+            weights.append(weight.astype(np.float32))
+        fused, coverage = fuse_seen(np.stack(colours), np.stack(weights))
+        walls = continued(fused, coverage, self.inside)
+        made_up = self.synthetic if walls is None else walls
+        return interior(made_up, fused, coverage), weights
+
+    def layers(self, layers: np.ndarray, rect: tuple[float, float, float, float],
+               inside: np.ndarray, weights: list[np.ndarray]) -> np.ndarray:
+        """The mouth's layers (k, h, w, 3) uint8 RGB over ``rect`` with every cavity texel
+        its frame did not see (weights, one per layer, over the cavity's rectangle) taking
+        the interior ``inside`` instead."""
+        rows, cols = self._within(rect)
+        cavity = self.inside[rows, cols][..., None]
+        out = layers.astype(np.float32)
+        for j, weight in enumerate(weights):
+            w = weight[rows, cols][..., None]
+            blended = w * out[j] + (1.0 - w) * inside[rows, cols]
+            out[j] = np.where(cavity, blended, out[j])
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+    def paint(self, texture: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        """The base texture (H, W, 3) uint8 RGB with the interior on the cavity's texels."""
+        out = texture.copy()
+        block = out[self.area.slices]
+        block[self.inside] = np.clip(np.rint(inside[self.inside]), 0, 255).astype(np.uint8)
+        return out
+
+    def _within(self, rect: tuple[float, float, float, float]) -> tuple[slice, slice]:
+        """The texels of ``rect`` as slices of the cavity's rectangle (``rect`` lies in it)."""
+        rows, cols = texel_rect(rect, self.shape)[1]
+        top, left = self.area.slices[0].start, self.area.slices[1].start
+        return slice(rows.start - top, rows.stop - top), slice(cols.start - left,
+                                                              cols.stop - left)
 
 
 def _uv_barycentric(mesh: Mesh, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:
