@@ -39,13 +39,15 @@ cavity texel takes one of two colours:
 
    at most 0.6 of the lip's colour, with two teeth bands. The teeth have the colour
    T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
-   are lit like the face): the upper one over rho > 0.2 and 40 < alpha < 140 degrees, the
-   lower one over rho > 0.2 and -140 < alpha < -40 degrees (the lips hide their outer
-   parts; what shows is a band under the upper lip and a thinner one over the lower), each
-   with smoothstep edges (0.03 in rho, 15 degrees in alpha) and shaded toward the mouth
+   are lit like the face): the upper one over rho > 0.15 + ``TEETH_CORNER`` cos^2 alpha
+   and 50 < alpha < 130 degrees, the lower one over rho > 0.14 + ``TEETH_CORNER`` cos^2
+   alpha and -130 < alpha < -50 degrees (the opening shows rho up to 0.2 under the lips'
+   middle and 0.29 toward the corners, so the bands' inner edge follows it out; bands from
+   rho 0.2 over 40 to 140 degrees showed only at the corners, as fangs), each
+   with smoothstep edges (0.03 in rho, 25 degrees in alpha) and shaded toward the mouth
    corners (0.55 + 0.45 |sin alpha|) and toward the back (0.75 at the band's inner edge,
    1 from 0.05 further out): I <- I + m (T shade - I) with m the band's soft mask, at most
-   0.9 above and 0.6 below (the lower teeth lie deeper in shadow).
+   0.9 above and 0.5 below (the lower teeth lie deeper in shadow).
 
 The interior is then c * seen + (1 - c) * synthetic: soft where the seen part ends, never
 the lips' or the skin's colour where nothing was seen.
@@ -67,6 +69,7 @@ SOFT = 0.04  # and its edge softens over a Gaussian of this fraction of the gap
 MIN_WEIGHT = 0.05  # a frame's weight below this: it did not see the texel
 MIN_SEEN = 200  # cavity texels seen: fewer, and the walls under the teeth stay the lip's
 TEETH = np.array([1.0, 0.95, 0.82], np.float32)  # RGB of the teeth over the skin's grey
+TEETH_CORNER = 0.08  # the teeth bands' inner edge moves out by this toward the corners
 _UPPER_LIP = ((50, 61), (51, 62), (52, 63))  # outer, inner landmark pairs across the lips
 _LOWER_LIP = ((58, 67), (57, 66), (56, 65))
 _CHEEKS = ((2, 31), (14, 35), (3, 48), (13, 54))  # pairs whose middle is cheek skin
@@ -131,9 +134,10 @@ def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndar
     out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None]
     teeth = min(1.35 * float(np.mean(skin)), 235.0) * TEETH
     degrees = np.degrees(alpha)
-    for lo, a0, a1, most in ((0.2, 40.0, 140.0, 0.9), (0.2, -140.0, -40.0, 0.6)):
-        band = sstep(lo - 0.03, lo, rho) * sstep(a0 - 15.0, a0, degrees) \
-            * sstep(a1 + 15.0, a1, degrees)
+    for middle, a0, a1, most in ((0.15, 50.0, 130.0, 0.9), (0.14, -130.0, -50.0, 0.5)):
+        lo = middle + TEETH_CORNER * np.cos(alpha) ** 2  # the opening reaches further out there
+        band = sstep(lo - 0.03, lo, rho) * sstep(a0 - 25.0, a0, degrees) \
+            * sstep(a1 + 25.0, a1, degrees)
         shade = (0.55 + 0.45 * np.abs(np.sin(alpha))) * (0.75 + 0.25 * sstep(lo, lo + 0.05, rho))
         mask = (most * band)[..., None]
         out = out + mask * (teeth * shade[..., None] - out)
