@@ -32,9 +32,8 @@ CASES = {
     # lp_d3 170:260: the frown with the eyes shut; the mouth closed, no teeth, brows down
     ("lp_d3.mp4", "170:260"): ({"brows_furrowed"},
                                {"mouth_open", "smile_teeth", "brows_raised"}),
-    # lp_d3 200:330: the frown, then the surprise: brows up, mouth open (from 240, with no
-    # calm face, the neutral among the sharp frames is one of the surprise's, brows up)
-    ("lp_d3.mp4", "200:330"): ({"brows_raised", "mouth_open"}, {"smile_teeth", "mouth_wide"}),
+    # lp_d3 240:330: the end of the frown, then the surprise: brows up, mouth open
+    ("lp_d3.mp4", "240:330"): ({"brows_raised", "mouth_open"}, {"smile_teeth", "mouth_wide"}),
     # openface_gaze 40:100: gaze shifts to either side; a neutral mouth
     ("openface_gaze.avi", "40:100"): ({"gaze_left", "gaze_right"},
                                       {"mouth_open", "smile_teeth", "brows_furrowed"}),

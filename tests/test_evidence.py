@@ -179,12 +179,6 @@ def occluded_eye(shared_data: Path, occluded_models, tmp_path_factory: pytest.Te
     return made, enroll_regions(occluded_models[1], made.path)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured: since the neutral frame is chosen among the sharp frames (lp_d3 0:90's is "
-    "frame 4, eyes wide open, no longer the blurred wink 33), the patched frames depart "
-    "from the base texture on 5-17 % of the right eye's ring and the clean ones on 0-7 %; "
-    "the 15 % bound catches 4-7 of 38 patched frames. A smaller ring (30 % of the eye's "
-    "box) separates them better (10-22 % against 0-7 %) but a squint departs 16 %"))
 def test_an_occluded_eye_gives_its_layers_nothing(occluded_eye):
     """The right eye's eyelid and eyeball take no patched frame (on main, 9691a01, where
     the eyes were not judged, they did), the ring test finds most patched frames and says

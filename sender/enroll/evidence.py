@@ -71,9 +71,9 @@ views that were outliers over a part of the face tell which frames were occluded
                                                (the eye open where the base texture's is
                                                half shut); the closed states remain
    lp_d3 0:90, dark patch over the right eye,  patched 5-17 %, clean 0-7 %: 4-7 of 38
-   on a model whose neutral looks wide-eyed    patched frames over; the table above was
-   (frame 4: the neutral among sharp frames,   measured on a base texture whose eye was
-   ``sender.enroll.registration``)             half shut (the wink, frame 33). Not solved
+   on a model whose neutral looks wide-eyed    patched frames over; the rows above were
+   (frame 4, as with the neutral among the     measured on a base texture whose eye was
+   sharper half of the frames)                 half shut (frame 33). Not solved
    ==========================================  ========================================
 
    A wink or a blink moves the lids, which the ring (outside the eye's box grown by 10 %)
