@@ -71,7 +71,7 @@ def neutral_model(textured: np.ndarray) -> PersonModel:
         rect, (rows, cols) = _placed(spec.name)
         h, w = rows.stop - rows.start, cols.stop - cols.start
         layers = rng.integers(0, 256, (spec.layers, h, w, 3), dtype=np.uint8)
-        if spec.transparent_first:
+        if spec.transparent_open:
             opacity = (0.0,) + (1.0,) * (spec.layers - 1)
         else:
             layers[0] = textured[rows, cols]

@@ -136,7 +136,8 @@ def test_a_wrong_model_scores_poorly(built, lp_d0, shared_data) -> None:
     assert len(frames) == 12
     evidence = Evidence(**s["self_check_evidence"])
     shifted = replace(model, texture=np.roll(model.texture, model.texture.shape[1] // 8,
-                                             axis=1), regions=(), sha256="", file_bytes=0)
+                                             axis=1), regions=(), region_frames=None, sha256="",
+                      file_bytes=0)
     scores = score_frames(shifted, frames, 25.0)
     assert scores["self_check_render_nme"] > 3 * POOR_RENDER_NME > s["self_check_render_nme"]
     verdict = diagnose(scores, evidence)
