@@ -252,7 +252,7 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         report[region.name] = {**info, "frames": [observations[i].index for i in picks],
                                "occluded_frames": int(blocked[:, r].sum())}
     usage = region_frames(candidates, blocked, lid_closed, np.isnan(cues),
-                          [o.index for o in observations],
+                          seen.tolist(),
                           [report[r.name]["frames"] for r in REGIONS], REGION_NAMES)
     measures = np.array([o.measures for o in observations])
     coverage = measure_coverage({name: measures[picks] for name, picks in chosen.items()},
@@ -430,15 +430,14 @@ def _choose_states(region: RegionSpec, cue: np.ndarray, away: np.ndarray, neutra
     for j, level in enumerate(levels):
         if j == rest_state and usable[neutral]:
             continue
+        near = np.abs(np.nan_to_num(cue) - level) / scale + 0.002 * away
         for pool in pools:
-            cost = np.where(pool, np.abs(np.nan_to_num(cue) - level) / scale + 0.002 * away,
-                            np.inf)
+            cost = np.where(pool, near, np.inf)
             cost[taken] = np.inf
             if np.isfinite(cost).any():
                 break
         else:  # the usable frames ran out: they serve again
-            cost = np.where(usable, np.abs(np.nan_to_num(cue) - level) / scale + 0.002 * away,
-                            np.inf)
+            cost = np.where(usable, near, np.inf)
         picks[j] = int(np.argmin(cost))
         taken.append(picks[j])
     weak = span < MIN_SPAN[family]
