@@ -1,0 +1,84 @@
+"""Model updates: a learned state goes where its position says, and a bad one is refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facewire.models.modelfile import ModelError, load_model
+from facewire.models.update import MAX_LEARNED_LAYERS, ModelUpdate, apply_update
+
+BASE = "ab" * 32
+
+
+def _update(model, region: str, position: int, replaces: int | None = None,
+            value: int = 7, serial: int = 1) -> ModelUpdate:
+    r = next(r for r in model.regions if r.name == region)
+    return ModelUpdate(base_sha256=BASE, serial=serial, region=region,
+                       position=position, replaces=replaces,
+                       layers=tuple(np.full(p.layers.shape[1:], value, np.uint8)
+                                    for p in r.parts()),
+                       template=np.full((16, 16), 0.5, np.float32), opacity=0.75)
+
+
+def _region(model, name: str):
+    return next(r for r in model.regions if r.name == name)
+
+
+def test_insert_puts_the_state_at_its_position_and_moves_the_rest(person_model: Path) -> None:
+    model = load_model(person_model)
+    old = _region(model, "mouth")
+    k = old.layers.shape[0]
+    rest = round(old.rest)
+    new = _region(apply_update(model, _update(model, "mouth", rest)), "mouth")
+    assert new.layers.shape[0] == k + 1
+    assert (new.layers[rest] == 7).all() and new.opacity[rest] == 0.75
+    assert np.array_equal(new.layers[rest + 1], old.layers[rest])
+    assert new.rest == old.rest + 1
+    assert np.array_equal(new.templates[rest], np.full((16, 16), 0.5, np.float32))
+    for area_old, area_new in zip(old.areas, new.areas, strict=True):
+        assert np.array_equal(area_new.layers[rest + 1], area_old.layers[rest])
+
+
+def test_replace_keeps_the_count_and_never_takes_the_rest_state(person_model: Path) -> None:
+    model = load_model(person_model)
+    old = _region(model, "eyelid_left")
+    k = old.layers.shape[0]
+    rest = round(old.rest)
+    victim = k - 1 if rest != k - 1 else 0
+    new = _region(apply_update(model, _update(model, "eyelid_left", k - 1, victim)),
+                  "eyelid_left")
+    assert new.layers.shape[0] == k and (new.layers[k - 1] == 7).all()
+    with pytest.raises(ModelError, match="rest state"):
+        apply_update(model, _update(model, "eyelid_left", 0, rest))
+
+
+def test_a_full_region_refuses_an_insert(person_model: Path) -> None:
+    model = load_model(person_model)
+    serial = 1
+    while _region(model, "forehead").layers.shape[0] < MAX_LEARNED_LAYERS:
+        model = apply_update(model, _update(model, "forehead", 0, serial=serial))
+        serial += 1
+    with pytest.raises(ModelError, match="at most 8"):
+        apply_update(model, _update(model, "forehead", 0, serial=serial))
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"region": "nose"}, "region"),
+    ({"position": 99}, "position"),
+    ({"serial": 0}, "serial"),
+    ({"opacity": float("nan")}, "opacity"),
+    ({"template": np.full((16, 16), np.nan, np.float32)}, "template"),
+    ({"layers": (np.zeros((3, 3, 3), np.uint8),)}, "layers"),
+])
+def test_a_bad_update_is_refused_naming_its_field(person_model: Path, change: dict,
+                                                  field: str) -> None:
+    model = load_model(person_model)
+    good = _update(model, "mouth", 0)
+    kwargs = {f: getattr(good, f) for f in ("base_sha256", "serial", "region", "position",
+                                           "replaces", "layers", "template", "opacity")}
+    kwargs.update(change)
+    with pytest.raises(ModelError, match=field):
+        apply_update(model, ModelUpdate(**kwargs))
