@@ -8,14 +8,30 @@ type           fields (msgpack types)
 hello_request  -
 hello          protocol (int), model_sha256 (str, 64 hex), model_bytes (int), rate_hz
                (float), camera (map: fx, fy, cx, cy (float), width, height (int)), regions
-               (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``)
+               (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``),
+               model_serial (int, 0 .. ``MAX_UPDATE_SERIAL``; optional, default 0)
 model_request  sha256 (str), index (int): ask for one chunk of the model file
 model_chunk    sha256 (str), index, count, total (int), data (bin), data_sha256 (str)
+update_request model_sha256 (str), serial, index (int): ask for one chunk of model update
+               ``serial`` of the session that started from model ``model_sha256``
+update_chunk   model_sha256 (str), serial, index, count, total (int), data (bin),
+               data_sha256 (str), sha256 (str: the whole update's)
 error          message (str)
 ============== ============================================================================
 
 A model travels as ``count`` chunks of at most ``CHUNK_BYTES``; each chunk carries the sha256
 of its own data, and the reassembled file must hash to the announced model sha256.
+
+Model updates (``models.update``: one learned state of one region) make the model's version
+the pair (model sha256, serial): serial 0 is the model file, update n turns version n - 1
+into version n. The Hello's ``model_serial`` is the newest version the sender has issued, and
+every packet names the version its Q values refer to (``packet.Frame.serial``): that is the
+announcement, since the control channel only answers requests. Here an update is opaque bytes
+(its format is ``models.update``'s): it travels as ``count`` chunks of at most
+``UPDATE_CHUNK_BYTES`` (small, so that the sender can shape update traffic finely:
+``protocol.shaper``), each carrying the sha256 of its own data and of the whole update; every
+chunk of one transfer must name the same whole (``sha256``, ``total``), and the reassembled
+bytes must hash to it (``ChunkAssembler``).
 
 Decoding bounds every size before allocating (no message over ``MAX_MESSAGE_BYTES``, no
 extension types, string map keys only), then checks each field's type and range. Anything
@@ -46,6 +62,9 @@ from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ
 CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
+UPDATE_CHUNK_BYTES = 1024
+MAX_UPDATE_BYTES = 4 * 1024 * 1024
+MAX_UPDATE_SERIAL = 2047  # the packet's 11-bit serial; models.update.MAX_SERIAL is this one
 MAX_TEXT_CHARS = 1000
 # The camera's bounds, the one set (models.geometry.Intrinsics takes them from here).
 MAX_FOCAL_PX = 1e6
@@ -115,6 +134,7 @@ class Hello:
     protocol: int = VERSION
     quantisers: tuple[dict[str, Any], ...] = field(
         default_factory=lambda: tuple(quantiser_table()))
+    model_serial: int = 0
 
     def __post_init__(self) -> None:
         _require(self.protocol == VERSION, f"hello.protocol: {self.protocol} is not {VERSION}")
@@ -129,6 +149,8 @@ class Hello:
                  "hello.regions: names must have 1 to 64 printable characters")
         _require(list(self.quantisers) == quantiser_table(),
                  "hello.quantisers: do not match this receiver's protocol version 1 table")
+        _require(0 <= self.model_serial <= MAX_UPDATE_SERIAL,
+                 f"hello.model_serial: must be in [0, {MAX_UPDATE_SERIAL}]")
 
 
 @dataclass(frozen=True)
@@ -167,6 +189,57 @@ class ModelChunk:
 
 
 @dataclass(frozen=True)
+class UpdateRequest:
+    """Ask for chunk ``index`` of update ``serial`` of the session of model ``model_sha256``."""
+
+    TYPE: ClassVar[str] = "update_request"
+    model_sha256: str
+    serial: int
+    index: int
+
+    def __post_init__(self) -> None:
+        _require(bool(_HEX64.fullmatch(self.model_sha256)),
+                 "update_request.model_sha256: not 64 hex digits")
+        _require(1 <= self.serial <= MAX_UPDATE_SERIAL,
+                 f"update_request.serial: must be in [1, {MAX_UPDATE_SERIAL}]")
+        _require(0 <= self.index < MAX_UPDATE_BYTES // UPDATE_CHUNK_BYTES,
+                 "update_request.index: out of range")
+
+
+@dataclass(frozen=True)
+class UpdateChunk:
+    """Chunk ``index`` of ``count`` of update ``serial`` (``total`` bytes, hashing to
+    ``sha256``); its ``data`` hash to ``data_sha256``."""
+
+    TYPE: ClassVar[str] = "update_chunk"
+    model_sha256: str
+    serial: int
+    index: int
+    count: int
+    total: int
+    data: bytes
+    data_sha256: str
+    sha256: str
+
+    def __post_init__(self) -> None:
+        for name in ("model_sha256", "sha256"):
+            _require(bool(_HEX64.fullmatch(getattr(self, name))),
+                     f"update_chunk.{name}: not 64 hex digits")
+        _require(1 <= self.serial <= MAX_UPDATE_SERIAL,
+                 f"update_chunk.serial: must be in [1, {MAX_UPDATE_SERIAL}]")
+        _require(0 < self.total <= MAX_UPDATE_BYTES,
+                 f"update_chunk.total: must be in [1, {MAX_UPDATE_BYTES}]")
+        _require(self.count == math.ceil(self.total / UPDATE_CHUNK_BYTES),
+                 "update_chunk.count: does not match total")
+        _require(0 <= self.index < self.count, "update_chunk.index: out of range")
+        want = min(UPDATE_CHUNK_BYTES, self.total - self.index * UPDATE_CHUNK_BYTES)
+        _require(len(self.data) == want, f"update_chunk.data: {len(self.data)} bytes, "
+                 f"expected {want}")
+        _require(hashlib.sha256(self.data).hexdigest() == self.data_sha256,
+                 "update_chunk.data_sha256: does not match the data")
+
+
+@dataclass(frozen=True)
 class Error:
     """A refusal; ``message`` is kept ``printable`` (escaped and cut, never refused)."""
 
@@ -177,14 +250,15 @@ class Error:
         object.__setattr__(self, "message", printable(self.message))
 
 
-Message = HelloRequest | Hello | ModelRequest | ModelChunk | Error
+Message = (HelloRequest | Hello | ModelRequest | ModelChunk | UpdateRequest | UpdateChunk
+           | Error)
 _TYPES: dict[str, type] = {t.TYPE: t for t in (HelloRequest, Hello, ModelRequest, ModelChunk,
-                                                 Error)}
+                                                 UpdateRequest, UpdateChunk, Error)}
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "model_sha256": (str,), "sha256": (str,), "data_sha256": (str,), "message": (str,),
     "model_bytes": (int,), "index": (int,), "count": (int,), "total": (int,),
     "protocol": (int,), "rate_hz": (float, int), "camera": (dict,), "regions": (list,),
-    "quantisers": (list,), "data": (bytes,),
+    "quantisers": (list,), "data": (bytes,), "model_serial": (int,), "serial": (int,),
 }
 
 
@@ -244,35 +318,64 @@ def model_chunks(data: bytes, sha256: str) -> list[ModelChunk]:
             for part in [data[i * CHUNK_BYTES:(i + 1) * CHUNK_BYTES]]]
 
 
-class ModelAssembler:
-    """Collects the chunks of one model and verifies the whole against its sha256."""
+def update_chunks(data: bytes, model_sha256: str, serial: int) -> list[UpdateChunk]:
+    """Split update ``serial``'s bytes into hashed chunks of at most ``UPDATE_CHUNK_BYTES``.
 
-    def __init__(self, sha256: str, total: int) -> None:
-        _require(bool(_HEX64.fullmatch(sha256)), "model sha256: not 64 hex digits")
-        _require(0 < total <= MAX_MODEL_BYTES, f"model size {total}: out of range")
-        self.sha256 = sha256
-        self.total = total
-        self.count = math.ceil(total / CHUNK_BYTES)
+    Raises:
+        ControlError: no bytes, more than ``MAX_UPDATE_BYTES``, or a serial out of range.
+    """
+    _require(0 < len(data) <= MAX_UPDATE_BYTES,
+             f"update {serial}: {len(data)} bytes, expected 1 to {MAX_UPDATE_BYTES}")
+    count = math.ceil(len(data) / UPDATE_CHUNK_BYTES)
+    whole = hashlib.sha256(data).hexdigest()
+    return [UpdateChunk(model_sha256, serial, i, count, len(data), part,
+                        hashlib.sha256(part).hexdigest(), whole)
+            for i in range(count)
+            for part in [data[i * UPDATE_CHUNK_BYTES:(i + 1) * UPDATE_CHUNK_BYTES]]]
+
+
+class ChunkAssembler:
+    """Collects the chunks of one transfer (a model file, or an update) and verifies the
+    whole against its sha256.
+
+    Args:
+        sha256: the whole's sha256 (64 hex).
+        total: its size in bytes, in [1, ``limit``].
+        chunk_bytes: the chunk size (``CHUNK_BYTES``, ``UPDATE_CHUNK_BYTES``).
+        what: names the transfer in messages ("model", "update 3").
+        limit: the largest whole allowed.
+    """
+
+    def __init__(self, sha256: str, total: int, chunk_bytes: int = CHUNK_BYTES,
+                 what: str = "model", limit: int = MAX_MODEL_BYTES) -> None:
+        _require(bool(_HEX64.fullmatch(sha256)), f"{what} sha256: not 64 hex digits")
+        _require(0 < total <= limit, f"{what} size {total}: out of range")
+        self.sha256, self.total, self.what = sha256, total, what
+        self.count = math.ceil(total / chunk_bytes)
         self._parts: dict[int, bytes] = {}
 
     def missing(self) -> list[int]:
         """Indices of the chunks still to fetch."""
         return [i for i in range(self.count) if i not in self._parts]
 
-    def add(self, chunk: ModelChunk) -> None:
-        """Accept one chunk (already validated on decode) of this model."""
+    def add(self, chunk: ModelChunk | UpdateChunk) -> None:
+        """Accept one chunk (already validated on decode) of this transfer."""
         if chunk.sha256 != self.sha256 or chunk.total != self.total:
-            raise ControlError("model_chunk: belongs to another model")
+            raise ControlError(f"{chunk.TYPE}: belongs to another {self.what.split()[0]}")
         self._parts[chunk.index] = chunk.data
 
     def result(self) -> bytes:
-        """The whole file, once every chunk is in and the sha256 matches."""
+        """The whole, once every chunk is in and the sha256 matches."""
         if missing := self.missing():
-            raise ControlError(f"model transfer incomplete: {len(missing)} chunks missing")
+            raise ControlError(f"{self.what} transfer incomplete: {len(missing)} chunks "
+                               f"missing")
         data = b"".join(self._parts[i] for i in range(self.count))
         if hashlib.sha256(data).hexdigest() != self.sha256:
-            raise ControlError("model transfer: the chunks do not hash to the announced sha256")
+            raise ControlError(f"{self.what} transfer: the chunks do not hash to the "
+                               f"announced sha256")
         return data
+
+
 
 
 def _camera_fields(camera: dict[Any, Any]) -> dict[str, Any]:

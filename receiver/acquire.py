@@ -16,7 +16,7 @@ The model (``ModelAcquirer.obtain``, for each Hello whose model is new)
 2. Else the model cache (``receiver.modelcache``) by the Hello's sha256; a cached file that is
    refused (damaged) is fetched again.
 3. Else the sender's file in chunks (``ModelRequest(sha256, index)`` -> ``ModelChunk``,
-   reassembled by ``protocol.control.ModelAssembler``), each chunk asked up to
+   reassembled by ``protocol.control.ChunkAssembler``), each chunk asked up to
    ``CHUNK_ATTEMPTS`` times (``CHUNK_TIMEOUT_S`` each); the whole is verified (sha256, then
    decoded: ``receiver.modelcache.verify_model``) before it is cached and used.
 
@@ -40,7 +40,7 @@ from typing import Any
 
 from facewire.models.modelfile import ModelFileError, PersonModel
 from facewire.protocol import control as ctl
-from facewire.protocol.control import ControlError, Hello, ModelAssembler, ModelChunk, ModelRequest
+from facewire.protocol.control import ChunkAssembler, ControlError, Hello, ModelChunk, ModelRequest
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient
 from facewire.protocol.transport import ControlClient
@@ -187,7 +187,7 @@ class ModelAcquirer:
         a chunk was another chunk or an error (a failed attempt, bounded by
         ``MODEL_ATTEMPTS``)."""
         sha, total = hello.model_sha256, hello.model_bytes
-        assembler = ModelAssembler(sha, total)
+        assembler = ChunkAssembler(sha, total)
         for index in assembler.missing():
             timeouts = self.control.timeouts
             for _ in range(CHUNK_ATTEMPTS):

@@ -30,18 +30,13 @@ slower than announced and the receivers' buffers running dry). Only when more th
 (``Pacer(catch_up_s=MAX_LAG_S)``).
 
 Control requests (``protocol.control``) are answered on a second thread, at the control
-endpoint (the bind port plus one): a HelloRequest gets the Hello; ModelRequest(sha256, index)
-gets chunk ``index`` of the model file, split once, from the bytes the model was loaded from
-(``protocol.control.model_chunks``); a malformed request, an unknown sha256, or an index out of
-range gets an ``Error`` reply (counted: ``control.errors``). Two kinds get no reply and are not
-counted: a request with broken framing (no empty delimiter, more than ``MAX_HOPS`` routing
-frames: dropped by ``ControlServer.recv``), and a frame over
-``protocol.transport.MAX_CONTROL_FRAME``, which ends that peer's connection at the frame's
-header (libzmq's own limit; the peer may connect again). A thread of its own because a
-receiver fetches the model one chunk per round trip: answered between frames, every chunk
-would wait for a frame's tracking and pacing, one frame period each, and a Hello would wait
-behind the tracker. Its work (a lookup and a send) is small beside the frame loop's. Each
-thread uses only its own sockets.
+endpoint (the bind port plus one), by ``sender.responder.Responder``: the Hello, the model
+file's chunks, and the chunks of the session's model updates (``sender.updates.UpdateStore``:
+``publish_update(serial, data)``, from any thread), shaped per receiver; errors are counted
+(``control.errors``). A thread of its own because a receiver fetches the model one chunk per
+round trip: answered between frames, every chunk would wait for a frame's tracking and pacing,
+one frame period each, and a Hello would wait behind the tracker. Its work (a lookup and a
+send) is small beside the frame loop's. Each thread uses only its own sockets.
 
 Holding the start (``start``): the frame loop holds the first frame until the event is set
 (or ``stop`` is), while the control thread answers: e.g. until a receiver in the same process,
@@ -77,17 +72,7 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import ModelFileError, load_model
-from facewire.protocol.control import (
-    ControlError,
-    Error,
-    Hello,
-    HelloRequest,
-    Message,
-    ModelChunk,
-    ModelRequest,
-    decode_message,
-    model_chunks,
-)
+from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps
@@ -100,6 +85,8 @@ from facewire.protocol.transport import (
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
 from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.responder import Responder
+from facewire.sender.updates import UpdateStore
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
 STATUS_PERIOD_S = 1.0
@@ -128,59 +115,6 @@ def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> 
         pass
     return (f"warning: {bind} is reachable from the network and the face stream and the model "
             f"are sent unencrypted; use --curve-dir DIR (facewire keys generate DIR)")
-
-
-def answer_request(raw: bytes, hello: Hello, chunks: list[ModelChunk]) -> Message:
-    """The reply to one raw control request: the Hello, a model chunk, or an Error.
-
-    Args:
-        raw: the request's bytes as received.
-        hello: this stream's Hello.
-        chunks: the model file's chunks (``protocol.control.model_chunks``), index order.
-    """
-    try:
-        request = decode_message(raw)
-    except ControlError as exc:
-        return Error(f"bad request: {exc}")
-    if isinstance(request, HelloRequest):
-        return hello
-    if isinstance(request, ModelRequest):
-        if request.sha256 != hello.model_sha256:
-            return Error(f"model_request.sha256: this sender serves model "
-                         f"{hello.model_sha256}, not {request.sha256}")
-        if request.index >= len(chunks):
-            return Error(f"model_request.index: {request.index} is out of range (the model "
-                         f"has {len(chunks)} chunks)")
-        return chunks[request.index]
-    return Error(f"{request.TYPE} is not a request")
-
-
-class _Responder:
-    """Answers control requests on its own thread until ``done`` is set (module docstring)."""
-
-    def __init__(self, server: ControlServer, hello: Hello, chunks: list[ModelChunk]) -> None:
-        self.server = server
-        self.hello = hello
-        self.chunks = chunks
-        self.counts = {"hello_requests": 0, "chunk_requests": 0, "errors": 0}
-        self.done = threading.Event()
-        self.thread = threading.Thread(target=self._run, name="facewire-control", daemon=True)
-
-    def _run(self) -> None:
-        while not self.done.is_set():
-            request = self.server.recv(CONTROL_POLL_MS)
-            if request is None:
-                continue
-            peer, raw = request
-            reply = answer_request(raw, self.hello, self.chunks)
-            key = {Hello: "hello_requests", ModelChunk: "chunk_requests"}.get(type(reply),
-                                                                               "errors")
-            self.counts[key] += 1
-            self.server.reply(peer, reply)
-
-    def stop(self) -> None:
-        self.done.set()
-        self.thread.join()
 
 
 def _read_model(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
@@ -254,8 +188,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          record: str | os.PathLike[str] | None = None, rate_hz: float = NOMINAL_HZ,
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
-         frames: slice = slice(0, None), start: threading.Event | None = None
-         ) -> dict[str, Any]:
+         frames: slice = slice(0, None), start: threading.Event | None = None,
+         updates: UpdateStore | None = None) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -276,6 +210,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         frames: which frames of a file or folder, by index (step 1; a camera ignores it).
         start: hold the first frame until it is set, or None to start at once (module
             docstring).
+        updates: the session's model updates, to publish into from any thread
+            (``UpdateStore.publish_update``), or None for a store of the sender's own.
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -283,7 +219,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         one core), ``receivers_max``, ``log`` (path or None), ``model_sha256``,
         ``model_bytes``, ``model_chunks``, ``rate_hz`` (the stream's), ``endpoint``,
         ``control_endpoint``, ``encrypted``, ``warning`` (``unencrypted_warning`` or None),
-        ``control`` (``hello_requests``, ``chunk_requests``, ``errors``) and ``stopped``
+        ``control`` (``hello_requests``, ``chunk_requests``, ``update_requests``,
+        ``update_bytes``, ``errors``), ``updates`` (updates issued), ``update_bytes_total``
+        (their bytes) and ``stopped``
         (``end``, ``stop`` or ``interrupt``).
 
     Raises:
@@ -310,8 +248,12 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         hello = pipeline.hello()
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None
-        responder = _Responder(server, hello, chunks)
-        responder.thread.start()
+        store = updates if updates is not None else UpdateStore(hello.model_sha256)
+        if store.model_sha256 != hello.model_sha256:
+            raise ValueError(f"updates: a store of model {store.model_sha256[:12]}, this "
+                             f"sender's model is {hello.model_sha256[:12]}")
+        responder = Responder(server, hello, chunks, store)
+        responder.start()
         stack.callback(responder.stop)
         try:
             counts, stopped = _stream(src, pipeline, publisher, log, peers, rate, loop, stop,
@@ -326,7 +268,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             "model_chunks": len(chunks), "rate_hz": rate, "endpoint": bind,
             "control_endpoint": control_at, "encrypted": curve is not None,
             "warning": unencrypted_warning(bind, curve_dir),
-            "control": dict(responder.counts), "stopped": stopped}
+            "control": dict(responder.counts), "updates": store.serial,
+            "update_bytes_total": store.bytes_total, "stopped": stopped}
 
 
 def _check_rate(rate_hz: object) -> None:

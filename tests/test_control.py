@@ -12,11 +12,11 @@ from facewire.protocol.control import (
     CHUNK_BYTES,
     MAX_MESSAGE_BYTES,
     Camera,
+    ChunkAssembler,
     ControlError,
     Error,
     Hello,
     HelloRequest,
-    ModelAssembler,
     ModelChunk,
     ModelRequest,
     decode_message,
@@ -112,7 +112,7 @@ def test_model_transfer_in_chunks() -> None:
     sha = hashlib.sha256(data).hexdigest()
     chunks = model_chunks(data, sha)
     assert [c.index for c in chunks] == [0, 1, 2] and chunks[0].count == 3
-    assembler = ModelAssembler(sha, len(data))
+    assembler = ChunkAssembler(sha, len(data))
     for chunk in reversed(chunks):  # any order
         assembler.add(decode_message(encode_message(chunk)))
     assert assembler.missing() == [] and assembler.result() == data
@@ -130,17 +130,17 @@ def test_tampered_chunk_refused() -> None:
 def test_chunks_that_do_not_hash_to_the_model_are_refused() -> None:
     data = b"the real model" * 50
     wrong = hashlib.sha256(b"another model").hexdigest()
-    assembler = ModelAssembler(wrong, len(data))
+    assembler = ChunkAssembler(wrong, len(data))
     for chunk in model_chunks(data, wrong):  # self-consistent chunks, wrong announced hash
         assembler.add(chunk)
     with pytest.raises(ControlError, match="announced sha256"):
         assembler.result()
-    incomplete = ModelAssembler(SHA, 3 * CHUNK_BYTES)
+    incomplete = ChunkAssembler(SHA, 3 * CHUNK_BYTES)
     with pytest.raises(ControlError, match="incomplete"):
         incomplete.result()
     other = model_chunks(b"y" * 10, "cd" * 32)[0]
     with pytest.raises(ControlError, match="another model"):
-        ModelAssembler(SHA, 10).add(other)
+        ChunkAssembler(SHA, 10).add(other)
 
 
 def test_chunk_size_consistency() -> None:

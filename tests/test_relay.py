@@ -11,9 +11,9 @@ from conftest import free_endpoint, start
 
 from facewire.protocol.control import (
     Camera,
+    ChunkAssembler,
     Hello,
     HelloRequest,
-    ModelAssembler,
     ModelChunk,
     ModelRequest,
     decode_message,
@@ -115,7 +115,7 @@ def test_a_receiver_behind_a_relay_fetches_the_model_and_the_stream(
                                      bind=sender, record=log_path)
         hello = client.request(HelloRequest(), 30_000)
         assert isinstance(hello, Hello), sent
-        assembler = ModelAssembler(hello.model_sha256, hello.model_bytes)
+        assembler = ChunkAssembler(hello.model_sha256, hello.model_bytes)
         for index in assembler.missing():
             chunk = client.request(ModelRequest(hello.model_sha256, index), 5000)
             assert isinstance(chunk, ModelChunk), chunk

@@ -18,10 +18,10 @@ import zmq
 from conftest import free_endpoint, start
 
 from facewire.protocol.control import (
+    ChunkAssembler,
     Error,
     Hello,
     HelloRequest,
-    ModelAssembler,
     ModelChunk,
     ModelRequest,
     decode_message,
@@ -44,7 +44,7 @@ TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model an
 
 def fetch_model(client: ControlClient, hello: Hello) -> tuple[bytes, int]:
     """The model announced by the Hello, chunk by chunk, verified; and the chunk count."""
-    assembler = ModelAssembler(hello.model_sha256, hello.model_bytes)
+    assembler = ChunkAssembler(hello.model_sha256, hello.model_bytes)
     for index in assembler.missing():
         chunk = client.request(ModelRequest(hello.model_sha256, index), 5000)
         assert isinstance(chunk, ModelChunk), chunk
