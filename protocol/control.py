@@ -63,7 +63,7 @@ CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
 UPDATE_CHUNK_BYTES = 1024
-MAX_UPDATE_BYTES = 4 * 1024 * 1024
+MAX_UPDATE_BYTES = 1024 * 1024  # models.update.MAX_UPDATE_BYTES: an update's bytes
 MAX_UPDATE_SERIAL = 2047  # the packet's 11-bit serial; models.update.MAX_SERIAL is this one
 MAX_TEXT_CHARS = 1000
 # The camera's bounds, the one set (models.geometry.Intrinsics takes them from here).

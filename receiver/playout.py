@@ -177,6 +177,9 @@ class FrameState:
         status: one of ``STATUSES`` (module docstring).
         weight: the fraction of the last face-present expression kept, 1 .. 0.
         arrival_s: the played packet's arrival time (the ``push`` argument), else None.
+        serial: the model version the Q values refer to (``protocol.packet.Frame.serial``,
+            ``models.update``): the played packet's, else the last played one's (0 before
+            any).
 
     The arrays are read-only.
     """
@@ -190,6 +193,7 @@ class FrameState:
     status: str
     weight: float
     arrival_s: float | None = None
+    serial: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,9 +295,24 @@ class Playout:
         self._residuals = _ZERO_RESIDUALS  # E, the last face-present expression
         self._q = self._rest_q
         self._weight = 0.0
+        self._serial = 0  # the model version of the last packet played
         self._easing = True
         self._since = 0  # slots since the last face-present slot
         self._ease_begin = 0.0  # the value of _since at which the ease began, slots
+
+    @property
+    def rest_q(self) -> np.ndarray:
+        """(8,) float32, read-only: the Q of each slot on the neutral face (``__init__``)."""
+        return self._rest_q
+
+    @rest_q.setter
+    def rest_q(self, value: np.ndarray) -> None:
+        """Another model version's rest Q (``models.update`` moves a region's rest state when
+        it inserts before it); a face lost from now on eases to it."""
+        rest = np.asarray(value, np.float32)
+        if rest.shape != (N_REGIONS,) or not np.isfinite(rest).all():
+            raise ValueError(f"rest_q: expected {N_REGIONS} finite values, got {value!r}")
+        self._rest_q = _frozen(rest.copy())
 
     @property
     def latency_s(self) -> float:
@@ -536,7 +555,7 @@ class Playout:
             residuals = _frozen(self._residuals * np.float32(w))
             q = _frozen(self._rest_q + (self._q - self._rest_q) * np.float32(w))
         return FrameState(seq, self._rotation, self._translation, residuals, q, flags, status,
-                          w, arrival_s)
+                          w, arrival_s, self._serial)
 
 
 def replay_states(packets: Sequence[bytes] | np.ndarray, times: Sequence[float] | np.ndarray,

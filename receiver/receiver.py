@@ -118,6 +118,7 @@ from facewire.receiver.output import FrameFolderWriter, VideoWriter
 from facewire.receiver.playout import FrameState, Playout
 from facewire.receiver.scene import StateRenderer, rest_q
 from facewire.receiver.stats import ReceiveStats
+from facewire.receiver.updates import UpdateFetcher
 
 HELLO_TIMEOUT_S = 1.0
 RECHECK_TIMEOUT_S = 0.5
@@ -343,6 +344,9 @@ class _Session:
         self.playing_since = 0.0  # when the current playout was set up
         self.last_contact = time.monotonic()  # the last control reply or ready loop
         self.stats = ReceiveStats()
+        self.updates: UpdateFetcher | None = None  # the current session's model updates
+        self.base: PersonModel | None = None  # its model file (version 0)
+        self.version = 0  # the model version rendered
         self.started = time.monotonic()
         # the links to the sender: open from here, closed by run() (at once if one fails)
         with contextlib.ExitStack() as links:
@@ -373,6 +377,8 @@ class _Session:
         return self._summary(ended, time.monotonic() - self.started)
 
     def _release(self) -> None:
+        if self.updates is not None:
+            self.updates.close()
         if self.writer is not None:
             with contextlib.suppress(Exception):
                 self.writer.close()  # closed already on a normal end (then no effect)
@@ -430,6 +436,10 @@ class _Session:
             self.scene = None
         if self.scene is None:
             self.scene = StateRenderer(model, *self.size, hello.camera)
+        if self.updates is None or self.updates.base_sha256 != hello.model_sha256:
+            self._start_updates(model)
+        assert self.updates is not None  # just started
+        self.updates.want(hello.model_serial)
         self.scene.hello_camera = hello.camera
         if self.playout is not None:
             self.stats.retire(self.playout, self.played)
@@ -464,7 +474,8 @@ class _Session:
                     wait = _POLL_S if due is None else min(due - now, _POLL_S)
                     self.reader.arrived.wait(wait)
                 line = self.stats.status_line(time.monotonic(), self.playout, self.connect,
-                                              self.reader.last_arrival, self.playing_since)
+                                              self.reader.last_arrival, self.playing_since,
+                                              self.version, self.updates)
                 if line is not None:
                     self.say(line)
         except _End as end:
@@ -515,6 +526,7 @@ class _Session:
         state = self.playout.pop()
         if state.seq is None:
             return
+        self._follow(state.serial)
         if state.arrival_s is None:  # concealed: shown now, written if the stream goes on
             if self.view is not None:
                 self.view(self.scene.render(state), self._live(state))
@@ -550,6 +562,14 @@ class _Session:
         self.stats.counts["hellos"] += 1
         self.hello_due = False
         same_model = hello.model_sha256 == self.hello.model_sha256
+        if same_model and self.updates is not None and self.base is not None:
+            if hello.model_serial < self.updates.fetched:  # a new session of the same model
+                self.say(f"the sender at {self.connect} is at model version "
+                         f"{hello.model_serial}, this receiver at {self.updates.fetched}: "
+                         f"a new session, its updates fetched anew")
+                self._start_updates(self.base)
+                self.scene.set_model(self.base)
+            self.updates.want(hello.model_serial)
         if same_model and hello.rate_hz == self.hello.rate_hz:
             self.hello = hello  # at most another camera: the next frames use it
             self.scene.hello_camera = hello.camera
@@ -562,6 +582,31 @@ class _Session:
             return False
         self._adopt(hello, model)
         return True
+
+    def _start_updates(self, model: PersonModel) -> None:
+        """A new session's updates: fetched from ``model``, its model file (version 0)."""
+        if self.updates is not None:
+            self.stats.retire_updates(self.updates)
+            self.updates.close()
+        self.base, self.version = model, 0
+        self.updates = UpdateFetcher(self.control_endpoint, self.curve, model, self.say)
+
+    def _follow(self, serial: int) -> None:
+        """Render the slot with the model version its packet's Q values refer to: the newest
+        version fetched up to ``serial`` is taken (its changed regions uploaded again); a
+        newer one still on the way leaves the Q clamped to the layers held, counted and
+        said (``receiver.updates``)."""
+        assert self.updates is not None and self.scene is not None and self.playout is not None
+        if serial <= self.version:
+            return
+        self.updates.want(serial)
+        taken = self.updates.take(serial)
+        if taken is not None:
+            model, self.version = taken
+            self.scene.set_model(model)
+            self.playout.rest_q = rest_q(model)
+        if serial > self.version:
+            self.stats.clamped(serial, self.version)
 
     def _note_packet(self, data: bytes, arrival: float) -> None:
         last = self.stats.last_packet
@@ -604,5 +649,6 @@ class _Session:
             **self.stats.summary(self.playout, ended, seconds, self.reader.overflow,
                                  self.control.timeouts, self.control.errors,
                                  self.scene.render_seconds if self.scene else ()),
+            **self.stats.update_summary(self.updates, self.version),
             **self.acquirer.info,
         }

@@ -232,17 +232,10 @@ class FaceRenderer(ContextOwner):
         self._texture.build_mipmaps()
         self._texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         areas = region_areas(model.regions)  # area a is texture unit 1 + a
-        self._volumes = []
-        for i, part in areas:
-            volume = area_volume(texture, part, model.regions[i].opacity)
-            k, h, w, _ = volume.shape
-            array = ctx.texture_array((w, h, k), 4,
-                                      np.ascontiguousarray(volume[:, ::-1], np.float16),
-                                      dtype="f2")
-            array.repeat_x = array.repeat_y = False
-            array.build_mipmaps(max_level=MIP_LEVELS)
-            array.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-            self._volumes.append(array)
+        self._model = model
+        self._areas = [i for i, _ in areas]
+        self._volumes = [self._upload(texture, part, model.regions[i].opacity)
+                         for i, part in areas]
 
         triangles, groups, rects = triangle_groups(mesh.uv, mesh.triangles, areas)
         self.vertex_buffer = ctx.buffer(reserve=self.n_vertices * 12, dynamic=True)
@@ -267,6 +260,57 @@ class FaceRenderer(ContextOwner):
                                    index_buffer=self._indices, index_element_size=4)
             self._groups.append(_Group(vao, 3 * first, 3 * count, program["mvp"],
                                        [(program[f"layer{a}"], areas[a][0]) for a in met]))
+
+    def _upload(self, texture: np.ndarray, area: Area, opacity: tuple[float, ...]) -> Any:
+        """One area's volume (``area_volume``) as a mipmapped float16 2D array texture."""
+        import moderngl
+
+        volume = area_volume(texture, area, opacity)
+        k, h, w, _ = volume.shape
+        array = self._ctx.texture_array((w, h, k), 4,
+                                        np.ascontiguousarray(volume[:, ::-1], np.float16),
+                                        dtype="f2")
+        array.repeat_x = array.repeat_y = False
+        array.build_mipmaps(max_level=MIP_LEVELS)
+        array.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        return array
+
+    def can_update(self, model: PersonModel) -> bool:
+        """Whether ``model`` is this renderer's model with other region states (a version
+        made by ``models.update``: the same mesh, texture, regions' rectangles and draw
+        order), so that ``update_regions`` can take it."""
+        old = self._model
+        return (model.mesh is old.mesh and model.texture is old.texture
+                and len(model.regions) == len(old.regions)
+                and [i for i, _ in region_areas(model.regions)] == self._areas
+                and all(a.uv_rect == b.uv_rect and a.layers.shape[1:] == b.layers.shape[1:]
+                        for r, q in zip(model.regions, old.regions, strict=True)
+                        for a, b in zip(r.parts(), q.parts(), strict=True)))
+
+    @in_context
+    def update_regions(self, model: PersonModel) -> int:
+        """Take a new version of the model (``can_update``): the volumes of the regions that
+        changed (other objects than the current model's) are uploaded again; the number of
+        regions uploaded.
+
+        Raises:
+            RenderError: ``model`` cannot be taken (``can_update``), or the renderer was
+                released.
+        """
+        if self._ctx is None:
+            raise RenderError("update_regions: the renderer was released")
+        if not self.can_update(model):
+            raise RenderError("update_regions: another mesh, texture, region layout or draw "
+                              "order: make a new renderer")
+        changed = {i for i, (new, old) in enumerate(zip(model.regions, self._model.regions,
+                                                         strict=True)) if new is not old}
+        for a, (i, part) in enumerate(region_areas(model.regions)):
+            if i in changed:
+                self._volumes[a].release()
+                self._volumes[a] = self._upload(model.texture, part, model.regions[i].opacity)
+        self._model = model
+        self.layers = tuple(len(r.layers) for r in model.regions)
+        return len(changed)
 
     @in_context
     def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera) -> np.ndarray:

@@ -83,6 +83,18 @@ class StateRenderer:
         self.render_seconds.append(time.perf_counter() - tick)
         return image
 
+    def set_model(self, model: PersonModel) -> None:
+        """Render with another version of the model (``models.update``: the same mesh and
+        texture): the regions that changed are uploaded again, or, when the update changed
+        the draw order, a renderer is made anew."""
+        if self._renderer.can_update(model):
+            self._renderer.update_regions(model)
+        else:
+            renderer = FaceRenderer(model, self.width, self.height)
+            self._renderer.release()
+            self._renderer = renderer
+        self.model = model
+
     def release(self) -> None:
         """Free the renderer's OpenGL context."""
         self._renderer.release()

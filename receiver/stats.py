@@ -13,6 +13,13 @@ rendered: the frame's own time, plus the wait behind a missing slot or a frame s
 rendering, and any backlog of a loop that fell behind), ``render_ms_median`` (morph, view and
 render with readback), ``seconds`` and ``ended``: stop, max_frames or idle_timeout.
 
+Model updates (``update_summary``, ``receiver.updates``): ``model_serial`` (the model version
+rendered last), ``updates`` (applied), ``update_bytes`` (their bytes), ``updates_refused``
+(failed their hash or their decoding), ``update_chunks``, ``update_control_timeouts`` and
+``update_control_errors`` (the update fetcher's channel), ``clamped`` (slots rendered with an
+older version than their packet's, its update still on the way: Q clamped to the layers held).
+The status line says the version rendered and, while slots are clamped, the version they need.
+
 Live statistics (``ReceiveStats.live``, keys ``LIVE_KEYS``: the second argument of a
 receiver's ``view``, and the status line every ``STATUS_EVERY_S``) measure fps and kbit/s
 over the last ``WINDOW_S``: ``fps = frames in the window / WINDOW_S``, ``kbps = 8 bytes in the
@@ -32,11 +39,14 @@ import numpy as np
 
 from facewire.receiver.playout import FrameState, Playout
 from facewire.receiver.scene import STATS_FRAMES
+from facewire.receiver.updates import UpdateFetcher
 
 STATUS_EVERY_S = 1.0
 WINDOW_S = 1.0
 LIVE_KEYS = ("state", "seq", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
              "duplicates", "latency_ms")
+UPDATE_KEYS = ("updates", "update_bytes", "updates_refused", "update_chunks",
+               "update_control_timeouts", "update_control_errors")
 PLAYOUT_KEYS = ("received", "corrupt", "duplicate", "late", "stray", "discarded", "skipped",
                 "restarts")
 
@@ -52,8 +62,11 @@ class ReceiveStats:
     """
 
     def __init__(self) -> None:
-        self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos"), 0)
+        self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos",
+                                     "clamped"), 0)
         self.totals = dict.fromkeys(PLAYOUT_KEYS, 0)
+        self.update_totals = dict.fromkeys(UPDATE_KEYS, 0)
+        self.version = (0, 0)  # (the version rendered, the newest a packet needed)
         self.first_packet: tuple[float, int] | None = None  # arrival, bytes
         self.last_packet: float | None = None
         self.bytes_total = 0
@@ -82,6 +95,26 @@ class ReceiveStats:
             self.latencies.append(latency)
         self.recent_frames.append((now, latency))
         return self.counts["frames"]
+
+    def clamped(self, needed: int, held: int) -> None:
+        """Count a slot whose packet needs model version ``needed``, rendered with ``held``
+        (older: its update is still on the way)."""
+        self.counts["clamped"] += 1
+        self.version = (held, needed)
+
+    def retire_updates(self, fetcher: UpdateFetcher) -> None:
+        """Add a finished session's update counts to the totals."""
+        for key, value in _update_counts(fetcher).items():
+            self.update_totals[key] += value
+
+    def update_summary(self, fetcher: UpdateFetcher | None, version: int) -> dict[str, Any]:
+        """The summary's model update keys (module docstring), ``version`` the model version
+        rendered last."""
+        counts = dict(self.update_totals)
+        if fetcher is not None:
+            for key, value in _update_counts(fetcher).items():
+                counts[key] += value
+        return {"model_serial": version, **counts, "clamped": self.counts["clamped"]}
 
     def retire(self, playout: Playout, played: int) -> None:
         """Add a playout's counts to the totals; of the ``received``, what it neither
@@ -123,7 +156,8 @@ class ReceiveStats:
                 else None}
 
     def status_line(self, now: float, playout: Playout | None, connect: str,
-                    last_arrival: float | None, playing_since: float) -> str | None:
+                    last_arrival: float | None, playing_since: float,
+                    version: int = 0, updates: UpdateFetcher | None = None) -> str | None:
         """The status line while playing, once every ``STATUS_EVERY_S``; None in between.
 
         Args:
@@ -132,6 +166,8 @@ class ReceiveStats:
             connect: the sender's address.
             last_arrival: the last packet's arrival, None before any.
             playing_since: when the current playout was set up.
+            version: the model version rendered.
+            updates: the session's update fetcher, or None.
         """
         if now < self.next_status:
             return None
@@ -141,9 +177,19 @@ class ReceiveStats:
             return f"no packets from {connect} for {quiet:.0f} s: waiting for the sender"
         s = self.live(now, None, playout)
         latency = "-" if s["latency_ms"] is None else f"{s['latency_ms']:.0f} ms"
-        return (f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
+        line = (f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
                 f"lost {s['lost']}, late {s['late']}, corrupt {s['corrupt']}; latency "
                 f"{latency}")
+        if updates is None:
+            return line
+        line += f"; model v{version}, {updates.counts['updates']} updates " \
+            f"({updates.counts['update_bytes'] / 1000:.1f} kB)"
+        held, needed = self.version
+        if needed > version:
+            line += f", packets need v{needed}: Q clamped to v{held}'s layers"
+        if updates.stuck:
+            line += f"; {updates.stuck}"
+        return line
 
     def summary(self, playout: Playout | None, ended: str, seconds: float, overflow: int,
                 control_timeouts: int, control_errors: int,
@@ -190,3 +236,10 @@ class ReceiveStats:
             "render_ms_median": round(float(np.median(renders)), 2) if len(renders) else None,
             "seconds": round(seconds, 2),
         }
+
+
+def _update_counts(fetcher: UpdateFetcher) -> dict[str, int]:
+    """A fetcher's counts under the summary's ``UPDATE_KEYS``."""
+    return {**{key: fetcher.counts[key] for key in UPDATE_KEYS if key in fetcher.counts},
+            "update_control_timeouts": fetcher.control.timeouts,
+            "update_control_errors": fetcher.control.errors}

@@ -1,7 +1,8 @@
-"""Control messages: schema, validation, and chunked, hashed model transfer."""
+"""Control messages: schema, validation, and chunked, hashed model and update transfer."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import msgpack
@@ -11,6 +12,9 @@ import pytest
 from facewire.protocol.control import (
     CHUNK_BYTES,
     MAX_MESSAGE_BYTES,
+    MAX_UPDATE_BYTES,
+    MAX_UPDATE_SERIAL,
+    UPDATE_CHUNK_BYTES,
     Camera,
     ChunkAssembler,
     ControlError,
@@ -19,10 +23,14 @@ from facewire.protocol.control import (
     HelloRequest,
     ModelChunk,
     ModelRequest,
+    UpdateChunk,
+    UpdateRequest,
     decode_message,
     encode_message,
     model_chunks,
+    update_chunks,
 )
+from facewire.protocol.shaper import MAX_MESSAGE_BYTES as SHAPED_MESSAGE_BYTES
 
 SHA = "ab" * 32
 
@@ -38,7 +46,8 @@ def _hello(**over: object) -> Hello:
 
 @pytest.mark.parametrize("message", [
     HelloRequest(), _hello(), ModelRequest(SHA, 3), Error("no such model"),
-    model_chunks(b"x" * 1000, SHA)[0],
+    model_chunks(b"x" * 1000, SHA)[0], _hello(model_serial=2047), UpdateRequest(SHA, 5, 2),
+    update_chunks(b"u" * 3000, SHA, 5)[2],
 ])
 def test_round_trip(message: object) -> None:
     assert decode_message(encode_message(message)) == message
@@ -85,6 +94,9 @@ def _hello_body(**over: object) -> dict:
     ({"regions": ["a"] * 9}, "regions"),
     ({"regions": [1, 2]}, "regions"),
     ({"quantisers": []}, "quantisers"),
+    ({"model_serial": -1}, "model_serial"),
+    ({"model_serial": 2048}, "model_serial"),
+    ({"model_serial": 1.5}, "model_serial"),
 ])
 def test_bad_hello_fields(over: dict, match: str) -> None:
     with pytest.raises(ControlError, match=match):
@@ -148,3 +160,72 @@ def test_chunk_size_consistency() -> None:
         ModelChunk(SHA, 0, 1, 10, b"short", hashlib.sha256(b"short").hexdigest())
     with pytest.raises(ControlError, match="count"):
         ModelChunk(SHA, 0, 5, 10, b"x" * 10, hashlib.sha256(b"x" * 10).hexdigest())
+
+
+def test_a_hello_without_model_serial_is_at_version_0() -> None:
+    body = _hello_body()
+    del body["model_serial"]
+    assert decode_message(msgpack.packb(body, use_bin_type=True)).model_serial == 0
+
+
+def test_update_transfer_in_small_chunks_checked_whole() -> None:
+    data = np.random.default_rng(1).bytes(3 * UPDATE_CHUNK_BYTES + 5)
+    chunks = update_chunks(data, SHA, 7)
+    assert [c.index for c in chunks] == [0, 1, 2, 3] and {c.count for c in chunks} == {4}
+    assert {c.sha256 for c in chunks} == {hashlib.sha256(data).hexdigest()}
+    assembler = ChunkAssembler(chunks[0].sha256, len(data), UPDATE_CHUNK_BYTES, "update 7",
+                               MAX_UPDATE_BYTES)
+    for chunk in reversed(chunks):
+        assembler.add(decode_message(encode_message(chunk)))
+    assert assembler.result() == data
+    # self-consistent chunks naming another whole: refused when put together
+    liar = ChunkAssembler("cd" * 32, len(data), UPDATE_CHUNK_BYTES, "update 7",
+                          MAX_UPDATE_BYTES)
+    for chunk in update_chunks(data, SHA, 7):
+        liar.add(dataclasses.replace(chunk, sha256="cd" * 32))
+    with pytest.raises(ControlError, match="update 7 transfer: the chunks do not hash"):
+        liar.result()
+    with pytest.raises(ControlError, match="another update"):
+        ChunkAssembler(SHA, len(data), UPDATE_CHUNK_BYTES, "update 7",
+                       MAX_UPDATE_BYTES).add(chunks[0])
+    with pytest.raises(ControlError, match="update 3: 0 bytes"):
+        update_chunks(b"", SHA, 3)
+
+
+@pytest.mark.parametrize("over,match", [
+    ({"serial": 0}, "update_chunk.serial"),
+    ({"serial": 2048}, "update_chunk.serial"),
+    ({"total": 0}, "update_chunk.total"),
+    ({"total": MAX_UPDATE_BYTES + 1}, "update_chunk.total"),
+    ({"count": 9}, "update_chunk.count"),
+    ({"index": 4}, "update_chunk.index"),
+    ({"data": b"x" * 10}, "update_chunk.data"),
+    ({"data_sha256": "00" * 32}, "update_chunk.data_sha256"),
+    ({"sha256": "XY"}, "update_chunk.sha256"),
+    ({"model_sha256": 5}, "update_chunk.model_sha256: wrong type"),
+    ({"extra": 1}, "unknown field"),
+])
+def test_bad_update_chunk_fields(over: dict, match: str) -> None:
+    chunk = update_chunks(b"u" * 3000, SHA, 5)[1]
+    body = msgpack.unpackb(encode_message(chunk), raw=False)
+    body.update(over)
+    with pytest.raises(ControlError, match=match):
+        decode_message(msgpack.packb(body, use_bin_type=True))
+
+
+@pytest.mark.parametrize("over,match", [
+    ({"serial": 0}, "update_request.serial"),
+    ({"index": -1}, "update_request.index"),
+    ({"index": 2**40}, "update_request.index"),
+    ({"model_sha256": "ab"}, "update_request.model_sha256"),
+])
+def test_bad_update_request_fields(over: dict, match: str) -> None:
+    body = {"type": "update_request", "model_sha256": SHA, "serial": 1, "index": 0, **over}
+    with pytest.raises(ControlError, match=match):
+        decode_message(msgpack.packb(body, use_bin_type=True))
+
+
+def test_an_update_chunk_fits_the_shaper() -> None:
+    biggest = update_chunks(b"u" * MAX_UPDATE_BYTES, SHA, MAX_UPDATE_SERIAL)[-2]
+    assert isinstance(biggest, UpdateChunk)
+    assert len(encode_message(biggest)) <= SHAPED_MESSAGE_BYTES
