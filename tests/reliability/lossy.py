@@ -8,7 +8,9 @@ damages the packet stream on purpose:
   (its ordinal);
 - control: a ROUTER bound at ``control_endpoint(out)`` and a DEALER connected to
   ``control_endpoint(inp)``, passing requests and replies through unchanged (the Hello and
-  the model always get through: only the packets are damaged).
+  the model always get through: only the packets are damaged), unless ``replies`` is given:
+  each reply's frames (routing identity, empty delimiter, body) pass through it, and what it
+  returns is forwarded (None: the reply is lost).
 
 Random faults, drawn from ``numpy.random.default_rng(seed)``: each ``Faults`` applies to the
 arrivals whose ordinal lies in ``[start, stop)``, drawing one uniform ``u`` per arrival (so a
@@ -41,7 +43,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,17 +115,20 @@ class LossyRelay(threading.Thread):
         bursts: arrival ordinal -> seconds of dropping everything from that arrival on.
         stalls: arrival ordinal -> seconds of holding everything from that arrival on.
         flush_s: forward the packets held for reordering after this long without arrivals.
+        replies: the control replies' fault (module docstring), or None.
     """
 
     def __init__(self, inp: str, out: str, seed: int = 0, faults: Sequence[Faults] = (),
                  bursts: Mapping[int, float] | None = None,
-                 stalls: Mapping[int, float] | None = None, flush_s: float = 0.1) -> None:
+                 stalls: Mapping[int, float] | None = None, flush_s: float = 0.1,
+                 replies: Callable[[list[bytes]], list[bytes] | None] | None = None) -> None:
         super().__init__(daemon=True, name="lossy relay")
         self.inp, self.out = inp, out
         self.faults = tuple(faults)
         self.pauses = {n: (s, False) for n, s in (bursts or {}).items()}
         self.pauses.update({n: (s, True) for n, s in (stalls or {}).items()})
         self.flush_s = flush_s
+        self.replies = replies
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._arrived = 0
@@ -199,7 +204,11 @@ class LossyRelay(threading.Thread):
                 if router in ready:
                     dealer.send_multipart(router.recv_multipart())
                 if dealer in ready:
-                    router.send_multipart(dealer.recv_multipart())
+                    reply: list[bytes] | None = dealer.recv_multipart()
+                    if self.replies is not None:
+                        reply = self.replies(reply)
+                    if reply is not None:
+                        router.send_multipart(reply)
                 if sub in ready:
                     self._arrive(sub.recv())
                 self._timers()
