@@ -9,7 +9,7 @@ hello_request  -
 hello          protocol (int), model_sha256 (str, 64 hex), model_bytes (int), rate_hz
                (float), camera (map: fx, fy, cx, cy (float), width, height (int)), regions
                (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``),
-               model_serial (int, 0 .. ``MAX_UPDATE_SERIAL``; optional, default 0)
+               model_serial (int, 0 .. ``MAX_SERIAL``; optional, default 0)
 model_request  sha256 (str), index (int): ask for one chunk of the model file
 model_chunk    sha256 (str), index, count, total (int), data (bin), data_sha256 (str)
 update_request model_sha256 (str), serial, index (int): ask for one chunk of model update
@@ -56,7 +56,7 @@ from typing import Any, ClassVar
 import msgpack
 
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.packet import N_REGIONS, VERSION, quantiser_table
+from facewire.protocol.packet import MAX_SERIAL, N_REGIONS, VERSION, quantiser_table
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ
 
 CHUNK_BYTES = 256 * 1024
@@ -64,7 +64,6 @@ MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
 UPDATE_CHUNK_BYTES = 1024
 MAX_UPDATE_BYTES = 1024 * 1024  # models.update.MAX_UPDATE_BYTES: an update's bytes
-MAX_UPDATE_SERIAL = 2047  # the packet's 11-bit serial; models.update.MAX_SERIAL is this one
 MAX_TEXT_CHARS = 1000
 # The camera's bounds, the one set (models.geometry.Intrinsics takes them from here).
 MAX_FOCAL_PX = 1e6
@@ -151,8 +150,8 @@ class Hello:
         _require(list(self.quantisers) == quantiser_table(),
                  f"hello.quantisers: do not match this receiver's protocol version {VERSION} "
                  "table")
-        _require(0 <= self.model_serial <= MAX_UPDATE_SERIAL,
-                 f"hello.model_serial: must be in [0, {MAX_UPDATE_SERIAL}]")
+        _require(0 <= self.model_serial <= MAX_SERIAL,
+                 f"hello.model_serial: must be in [0, {MAX_SERIAL}]")
 
 
 @dataclass(frozen=True)
@@ -202,8 +201,8 @@ class UpdateRequest:
     def __post_init__(self) -> None:
         _require(bool(_HEX64.fullmatch(self.model_sha256)),
                  "update_request.model_sha256: not 64 hex digits")
-        _require(1 <= self.serial <= MAX_UPDATE_SERIAL,
-                 f"update_request.serial: must be in [1, {MAX_UPDATE_SERIAL}]")
+        _require(1 <= self.serial <= MAX_SERIAL,
+                 f"update_request.serial: must be in [1, {MAX_SERIAL}]")
         _require(0 <= self.index < MAX_UPDATE_BYTES // UPDATE_CHUNK_BYTES,
                  "update_request.index: out of range")
 
@@ -227,8 +226,8 @@ class UpdateChunk:
         for name in ("model_sha256", "sha256"):
             _require(bool(_HEX64.fullmatch(getattr(self, name))),
                      f"update_chunk.{name}: not 64 hex digits")
-        _require(1 <= self.serial <= MAX_UPDATE_SERIAL,
-                 f"update_chunk.serial: must be in [1, {MAX_UPDATE_SERIAL}]")
+        _require(1 <= self.serial <= MAX_SERIAL,
+                 f"update_chunk.serial: must be in [1, {MAX_SERIAL}]")
         _require(0 < self.total <= MAX_UPDATE_BYTES,
                  f"update_chunk.total: must be in [1, {MAX_UPDATE_BYTES}]")
         _require(self.count == math.ceil(self.total / UPDATE_CHUNK_BYTES),

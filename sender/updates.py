@@ -5,7 +5,7 @@ A model update (``models.update``) is issued once, with serial n = the previous 
 receiver joining late, or restarted, fetches every one of them in order
 (``protocol.control``: ``update_request`` -> ``update_chunk``). Its bytes are opaque here
 (``models.update``'s format); they are split once into ``protocol.control.update_chunks``.
-At most ``protocol.control.MAX_UPDATE_SERIAL`` updates a session (the packet's serial field).
+At most ``protocol.packet.MAX_SERIAL`` updates a session (the packet's serial field).
 
 ``publish_update`` may be called from any thread (the frame loop issues updates while the
 control thread serves them); the newest serial is what the Hello's ``model_serial`` says.
@@ -16,12 +16,12 @@ from __future__ import annotations
 import threading
 
 from facewire.protocol.control import (
-    MAX_UPDATE_SERIAL,
     ControlError,
     UpdateChunk,
     UpdateRequest,
     update_chunks,
 )
+from facewire.protocol.packet import MAX_SERIAL
 
 
 class UpdateStore:
@@ -47,16 +47,16 @@ class UpdateStore:
         """Hold update ``serial`` (its bytes, ``models.update.encode_update``) to serve.
 
         Raises:
-            ControlError: ``serial`` is not the next one, past ``MAX_UPDATE_SERIAL``, or the
+            ControlError: ``serial`` is not the next one, past ``MAX_SERIAL``, or the
                 bytes are empty or over ``protocol.control.MAX_UPDATE_BYTES``.
         """
         with self._lock:
             if serial != len(self._chunks) + 1:
                 raise ControlError(f"update {serial}: the next update's serial is "
                                    f"{len(self._chunks) + 1}")
-            if serial > MAX_UPDATE_SERIAL:
+            if serial > MAX_SERIAL:
                 raise ControlError(f"update {serial}: a session holds at most "
-                                   f"{MAX_UPDATE_SERIAL} updates")
+                                   f"{MAX_SERIAL} updates")
             self._chunks.append(update_chunks(bytes(data), self.model_sha256, serial))
             self.bytes_total += len(data)
 

@@ -13,7 +13,6 @@ from facewire.protocol.control import (
     CHUNK_BYTES,
     MAX_MESSAGE_BYTES,
     MAX_UPDATE_BYTES,
-    MAX_UPDATE_SERIAL,
     UPDATE_CHUNK_BYTES,
     Camera,
     ChunkAssembler,
@@ -30,6 +29,7 @@ from facewire.protocol.control import (
     model_chunks,
     update_chunks,
 )
+from facewire.protocol.packet import MAX_SERIAL
 from facewire.protocol.shaper import MAX_MESSAGE_BYTES as SHAPED_MESSAGE_BYTES
 
 SHA = "ab" * 32
@@ -227,6 +227,6 @@ def test_bad_update_request_fields(over: dict, match: str) -> None:
 
 
 def test_an_update_chunk_fits_the_shaper() -> None:
-    biggest = update_chunks(b"u" * MAX_UPDATE_BYTES, SHA, MAX_UPDATE_SERIAL)[-2]
+    biggest = update_chunks(b"u" * MAX_UPDATE_BYTES, SHA, MAX_SERIAL)[-2]
     assert isinstance(biggest, UpdateChunk)
     assert len(encode_message(biggest)) <= SHAPED_MESSAGE_BYTES
