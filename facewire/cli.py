@@ -83,7 +83,9 @@ def _send(args: argparse.Namespace) -> int:
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers",
                f"model {s['model_sha256'][:16]}... ({s['model_bytes']} bytes, "
-               f"{s['model_chunks']} chunks); stopped: {s['stopped']}"
+               f"{s['model_chunks']} chunks), {s['updates']} model updates "
+               f"({s['update_bytes_total']} bytes; {s['control']['update_bytes']} bytes of "
+               f"update chunks served); stopped: {s['stopped']}"
                + (f"; log: {s['log']}" if s["log"] else "")], args.json)
     return 0
 
@@ -127,7 +129,10 @@ def _receive(args: argparse.Namespace) -> int:
                f"model {s['model_sha256'][:16]}... ({s['model_source']}"
                + (f", {s['model_bytes']} bytes in {s['model_fetch_s']} s" if s["model_fetch_s"]
                   else "") + ")"
-               + (f"; wrote {s['out']}" if s["out"] else "") + f"; ended: {s['ended']}"],
+               + (f"; wrote {s['out']}" if s["out"] else "") + f"; ended: {s['ended']}",
+               f"model version {s['model_serial']}: {s['updates']} updates applied "
+               f"({s['update_bytes']} bytes), {s['updates_refused']} refused; {s['clamped']} "
+               f"slots rendered before their update came (Q clamped)"],
            args.json)
     return 0
 

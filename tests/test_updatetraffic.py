@@ -1,0 +1,31 @@
+"""Update traffic measured on loopback sockets (``bench.updatetraffic``): the sender's real
+control thread shapes what a greedy receiver fetches to the limits, and the figures say so."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facewire.bench.updatetraffic import update_traffic
+from facewire.protocol.control import Camera, Hello
+from facewire.protocol.shaper import LIMIT_KBPS_1S, LIMIT_KBPS_60S
+
+HELLO = Hello(model_sha256="ab" * 32, model_bytes=1000, rate_hz=30.0,
+              camera=Camera(600.0, 600.0, 319.5, 239.5, 640, 480), regions=("mouth",))
+
+
+def test_two_updates_are_fetched_within_the_limits_and_measured() -> None:
+    rng = np.random.default_rng(0)
+    updates = [(10.0, rng.bytes(5000)), (10.5, rng.bytes(3000))]
+    result = update_traffic(updates, HELLO)
+    assert result["updates"] == 2 and result["update_bytes_total"] == 8000
+    assert result["update_message_bytes_total"] > 8000  # the chunks' fields
+    assert 0.5 * LIMIT_KBPS_1S < result["update_kbps_max_1s"] <= LIMIT_KBPS_1S
+    assert result["update_kbps_max_60s"] <= LIMIT_KBPS_60S and result["update_under_limits"]
+    # 5000 bytes in 5 chunks of ~1.3 kB: the first at once, the rest at 2.4 kB/s
+    assert 1.5 < result["update_first_s"] < 3.0
+
+
+def test_no_updates_no_traffic() -> None:
+    result = update_traffic([], HELLO)
+    assert result["update_bytes_total"] == 0 and result["update_kbps_max_1s"] == 0.0
+    assert result["update_first_s"] is None and result["update_under_limits"]
