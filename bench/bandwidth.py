@@ -25,16 +25,24 @@ rate its Hello announces). The 12 kbit/s budget
 (``protocol.rate.PAYLOAD_LIMIT_KBPS``) applies to the payload, as in the paper:
 ``payload_kbps_max_1s`` >= 12 exits 1. A 30 Hz stream is 10.32 kbit/s; 35 packets in one
 second are 12.04 kbit/s and fail.
+
+Model updates travel beside the packets, on the control channel. Their traffic is measured on
+real loopback sockets by ``bench.updatetraffic`` (the sender's control thread serving them at
+their issue times, one receiver fetching them): ``update_bytes_total``, ``update_kbps_max_1s``,
+``update_kbps_max_60s`` (limits 32 and 8 kbit/s, ``protocol.shaper``), ``update_first_s``; a
+session without updates has none (zeros).
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from facewire.bench.updatetraffic import update_traffic
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.rate import PAYLOAD_LIMIT_KBPS, kbps
@@ -68,15 +76,20 @@ def rates(rate_hz: float) -> dict[str, float]:
             "ip_kbps": kbps(plain + IP_TCP_OVERHEAD, rate_hz)}
 
 
-def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None = None
-              ) -> tuple[dict[str, Any], list[str]]:
+def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None = None,
+              updates: Sequence[tuple[float, bytes]] = ()) -> tuple[dict[str, Any], list[str]]:
     """Measure and judge a packet log (module docstring).
+
+    Args:
+        log: the packet log.
+        plot: a PNG to draw the rates into, or None.
+        updates: the session's model updates, (issue time s, bytes) in serial order.
 
     Returns:
         The summary (``frames``, ``rate_hz``, ``packet_bytes``, ``payload_kbps``,
         ``wire_kbps``, ``wire_kbps_curve``, ``ip_kbps``, the same four with ``_max_1s``,
-        ``packets_max_1s``, ``limit_kbps``, ``limit_applies_to``, ``under_limit``, ...) and
-        the report's lines.
+        ``packets_max_1s``, ``limit_kbps``, ``limit_applies_to``, ``under_limit``, the update
+        traffic's keys (``bench.updatetraffic.update_traffic``), ...) and the report's lines.
 
     Raises:
         LogError: the log cannot be read (names the file and field).
@@ -117,6 +130,14 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         f"payload (as in the paper); worst 1-s payload {peak['payload_kbps']:.2f} kbit/s is "
         f"{'under' if under else 'at or over'} it",
     ]
+    traffic = update_traffic(updates, data.hello)
+    summary.update(traffic)
+    lines.insert(-1, f"model updates: {traffic['updates']} ({traffic['update_bytes_total']} "
+                 f"bytes), measured on loopback: worst 1 s "
+                 f"{traffic['update_kbps_max_1s']:.2f} kbit/s (limit "
+                 f"{traffic['update_limit_kbps_1s']:g}), worst 60 s "
+                 f"{traffic['update_kbps_max_60s']:.2f} kbit/s (limit "
+                 f"{traffic['update_limit_kbps_60s']:g})")
     if plot is not None:
         _plot(data.times, Path(plot))
         lines.append(f"plot: {plot}")
