@@ -21,6 +21,18 @@ Session
 Control requests follow ZeroMQ's "lazy pirate" pattern (``receiver.acquire.ControlChannel``):
 one at a time, each with a timeout, the socket reopened after a timeout or a bad reply.
 
+Model updates (``receiver.updates``): once a model is adopted, a thread of its own (with its
+own control socket) fetches the session's updates up to the newest serial the Hello or a
+packet names, in order, verified and applied. Each slot is rendered with the newest version
+fetched that is no newer than its packet's serial (``FrameState.serial``): a version is taken
+at the first packet that refers to it (the changed regions uploaded again,
+``StateRenderer.set_model``; the playout's rest Q follows it), and a slot whose version is
+still on the way is rendered with the layers held, its Q clamped, counted (``clamped``) and
+said on the status line. A Hello rechecked after a restart whose ``model_serial`` is below the
+receiver's version starts the updates anew from the model file (a new session of the same
+model; a restarted sender that has already issued more updates than the receiver holds is
+not told apart: the Hello carries no session identity).
+
 Threads, packets and playing on arrival
 ---------------------------------------
 Two threads, so that the network never waits for rendering nor rendering for the network:
@@ -89,9 +101,10 @@ try waits at most ``RECHECK_TIMEOUT_S``).
 Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
 counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
 
-Size: this module is over 600 lines because the docstring above states the whole session's
-contract (about 90 lines) beside about 510 lines of code that keep it; model acquisition
-and the statistics already live apart (``receiver.acquire``, ``receiver.stats``).
+Size: this module is over 650 lines because the docstring above states the whole session's
+contract (about 105 lines) beside about 560 lines of code that keep it; model acquisition,
+the model updates and the statistics already live apart (``receiver.acquire``,
+``receiver.updates``, ``receiver.stats``).
 """
 
 from __future__ import annotations

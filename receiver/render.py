@@ -61,6 +61,13 @@ bounding box, so the result is the same as compositing every region everywhere. 
 share the one vertex buffer and one index buffer (``models.draworder``: sorted by group,
 keeping the mesh's order within a group; the model's preview draws in the same order).
 
+Model updates (``models.update``). A new version of the model has the same mesh, texture and
+region rectangles and more (or other) states in one region: ``update_regions`` uploads that
+region's volumes again (k may have grown) and keeps the rest, unless the draw order changed
+(a region gained a transparent state), when the caller makes a new renderer
+(``receiver.scene.StateRenderer.set_model``). On llvmpipe an upload costs 7-19 ms, against
+12 ms for a 640 x 480 frame.
+
 Draw order. A region whose layers are all opaque (every opacity 1) is composited before the
 regions with a transparent state, each set in the model's (packet) order: the eyeballs'
 gaze goes first and the eyelids over it, so an open lid shows the gaze and a closing lid

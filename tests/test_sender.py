@@ -109,7 +109,8 @@ def test_live_sender_serves_the_hello_the_model_and_every_packet(
     assert result["face_frames"] >= 70
     # paced to real time: never faster (a loaded machine may make it slower, never by much)
     assert 0.95 * 77 / 25 <= result["seconds"] < 3 * 77 / 25
-    assert result["control"] == {"hello_requests": 2, "chunk_requests": count, "errors": 4}
+    assert result["control"] == {"hello_requests": 2, "chunk_requests": count,
+                                 "update_requests": 0, "update_bytes": 0, "errors": 4}
     assert result["receivers_max"] == 2 and statuses and statuses[-1]["receivers"] == 1
     assert {"fps", "payload_kbps", "face", "receivers"} <= statuses[-1].keys()
     assert left_at is not None and len(received) > left_at + 30  # the sender went on

@@ -385,6 +385,7 @@ def test_the_sender_answers_every_bad_request_with_an_error_and_keeps_streaming(
     assert not thread.is_alive() and "error" not in result, result.get("error")
     assert result["stopped"] == "stop"
     assert result["control"] == {"hello_requests": 4, "chunk_requests": count,
+                                 "update_requests": 0, "update_bytes": 0,
                                  "errors": errors}, (result["control"], errors)
 
 
