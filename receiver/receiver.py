@@ -582,6 +582,8 @@ class _Session:
                          f"a new session, its updates fetched anew")
                 self._start_updates(self.base)
                 self.scene.set_model(self.base)
+                if self.playout is not None:
+                    self.playout.rest_q = rest_q(self.base)
             self.updates.want(hello.model_serial)
         if same_model and hello.rate_hz == self.hello.rate_hz:
             self.hello = hello  # at most another camera: the next frames use it

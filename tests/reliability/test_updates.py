@@ -294,3 +294,35 @@ def test_fuzzed_update_messages_never_break_either_side(stream: dict[str, Any]) 
         if isinstance(message, UpdateChunk):  # whatever decodes is a consistent chunk
             assert len(message.data) == min(1024, message.total - 1024 * message.index)
     assert answered == 20_000 and refused > 10_000 and decoded > 100
+
+
+def test_a_restarted_sender_of_the_same_model_starts_the_updates_anew(
+        stream: dict[str, Any], tmp_path: Path) -> None:
+    data = stream["data"]
+    other, _ = session_updates(stream["model"], 1, regions=("brow_furrow",))
+    port = free_port_pair()
+    go = threading.Event()
+    first = UpdateSender(port, stream["hello"], stream["path"].read_bytes(),
+                         stream["log"].packets, 90, {5: data[0], 10: data[1]}, go,
+                         UpdateShaper(FAST))
+    lines: list[str] = []
+    thread, stop, result = start(receive, connect=f"tcp://127.0.0.1:{port}",
+                                 model_path=stream["path"], size=SIZE, cache_dir=tmp_path,
+                                 ready=go, status=lines.append)
+    try:
+        assert go.wait(60) and first.done.wait(20)
+        _wait(lambda: any("model v2" in line for line in lines), 10, "version 2 not shown")
+        first.stop()
+        second = UpdateSender(port, stream["hello"], stream["path"].read_bytes(),
+                              stream["log"].packets, 90, {30: other[0]}, None,
+                              UpdateShaper(FAST))
+        assert second.done.wait(20)
+        time.sleep(0.5)
+        second.stop()
+    finally:
+        first.stop()
+        stop.set()
+        thread.join(30)
+    assert "error" not in result, result.get("error")
+    assert any("a new session, its updates fetched anew" in line for line in lines), lines
+    assert result["updates"] == 3 and result["model_serial"] == 1
