@@ -27,6 +27,7 @@ from facewire.protocol.control import (
     HelloRequest,
     UpdateChunk,
     UpdateRequest,
+    decode_message,
     encode_message,
 )
 from facewire.protocol.packet import Flag
@@ -35,7 +36,7 @@ from facewire.protocol.transport import ControlClient, ControlServer, control_en
 from facewire.receiver.playout import FrameState
 from facewire.receiver.scene import StateRenderer
 from facewire.receiver.updates import UpdateFetcher
-from facewire.sender.responder import Responder, answer_request
+from facewire.sender.responder import MAX_HELD_PER_PEER, Responder, answer_request
 from facewire.sender.updates import UpdateStore
 
 SIZE = (160, 120)
@@ -156,3 +157,28 @@ def test_the_fetcher_gets_every_update_in_order(session) -> None:
     assert fetcher.counts["updates"] == 3 and fetcher.counts["updates_refused"] == 0
     assert fetcher.counts["update_bytes"] == sum(map(len, data))
     assert sum("fetched" in line for line in lines) == 3
+
+
+def test_a_receiver_asking_too_many_chunks_at_once_is_told_to_ask_one_at_a_time(session
+                                                                                ) -> None:
+    model, data, _ = session
+    endpoint = free_endpoint()
+    server = _Server(endpoint, model, data[:1], UpdateShaper())
+    client = ControlClient(control_endpoint(endpoint))
+    try:
+        # all at once, without waiting: the first goes out at once (the buckets are full),
+        # the next MAX_HELD_PER_PEER are held, the last is refused
+        for index in range(MAX_HELD_PER_PEER + 2):
+            client.socket.send_multipart(
+                [b"", encode_message(UpdateRequest(model.sha256, 1, index % 4))])
+        replies = [decode_message(client.socket.recv_multipart()[-1])
+                   for _ in range(MAX_HELD_PER_PEER + 2)
+                   if client.socket.poll(5000)]
+    finally:
+        client.close()
+        server.close()
+    errors = [r for r in replies if isinstance(r, Error)]
+    assert len(errors) == 1 and "ask one at a time" in errors[0].message
+    assert [r.index for r in replies if isinstance(r, UpdateChunk)] == \
+        [index % 4 for index in range(MAX_HELD_PER_PEER + 1)]
+    assert server.responder.counts["errors"] == 1
