@@ -241,5 +241,5 @@ class ReceiveStats:
 def _update_counts(fetcher: UpdateFetcher) -> dict[str, int]:
     """A fetcher's counts under the summary's ``UPDATE_KEYS``."""
     return {**{key: fetcher.counts[key] for key in UPDATE_KEYS if key in fetcher.counts},
-            "update_control_timeouts": fetcher.control.timeouts,
-            "update_control_errors": fetcher.control.errors}
+            "update_control_timeouts": fetcher.control_counts[0],
+            "update_control_errors": fetcher.control_counts[1]}

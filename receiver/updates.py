@@ -33,7 +33,8 @@ with the newest ones held (``FaceRenderer`` clamps each Q to [0, k - 1]).
 
 Counts (``counts``): ``updates`` (applied), ``update_bytes`` (their bytes), ``updates_refused``
 (failed the hash or the decoding), ``update_chunks``; ``control_timeouts``,
-``control_errors`` are the fetcher's channel's.
+``control_errors`` are the fetcher's channel's (``control_counts``), a control socket opened
+at the first fetch (a stream without updates opens none).
 """
 
 from __future__ import annotations
@@ -94,7 +95,8 @@ class UpdateFetcher:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closing = threading.Event()
-        self.control = ControlChannel(endpoint, curve)
+        self._endpoint, self._curve = endpoint, curve
+        self._control: ControlChannel | None = None  # opened by the thread at its first fetch
         self._thread = threading.Thread(target=self._run, name="facewire updates",
                                         daemon=True)
         self._thread.start()
@@ -122,7 +124,15 @@ class UpdateFetcher:
         self._closing.set()
         self._wake.set()
         self._thread.join()
-        self.control.close()
+        if self._control is not None:
+            self._control.close()
+
+    @property
+    def control_counts(self) -> tuple[int, int]:
+        """The fetcher's control channel's timeouts and refused replies."""
+        if self._control is None:
+            return 0, 0
+        return self._control.timeouts, self._control.errors
 
     # -- the fetcher's thread --------------------------------------------------------------
 
@@ -193,20 +203,23 @@ class UpdateFetcher:
         """Chunk ``index`` of update ``serial`` (of the same whole as ``assembler``'s);
         None after ``CHUNK_ATTEMPTS`` tries or when closing."""
         request = UpdateRequest(self.base_sha256, serial, index)
+        if self._control is None:
+            self._control = ControlChannel(self._endpoint, self._curve)
+        control = self._control
         for _ in range(CHUNK_ATTEMPTS):
             if self._closing.is_set():
                 return None
-            chunk = self.control.ask(request, UpdateChunk, CHUNK_TIMEOUT_S)
+            chunk = control.ask(request, UpdateChunk, CHUNK_TIMEOUT_S)
             if chunk is None:
                 continue
             whole = (assembler.sha256, assembler.total) if assembler is not None else \
                 (chunk.sha256, chunk.total)
             if (chunk.model_sha256, chunk.serial, chunk.index, chunk.sha256, chunk.total) != \
                     (self.base_sha256, serial, index, *whole):
-                self.control.reject(f"update_chunk {chunk.index} of update {chunk.serial} "
+                control.reject(f"update_chunk {chunk.index} of update {chunk.serial} "
                                     f"for chunk {index} of update {serial}")
                 continue
             return chunk
         self.say(f"update {serial}: chunk {index} failed {CHUNK_ATTEMPTS} times "
-                 f"({self.control.last_error or 'no answer'}); asking again")
+                 f"({control.last_error or 'no answer'}); asking again")
         return None
