@@ -84,9 +84,15 @@ class StateRenderer:
         return image
 
     def set_model(self, model: PersonModel) -> None:
-        """Render with another version of the model (``models.update``: the same mesh and
-        texture): the regions that changed are uploaded again, or, when the update changed
-        the draw order, a renderer is made anew."""
+        """Render with another version of the model (``models.update``: the same mesh, so the
+        same rig): the regions that changed are uploaded again, or, when the update changed
+        more (the draw order, the texture), a renderer is made anew.
+
+        Raises:
+            RenderError: ``model``'s mesh is not this renderer's.
+        """
+        if model.mesh is not self.model.mesh:
+            raise RenderError("model: a version of another mesh; make a new StateRenderer")
         if self._renderer.can_update(model):
             self._renderer.update_regions(model)
         else:
