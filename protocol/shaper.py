@@ -18,7 +18,7 @@ most ``b_i + r_i T`` bytes, so:
 
 A receiver fetching continuously gets about 2.4 kB/s for the first 7 s (the deep bucket's
 17 kB), then 700 B/s. A message may not exceed the smallest depth (``MAX_MESSAGE_BYTES``):
-an update chunk is at most ``protocol.control.UPDATE_CHUNK_BYTES`` of data plus about 330
+an update chunk is at most ``protocol.control.UPDATE_CHUNK_BYTES`` of data plus about 290
 bytes of fields. A receiver's buckets are forgotten once full again (a new receiver starts
 full, so nothing is lost).
 
