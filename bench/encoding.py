@@ -3,7 +3,7 @@
 ``encode_frames`` runs ``sender.pipeline.SenderPipeline`` over the frames in order (or each
 frame as a stream of its own, ``independent``) and keeps, besides each frame's packet, what
 the measures need (``Run``): the tracker's 68 points, the frame itself, the mean grey level
-of the landmarks' box, the regions' enrollment cues (``sender.enroll.layers.region_cues``)
+of the landmarks' box, the regions' enrollment cues (``sender.cues.region_cues``)
 and the eye aspect ratios, and a crop of the eyes for the plots. ``decode_run`` decodes the
 packets with ``protocol.packet.decode_frames``, so a measurement sees only what a receiver
 sees; every packet must be ``PACKET_BYTES`` long and decode. ``bench quality`` and the
@@ -23,7 +23,7 @@ from facewire.models.infra.video import VideoFrame
 from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.regions import REGION_NAMES
 from facewire.protocol.packet import PACKET_BYTES, decode_frames
-from facewire.sender.enroll.layers import region_cues
+from facewire.sender.cues import region_cues
 from facewire.sender.pipeline import SenderPipeline
 
 

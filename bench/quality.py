@@ -71,7 +71,7 @@ and the mean, standard deviation, minimum and maximum of the decoded Q over the 
 frames; ``brightness_r``, the correlation of Q with the mean grey level of the face's
 landmark box (lighting should not move Q: near 0 on a clip whose light changes); and
 ``cue_r``, the correlation of Q with the landmark or image cue that ordered the region's
-states at enrollment (``sender.enroll.layers.region_cues``: brow raise, brow convergence, minus
+states at enrollment (``sender.cues.region_cues``: brow raise, brow convergence, minus
 the eye aspect ratio, the iris position across the eyeball sample on open-eyed frames, the
 inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
 frames the model was not built from, ``cue_r`` says how well the appearance alone recovers

@@ -74,14 +74,16 @@ def _send(args: argparse.Namespace) -> int:
         while banner:
             print(banner.pop(), file=sys.stderr)
         return (f"{t['seconds']:7.1f} s  {t['fps']:5.1f} fps  {t['payload_kbps']:5.2f} "
-                f"kbit/s  face {'yes' if t['face'] else 'no '}  receivers {t['receivers']}")
+                f"kbit/s  face {'yes' if t['face'] else 'no '}  receivers {t['receivers']}  "
+                f"updates {t['updates']}")
 
     with _StatusLine(status) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
-                 status=line, loop=args.loop)
+                 status=line, loop=args.loop, learn=not args.no_learn)
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
-               f"kbit/s payload, at most {s['receivers_max']} receivers",
+               f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
+               f"updates learned",
                f"model {s['model_sha256'][:16]}... ({s['model_bytes']} bytes, "
                f"{s['model_chunks']} chunks); stopped: {s['stopped']}"
                + (f"; log: {s['log']}" if s["log"] else "")], args.json)
@@ -452,12 +454,15 @@ def _encode(args: argparse.Namespace) -> int:
     from facewire.sender.pipeline import encode_video
 
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
-                     focal=args.focal, calib=args.calib, progress=_progress)
+                     focal=args.focal, calib=args.calib, progress=_progress,
+                     learn=not args.no_learn)
     report(s, [f"log:      {s['log']}",
                f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
                f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
                f"flags:    {s['clamped']} frames clamped ({s['clamped_values']} values), "
                f"{s['held']} held, {s['mirrored']} mirrored, {s['tracking_lost']} tracking lost",
+               f"learned:  {s['updates']} model updates"
+               + (f" ({', '.join(s['update_regions'])})" if s["update_regions"] else ""),
                f"time:     {s['seconds']} s"], args.json)
     return 0
 
@@ -575,6 +580,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "encrypt, and admit only the receivers in DIR/authorized")
+    _add_no_learn(s)
     _add_json(s)
     s.set_defaults(run=_send)
 
@@ -597,6 +603,14 @@ def _add_send_receive(sub: Commands) -> None:
     r.set_defaults(run=_receive)
 
 
+def _add_no_learn(parser: argparse.ArgumentParser) -> None:
+    """``--no-learn``: the sender's learning (on by default) turned off."""
+    parser.add_argument("--no-learn", action="store_true", help="do not learn: by default "
+                        "an appearance the model lacks (a new expression held for a moment) "
+                        "is captured as a model update, a new state of that region, for the "
+                        "receivers; with --no-learn the model stays as its file")
+
+
 def _add_encode_replay(sub: Commands) -> None:
     """``encode`` (a video into a packet log) and ``replay`` (a packet log into a video)."""
     e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
@@ -607,6 +621,7 @@ def _add_encode_replay(sub: Commands) -> None:
     e.add_argument("--focal", type=float, help="camera focal length in pixels (default: "
                    "estimated from the image width)")
     e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
+    _add_no_learn(e)
     _add_json(e)
     e.set_defaults(run=_encode)
 
