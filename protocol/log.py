@@ -7,11 +7,11 @@ offset    size     content
 ========  =======  ===============================================================
 0         8        magic ``b"\\x89FWLOG\\r\\n"``
 8         2        log format version (1)
-10        2        packet size in bytes (39 for protocol version 1)
+10        2        packet size in bytes (43 for protocol version 2)
 12        4        Hello length L (at most 64 KiB)
 16        L        the Hello, as its msgpack control message
 16+L      4        CRC-32 of bytes 0 .. 16+L
-20+L      51 each  records: f64 time (s, Unix epoch), the packet, CRC-32 of both
+20+L      55 each  records: f64 time (s, Unix epoch), the packet, CRC-32 of both
 ========  =======  ===============================================================
 
 The writer writes the header and then every record straight to the file (no user-space
@@ -23,6 +23,10 @@ searching forward byte by byte for the next intact one (trying only the offsets 
 packet's first byte, version and reserved flag bits, fits), so inserted or deleted bytes
 cost only the records they touch. It reports how many records were lost: each run of unusable
 bytes counts as its length in records, rounded, and at least one.
+
+A log written by another protocol version is refused at its header with one line naming the
+version: its packet size says which (39 bytes: version 1), and a log whose size matches but
+whose Hello announces another protocol is refused by the Hello's check of its version.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ RECORD_BYTES = _TIME.size + PACKET_BYTES + 4
 # bits are 0: the re-synchronising search tries only the offsets where that byte fits.
 _FIRST_MASK = 0xF0 | (RESERVED_FLAGS >> 4)
 _FIRST_BYTE = VERSION << 4
+_PACKET_VERSIONS = {39: 1, PACKET_BYTES: VERSION}  # packet size -> protocol version
 
 
 class LogError(FacewireError, ValueError):
@@ -65,7 +70,7 @@ class PacketLog:
     Attributes:
         hello: the session's Hello.
         times: (N,) float64 record times, s.
-        packets: (N, 39) uint8 intact packets, in file order.
+        packets: (N, 43) uint8 intact packets, in file order.
         frames: (N,) ``FRAME_DTYPE``, the decoded packets.
         lost: records that could not be recovered (corrupt or cut off).
     """
@@ -142,7 +147,10 @@ def _read_header(path: Path, data: bytes) -> tuple[Hello, int]:
         raise LogError(f"{path}: header.version: log format {version} is not supported "
                        f"(this facewire reads {FORMAT_VERSION})")
     if packet_bytes != PACKET_BYTES:
-        raise LogError(f"{path}: header.packet_bytes: {packet_bytes}, expected {PACKET_BYTES}")
+        known = _PACKET_VERSIONS.get(packet_bytes)
+        what = f"protocol version {known}" if known else "an unknown protocol version"
+        raise LogError(f"{path}: header.packet_bytes: {packet_bytes}-byte packets are {what}; "
+                       f"this facewire reads version {VERSION} ({PACKET_BYTES}-byte packets)")
     if hello_len > MAX_HELLO_BYTES:
         raise LogError(f"{path}: header.hello_length: {hello_len} exceeds {MAX_HELLO_BYTES}")
     end = _HEAD.size + hello_len

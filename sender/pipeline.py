@@ -27,7 +27,8 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    a model update (a new state of that region), applied at once to the pipeline's model,
    classifier and eye gate, kept in ``updates`` for the transport and the log; ``serial``
    is the model version the packets' Q refer to.
-8. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
+8. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes, its ``serial`` the
+   pipeline's.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
 face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
@@ -97,7 +98,7 @@ class SenderOutput:
     Attributes:
         frame: what was packed (its flags include CLAMPED when set); pre-quantisation values
             are in ``rotation``/``translation``/``residuals``.
-        packet: the encoded 39-byte packet.
+        packet: the encoded 43-byte packet.
         points: (68, 2) float tracker points, pixels, or None (no face).
         rotation: (3, 3) float64 pre-quantisation pose (model -> GL camera), or None when
             this frame has no pose (the packet then repeats the last one, and its Q).
@@ -213,6 +214,7 @@ class SenderPipeline:
         self._seq = 0
         self._time: float | None = None
         self._q = np.zeros(len(self.sampler.names), np.float32)
+        self._q_serial = self.serial  # the model version self._q refers to
 
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
         """Process one frame: the module docstring's eight stages, each timed.
@@ -251,6 +253,7 @@ class SenderPipeline:
                 result = self.classifiers.classify(samples)
                 assert points is not None
                 self._q, offsets = self.eye_gate.apply(result.q, points), result.offset
+                self._q_serial = self.serial
         t6 = clock()
         update = None
         if self.learner is not None and samples is not None:
@@ -343,10 +346,12 @@ class SenderPipeline:
         return tangent, residuals, flags
 
     def _pack(self, flags: Flag, tangent: np.ndarray) -> Packed:
-        """Stage 8: the packet of the last sent pose and Q, and the next sequence number."""
+        """Stage 8: the packet of the last sent pose and Q (with the model version that Q
+        refers to: a frame that issued an update was classified before it), and the next
+        sequence number."""
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
-        packed = pack(self._seq, flags, self._sent, tangent, q)
+        packed = pack(self._seq, flags, self._sent, tangent, q, self._q_serial)
         self._seq = (self._seq + 1) % (1 << 16)
         return packed
 

@@ -155,7 +155,7 @@ class AreaTexels:
         h, w = self.valid.shape
         x, y = project(self.points.positions(residuals), rotation, translation, camera)
         x, y = x.reshape(h, w), y.reshape(h, w)
-        colour = bilinear(image[..., ::-1].copy(), x, y)
+        colour = bilinear(image, x, y)[..., ::-1]  # BGR read, RGB out
         facing = (self.normals @ np.asarray(rotation, np.float32).T)[..., 2] > FACING
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
         return colour, self.valid & facing & on_image, x, y

@@ -18,6 +18,7 @@ from facewire.cli import build_parser
 from facewire.models.infra.video import read_frames, video_info
 from facewire.models.modelfile import PersonModel, load_model, save_model
 from facewire.models.update import MAX_LEARNED_LAYERS
+from facewire.protocol.packet import decode
 from facewire.sender.learn import HOLD_FRAMES
 from facewire.sender.pipeline import SenderPipeline, encode_video, sender_camera
 
@@ -47,24 +48,26 @@ def closed_mouth(person_model: Path, tmp_path_factory: pytest.TempPathFactory) -
 
 
 def _run(model_path: Path, video: Path, frames: slice, learn: bool = True
-         ) -> tuple[SenderPipeline, list[tuple[int, object]], list[np.ndarray]]:
-    """The pipeline over the frames: itself, the (frame, update) pairs it issued, its Q."""
+         ) -> tuple[SenderPipeline, list[tuple[int, object]], list[np.ndarray], list[int]]:
+    """The pipeline over the frames: itself, the (frame, update) pairs it issued, its Q and
+    its packets' serials."""
     info = video_info(video)
     pipeline = SenderPipeline(load_model(model_path), sender_camera(info.width, info.height),
                               rate_hz=info.rate_hz, learn=learn)
-    issued, qs = [], []
+    issued, qs, serials = [], [], []
     for frame in read_frames(video, frames):
         out = pipeline.process(frame.image, frame.time)
         qs.append(out.q)
+        serials.append(decode(out.packet).serial)
         if out.update is not None:
             issued.append((frame.index, out.update))
-    return pipeline, issued, qs
+    return pipeline, issued, qs, serials
 
 
 def test_an_unseen_open_mouth_becomes_an_update_that_the_next_frames_use(
         closed_mouth: Path, shared_data: Path) -> None:
     video = shared_data / "video" / "lp_d0.mp4"
-    pipeline, issued, qs = _run(closed_mouth, video, slice(0, 40))
+    pipeline, issued, qs, serials = _run(closed_mouth, video, slice(0, 40))
     assert [u.region for _, u in issued] == ["mouth"]
     frame, update = issued[0]
     # within half a second of the mouth opening, after the run the rule asks for
@@ -73,6 +76,9 @@ def test_an_unseen_open_mouth_becomes_an_update_that_the_next_frames_use(
     assert update.serial == 1 and update.base_sha256 == base.sha256
     assert update.position == 1 and update.replaces is None  # opener than the rest state
     assert pipeline.serial == 1 and pipeline.updates == [update]
+    # the packets say which version their Q refers to: the frame that learned was
+    # classified with the model file, the next ones with the update
+    assert serials[:frame + 1] == [0] * (frame + 1) and set(serials[frame + 1:]) == {1}
     mouth = next(r for r in pipeline.model.regions if r.name == "mouth")
     assert mouth.templates.shape[0] == 2 and mouth.rest == 0.0
     assert np.array_equal(mouth.templates[1], update.template)
@@ -87,7 +93,7 @@ def test_an_unseen_open_mouth_becomes_an_update_that_the_next_frames_use(
 
 def test_frames_like_the_enrollment_teach_nothing(person_model: Path, shared_data: Path
                                                   ) -> None:
-    _, issued, _ = _run(person_model, shared_data / "video" / "lp_d0.mp4", slice(0, None))
+    _, issued, _, _ = _run(person_model, shared_data / "video" / "lp_d0.mp4", slice(0, None))
     assert issued == []
 
 
@@ -95,7 +101,7 @@ def test_a_full_region_replaces_its_least_used_state_never_the_rest(
         person_model: Path, shared_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "full_mouth.fwm"
     save_model(_mouth_states(load_model(person_model), MAX_LEARNED_LAYERS), path)
-    pipeline, issued, _ = _run(path, shared_data / "video" / "lp_d0.mp4", slice(0, 40))
+    pipeline, issued, _, _ = _run(path, shared_data / "video" / "lp_d0.mp4", slice(0, 40))
     assert len(issued) == 1
     update = issued[0][1]
     assert update.replaces is not None and update.replaces != 0  # 0: the rest state
