@@ -192,8 +192,10 @@ def _neighbours(model: PersonModel, update: ModelUpdate) -> tuple[Region, list[i
     return region, keep
 
 
-def _references(model: PersonModel, update: ModelUpdate) -> list[np.ndarray]:
-    """(h, w, 3) uint8 per area: the state the new one will sit just before."""
+def references(model: PersonModel, update: ModelUpdate) -> list[np.ndarray]:
+    """(h, w, 3) uint8 per area of the update's region, main first: the state the new one
+    will sit just before in ``model`` (the module docstring), its bytes' reference; the
+    sender's capture copies its texels where the new state shows no change."""
     region, keep = _neighbours(model, update)
     j = keep[min(update.position, len(keep) - 1)]
     return [part.layers[j] for part in region.parts()]
@@ -207,7 +209,7 @@ def encode_update(update: ModelUpdate, model: PersonModel) -> bytes:
     """
     apply_update(model, update)
     areas = []
-    for image, reference in zip(update.layers, _references(model, update), strict=True):
+    for image, reference in zip(update.layers, references(model, update), strict=True):
         diff = ((image.astype(np.int16) - reference) & 0xFF).astype(np.uint8)
         areas.append({"shape": list(image.shape[:2]), "diff": zlib.compress(diff.tobytes(), 9)})
     data = msgpack.packb({
@@ -269,11 +271,11 @@ def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
         position=fields["position"], replaces=fields["replaces"], opacity=fields["opacity"],
         template=np.frombuffer(template, "<f4").reshape(TEMPLATE_SIZE, TEMPLATE_SIZE)
         .astype(np.float32), layers=(np.zeros((1, 1, 3), np.uint8),))
-    references = _references(model, shell)
-    if len(areas) != len(references):
-        raise UpdateError(f"areas: {len(areas)} areas, the region has {len(references)}")
+    refs = references(model, shell)
+    if len(areas) != len(refs):
+        raise UpdateError(f"areas: {len(areas)} areas, the region has {len(refs)}")
     layers = tuple(_inflate(area, reference, n)
-                   for n, (area, reference) in enumerate(zip(areas, references, strict=True)))
+                   for n, (area, reference) in enumerate(zip(areas, refs, strict=True)))
     update = dataclasses.replace(shell, layers=layers)
     apply_update(model, update)
     return update

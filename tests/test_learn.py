@@ -17,7 +17,7 @@ import pytest
 from facewire.cli import build_parser
 from facewire.models.infra.video import read_frames, video_info
 from facewire.models.modelfile import PersonModel, load_model, save_model
-from facewire.models.update import MAX_LEARNED_LAYERS
+from facewire.models.update import MAX_LEARNED_LAYERS, decode_update, encode_update
 from facewire.protocol.packet import decode
 from facewire.sender.learn import HOLD_FRAMES
 from facewire.sender.pipeline import SenderPipeline, encode_video, sender_camera
@@ -76,6 +76,9 @@ def test_an_unseen_open_mouth_becomes_an_update_that_the_next_frames_use(
     assert update.serial == 1 and update.base_sha256 == base.sha256
     assert update.position == 1 and update.replaces is None  # opener than the rest state
     assert pipeline.serial == 1 and pipeline.updates == [update]
+    # what the transport will carry: its bytes decode, against the base, to the same state
+    back = decode_update(encode_update(update, base), base, base.sha256)
+    assert all(np.array_equal(a, b) for a, b in zip(back.layers, update.layers, strict=True))
     # the packets say which version their Q refers to: the frame that learned was
     # classified with the model file, the next ones with the update
     assert serials[:frame + 1] == [0] * (frame + 1) and set(serials[frame + 1:]) == {1}
