@@ -229,8 +229,9 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     model = load_model(model_path)
     overlap = check_overlap(model, source, frames, allow_overlap)
     src = open_source(str(source), pace=False, frames=frames)
+    # the model file's own packets: the rendering here does not yet follow learned updates
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
-                              rate_hz=stream_rate(src.rate_hz))
+                              rate_hz=stream_rate(src.rate_hz), learn=False)
     camera = pipeline.hello().camera
     with src:
         run = encode_frames(pipeline, src, progress, src.frames or None, keep_eyes)
