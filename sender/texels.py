@@ -92,6 +92,7 @@ def area_surface(mesh: Mesh, rect: tuple[float, float, float, float], shape: tup
     r_hi = np.minimum(np.floor((1.0 - corners[..., 1].min(axis=1)) * height - 0.5)
                       .astype(int) - rows.start, h - 1)
     near = np.flatnonzero((c_hi >= c_lo) & (r_hi >= r_lo))
+    near = near[np.abs(_det(corners[near])) > 1e-15]  # a degenerate triangle holds no texel
     # every (triangle, texel of its UV box) pair at once
     bw, bh = c_hi[near] - c_lo[near] + 1, r_hi[near] - r_lo[near] + 1
     count = bw * bh
@@ -101,8 +102,7 @@ def area_surface(mesh: Mesh, rect: tuple[float, float, float, float], shape: tup
     c = np.repeat(c_lo[near], count) + k % np.repeat(bw, count)
     uv = np.stack([(c + cols.start + 0.5) / width, 1.0 - (r + rows.start + 0.5) / height], -1)
     bary = _barycentric(corners[tri], uv)
-    degenerate = np.abs(_det(corners[tri])) <= 1e-15
-    inside = np.all(bary >= -1e-9, axis=-1) & ~degenerate
+    inside = np.all(bary >= -1e-9, axis=-1)
     texel = (r * w + c)[inside]
     texel, first = np.unique(texel, return_index=True)  # the first triangle holding it
     hit = np.flatnonzero(inside)[first]
