@@ -85,7 +85,7 @@ import numpy as np
 from facewire.models.fields import TEMPLATE_SIZE
 from facewire.models.geometry import Intrinsics
 from facewire.models.modelfile import PersonModel
-from facewire.models.regions import REGION_NAMES, place, spec
+from facewire.models.regions import REGION_NAMES, spec
 from facewire.models.rig import Rig
 from facewire.models.update import (
     MAX_LEARNED_LAYERS,
@@ -291,10 +291,10 @@ class Learner:
         """Region r's new state from its held frames, placed, made an update and applied
         (module docstring)."""
         name = self.names[r]
-        if name not in self._areas:
-            placement = place(spec(name), self.model.texture.shape[:2])
-            self._areas[name] = [self._area(rect)
-                                 for rect in (placement.uv_rect, *placement.areas)]
+        if name not in self._areas:  # the rectangles the model's layers cover
+            region = self.model.regions[r]
+            self._areas[name] = [self._area(rect) for rect in
+                                 (region.uv_rect, *(a.uv_rect for a in region.areas))]
         areas = self._areas[name]
         base = [self.model.texture[a.slices] for a in areas]
         per_frame = [state_layers(name, [a.read(self.camera, h.image, h.rotation,
