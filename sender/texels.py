@@ -92,16 +92,23 @@ def area_surface(mesh: Mesh, rect: tuple[float, float, float, float], shape: tup
     r_hi = np.minimum(np.floor((1.0 - corners[..., 1].min(axis=1)) * height - 0.5)
                       .astype(int) - rows.start, h - 1)
     near = np.flatnonzero((c_hi >= c_lo) & (r_hi >= r_lo))
-    near = near[np.abs(_det(corners[near])) > 1e-15]  # a degenerate triangle holds no texel
+    det = _det(corners[near])
+    near, det = near[np.abs(det) > 1e-15], det[np.abs(det) > 1e-15]  # degenerate: no texel
     # every (triangle, texel of its UV box) pair at once
     bw, bh = c_hi[near] - c_lo[near] + 1, r_hi[near] - r_lo[near] + 1
     count = bw * bh
-    tri = np.repeat(near, count)
+    which = np.repeat(np.arange(len(near)), count)  # each pair's triangle among ``near``
+    tri = near[which]
     k = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
     r = np.repeat(r_lo[near], count) + k // np.repeat(bw, count)
     c = np.repeat(c_lo[near], count) + k % np.repeat(bw, count)
-    uv = np.stack([(c + cols.start + 0.5) / width, 1.0 - (r + rows.start + 0.5) / height], -1)
-    bary = _barycentric(corners[tri], uv)
+    a = corners[near, 0]
+    v0, v1 = corners[near, 1] - a, corners[near, 2] - a
+    du = (c + cols.start + 0.5) / width - a[which, 0]
+    dv = 1.0 - (r + rows.start + 0.5) / height - a[which, 1]
+    s_ = (du * v1[which, 1] - dv * v1[which, 0]) / det[which]
+    t_ = (v0[which, 0] * dv - v0[which, 1] * du) / det[which]
+    bary = np.stack([1.0 - s_ - t_, s_, t_], axis=-1)
     inside = np.all(bary >= -1e-9, axis=-1)
     texel = (r * w + c)[inside]
     texel, first = np.unique(texel, return_index=True)  # the first triangle holding it
