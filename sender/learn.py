@@ -30,9 +30,9 @@ run. ``HOLD_FRAMES`` consecutive novel frames with ``CAPTURE_FRAMES`` clean ones
 (a blink lasts 3-6 frames at 30 Hz: it never gets there) make a capture, unless the region
 learned within ``COOLDOWN_S``, or the session's last update is too recent for the traffic's
 budget: after an update of B bytes (``models.update.encode_update``) the next comes no
-sooner than 8 B / ``UPDATE_BPS`` seconds (8 kbit/s, the budget over any minute), so the
-learning never makes updates faster, on average, than the wire may carry them (the
-transport paces each one within the budget over any second).
+sooner than 8 B / ``UPDATE_BPS`` seconds (8 kbit/s, the budget over any minute; nothing is
+held meanwhile), so the learning never makes updates faster, on average, than the wire may
+carry them (the transport paces each one within the budget over any second).
 
 Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
 images, one per area of the region, read the way enrollment reads them (``sender.texels``:
@@ -47,8 +47,20 @@ difference from it), the largest over the colour channels, smoothed by a Gaussia
 ``CHANGE_SIGMA`` texels, exceeds ``CHANGE_LEVELS`` grey levels is changed, the changed
 area is grown by ``CHANGE_GROW`` texels, and every other texel takes the reference's
 value: the skin around an opened mouth stays as it was, and its texels cost nothing on the
-wire. (lp_d18's open mouth, learned on a model of its closed mouth, changes 93 % of the
-mouth's texels, the whole cavity: 37.3 kB, against 37.6 kB with every texel captured.)
+wire. The changed texels' difference from the reference is then kept at the frame's own
+resolution, not the texture's: averaged over blocks of b x b texels, b the texels one frame
+pixel spans (1 .. ``MAX_BLOCK``; the median distance in pixels between neighbouring texels'
+projections, inverted and floored), and rounded to ``DIFF_STEP`` (4) grey levels, at most
+2 levels off. The texture is finer than a face in a camera frame (lp_d18's 480 x 480
+frames: 0.43-0.48 px between neighbouring mouth texels, so blocks of 2), so the blocks show
+nothing the camera saw, and the bytes (the difference, zlib-compressed) stop paying for
+interpolated noise; a coarser rounding instead (steps of 8 levels, no blocks) showed contour
+bands in the smooth inside of the mouth. lp_d18's open mouth, learned on a model of its
+closed mouth, changes 93 % of the mouth's texels (the whole cavity): its difference took
+36.0 kB exact, 21.7 kB rounded to 2 levels, 10.5 kB in blocks of 2 rounded to 2, 6.8-7.0
+kB in blocks of 2 rounded to 4; the whole update 37.3 kB exact, 8.2 kB as made. At the
+wire's 32 kbit/s over a second, 8.2 kB take 2.1 s, so the first update can
+reach the receivers within 3 s of the expression (37 kB took 9.3 s).
 
 Placing it. Q must stay a scalar along the region's axis, so the new state goes where its
 landmark cue (``sender.cues.region_cues``: mouth opening, eye closure, brow raise, ...)
@@ -119,6 +131,8 @@ UPDATE_BPS = 8000.0  # the update traffic's budget over a minute, bit/s
 CHANGE_LEVELS = 12.0  # grey levels a texel must change by (smoothed) to be part of a state ...
 CHANGE_SIGMA = 1.5  # ... the difference's Gaussian, texels ...
 CHANGE_GROW = 2  # ... and the changed area grown by this many texels
+DIFF_STEP = 4  # a changed texel's difference from the reference, in steps of this (grey levels)
+MAX_BLOCK = 4  # texels a side of the blocks a changed difference is averaged over, at most
 _BAD_FLAGS = Flag.TRACKING_LOST | Flag.REACQUIRED
 
 
@@ -221,7 +235,7 @@ class Learner:
             for i in np.flatnonzero(~novel & np.isfinite(cues)):
                 self._cue_sum[i][state[i]] += cues[i]
                 self._cue_count[i][state[i]] += 1
-        if not novel.any():
+        if not novel.any() or time_s < self._quiet_until:  # nothing new, or no budget yet
             return None
         assert cues is not None
         clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
@@ -238,7 +252,7 @@ class Learner:
         due = [int(i) for i in np.flatnonzero(novel) if self._run[i] >= HOLD_FRAMES
                and len(self._held[i]) >= CAPTURE_FRAMES
                and time_s - self._learned_at[i] >= COOLDOWN_S]
-        if not due or time_s < self._quiet_until:
+        if not due:
             return None
         r = max(due, key=lambda i: result.score[i] / self.bound[i])  # the most unlike
         chosen = self._unoccluded(r)
@@ -297,9 +311,10 @@ class Learner:
                                  (region.uv_rect, *(a.uv_rect for a in region.areas))]
         areas = self._areas[name]
         base = [self.model.texture[a.slices] for a in areas]
-        per_frame = [state_layers(name, [a.read(self.camera, h.image, h.rotation,
-                                                h.translation, h.residuals)[:2]
-                                         for a in areas], base) for h in held]
+        reads = [[a.read(self.camera, h.image, h.rotation, h.translation, h.residuals)
+                  for a in areas] for h in held]
+        per_frame = [state_layers(name, [read[:2] for read in frame], base) for frame in reads]
+        block = _block(*reads[-1][0][1:])
         layers = tuple(np.median(np.stack(stack), axis=0).round().astype(np.uint8)
                        for stack in zip(*per_frame, strict=True))
         template = np.median(np.stack([h.sample for h in held]), axis=0).astype(np.float32)
@@ -324,7 +339,7 @@ class Learner:
                              region=name, position=position, replaces=replaces,
                              layers=layers, template=template, opacity=opacity)
         update = dataclasses.replace(update, layers=tuple(
-            _changed_only(layer, reference)
+            _changed_only(layer, reference, block)
             for layer, reference in zip(layers, references(self.model, update), strict=True)))
         self.model = apply_update(self.model, update)
         self.serial = update.serial
@@ -334,14 +349,32 @@ class Learner:
         return update
 
 
-def _changed_only(layer: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8: ``layer`` where it changed from ``reference`` (the module docstring,
-    capture), the reference's texels elsewhere."""
-    diff = np.abs(layer.astype(np.float32) - reference.astype(np.float32)).max(axis=2)
-    changed = cv2.GaussianBlur(diff, (0, 0), CHANGE_SIGMA) > CHANGE_LEVELS
+def _block(seen: np.ndarray, x: np.ndarray, y: np.ndarray) -> int:
+    """The texels per frame pixel of an area's read (``AreaTexels.read``'s seen, x, y), as
+    the side of a block of texels that one pixel spans: 1 .. ``MAX_BLOCK``."""
+    step = np.hypot(np.diff(x, axis=1), np.diff(y, axis=1))[seen[:, 1:] & seen[:, :-1]]
+    if step.size == 0:
+        return 1
+    return int(np.clip(np.floor(1.0 / max(float(np.median(step)), 1e-6)), 1, MAX_BLOCK))
+
+
+def _changed_only(layer: np.ndarray, reference: np.ndarray, block: int) -> np.ndarray:
+    """(h, w, 3) uint8: where ``layer`` changed from ``reference``, the reference plus their
+    difference averaged over ``block`` x ``block`` texels and rounded to ``DIFF_STEP``; the
+    reference's texels elsewhere (the module docstring, capture)."""
+    ref = reference.astype(np.float32)
+    diff = layer.astype(np.float32) - ref
+    changed = cv2.GaussianBlur(np.abs(diff).max(axis=2), (0, 0), CHANGE_SIGMA) > CHANGE_LEVELS
     grow = 2 * CHANGE_GROW + 1
     changed = cv2.dilate(changed.astype(np.uint8), np.ones((grow, grow), np.uint8)) > 0
-    return np.where(changed[..., None], layer, reference)
+    h, w = changed.shape
+    padded = np.pad(diff, ((0, -h % block), (0, -w % block), (0, 0)), mode="edge")
+    coarse = padded.reshape(padded.shape[0] // block, block, padded.shape[1] // block, block,
+                            3).mean(axis=(1, 3))
+    coarse = np.rint(coarse / DIFF_STEP) * DIFF_STEP
+    coarse = np.repeat(np.repeat(coarse, block, axis=0), block, axis=1)[:h, :w]
+    stepped = np.clip(np.rint(ref + coarse), 0, 255).astype(np.uint8)
+    return np.where(changed[..., None], stepped, reference)
 
 
 def can_learn(model: PersonModel) -> bool:

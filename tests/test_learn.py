@@ -77,7 +77,9 @@ def test_an_unseen_open_mouth_becomes_an_update_that_the_next_frames_use(
     assert update.position == 1 and update.replaces is None  # opener than the rest state
     assert pipeline.serial == 1 and pipeline.updates == [update]
     # what the transport will carry: its bytes decode, against the base, to the same state
-    back = decode_update(encode_update(update, base), base, base.sha256)
+    data = encode_update(update, base)
+    assert len(data) < 20_000  # kilobytes: the changed texels at the frame's resolution
+    back = decode_update(data, base, base.sha256)
     assert all(np.array_equal(a, b) for a, b in zip(back.layers, update.layers, strict=True))
     # the packets say which version their Q refers to: the frame that learned was
     # classified with the model file, the next ones with the update
