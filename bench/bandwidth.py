@@ -23,8 +23,8 @@ figures are the rates above at ``max_i n_i`` packets per second. A log that span
 second has no full window and is judged at its mean rate (with fewer than 2 records, at the
 rate its Hello announces). The 12 kbit/s budget
 (``protocol.rate.PAYLOAD_LIMIT_KBPS``) applies to the payload, as in the paper:
-``payload_kbps_max_1s`` >= 12 exits 1. A 30 Hz stream is 9.36 kbit/s; 39 packets in one
-second are 12.17 kbit/s and fail.
+``payload_kbps_max_1s`` >= 12 exits 1. A 30 Hz stream is 10.32 kbit/s; 35 packets in one
+second are 12.04 kbit/s and fail.
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 CSV columns: ``seq, time, flags, face_present, rot_x_deg, rot_y_deg, rot_z_deg, tx_mm,
 ty_mm, tz_mm``, the residuals ``res<k>_u, res<k>_v`` (k = 0..8 in the protocol's point
-order), then ``q_<region>`` for each region named in the log's Hello.
+order), then ``q_<region>`` for each region named in the log's Hello, then ``serial`` (the
+model version the Q values refer to) and the light's log-gain field ``shade_centre, shade_x,
+shade_y`` (``protocol.packet``).
 """
 
 from __future__ import annotations
@@ -57,9 +59,11 @@ def _write_csv(path: str | os.PathLike[str], times: np.ndarray, f: np.ndarray,
               "tx_mm", "ty_mm", "tz_mm"]
     header += [f"res{k}_{axis}" for k in range(N_RESIDUAL_POINTS) for axis in "uv"]
     header += [f"q_{name}" for name in regions]
+    header += ["serial", "shade_centre", "shade_x", "shade_y"]
     columns = [f["seq"], times, f["flags"], (f["flags"] & Flag.FACE_PRESENT) > 0,
                *np.degrees(f["rotation"]).T, *f["translation"].T,
-               *f["residuals"].reshape(len(f), -1).T, *f["q"][:, :len(regions)].T]
+               *f["residuals"].reshape(len(f), -1).T, *f["q"][:, :len(regions)].T,
+               f["serial"], *f["shade"].T]
     with open(path, "w", newline="") as out:
         writer = csv.writer(out)
         writer.writerow(header)

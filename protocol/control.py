@@ -117,7 +117,8 @@ class Hello:
         default_factory=lambda: tuple(quantiser_table()))
 
     def __post_init__(self) -> None:
-        _require(self.protocol == VERSION, f"hello.protocol: {self.protocol} is not {VERSION}")
+        _require(self.protocol == VERSION, f"hello.protocol: the sender speaks protocol version "
+                                           f"{self.protocol}, this facewire version {VERSION}")
         _require(bool(_HEX64.fullmatch(self.model_sha256)),
                  "hello.model_sha256: expected 64 lowercase hex digits")
         _require(0 < self.model_bytes <= MAX_MODEL_BYTES,
@@ -128,7 +129,8 @@ class Hello:
         _require(all(0 < len(r) <= 64 and r.isprintable() for r in self.regions),
                  "hello.regions: names must have 1 to 64 printable characters")
         _require(list(self.quantisers) == quantiser_table(),
-                 "hello.quantisers: do not match this receiver's protocol version 1 table")
+                 f"hello.quantisers: do not match this receiver's protocol version {VERSION} "
+                 "table")
 
 
 @dataclass(frozen=True)

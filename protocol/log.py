@@ -44,10 +44,11 @@ and at least one. ``PacketLog.missing_serials`` are the update serials between 1
 highest any intact record names (an update's own, or a packet's ``serial``) that no intact
 update record holds: the updates a replay cannot apply, whose frames it plays clamped.
 
-Format 1 (before model updates) is format 2 without update records; it is read as such
-when its packets are this facewire's (its header's packet size is ``PACKET_BYTES``), and
-refused in one line naming ``header.packet_bytes`` otherwise (a log of an older packet
-version: encode the video again with ``facewire encode``).
+Format 1 (before model updates) is format 2 without update records, and is read as such
+while its packets are this facewire's. A log written by another protocol version is refused
+at its header with one line naming the version: its packet size says which (39 bytes:
+version 1), and a log whose size matches but whose Hello announces another protocol is
+refused by the Hello's check of its version.
 """
 
 from __future__ import annotations
@@ -64,14 +65,19 @@ import numpy as np
 
 from facewire.protocol.control import ControlError, Hello, decode_message, encode_message
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.packet import PACKET_BYTES, RESERVED_FLAGS, VERSION, decode_frames
+from facewire.protocol.packet import (
+    MAX_SERIAL,
+    PACKET_BYTES,
+    RESERVED_FLAGS,
+    VERSION,
+    decode_frames,
+)
 
 MAGIC = b"\x89FWLOG\r\n"
 FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)
 MAX_HELLO_BYTES = 64 * 1024
 MAX_LOG_BYTES = 2 * 1024**3
-MAX_SERIAL = 2047  # the packet's 11-bit serial; models.update.MAX_SERIAL
 MAX_UPDATE_BYTES = 1024 * 1024  # models.update.MAX_UPDATE_BYTES
 UPDATE_TAG = ord("U")
 _HEAD = struct.Struct(">8sHHI")
@@ -84,6 +90,7 @@ RECORD_BYTES = _TIME.size + PACKET_BYTES + _CRC.size  # a packet record
 # where the update tag is.
 _FIRST_MASK = 0xF0 | (RESERVED_FLAGS >> 4)
 _FIRST_BYTE = VERSION << 4
+_PACKET_VERSIONS = {39: 1, PACKET_BYTES: VERSION}  # packet size -> protocol version
 
 
 class LogError(FacewireError, ValueError):
@@ -115,7 +122,7 @@ class PacketLog:
     Attributes:
         hello: the session's Hello.
         times: (N,) float64 packet record times, s.
-        packets: (N, P) uint8 intact packets, in file order.
+        packets: (N, 43) uint8 intact packets, in file order.
         frames: (N,) ``FRAME_DTYPE``, the decoded packets.
         lost: packet records that could not be recovered (corrupt or cut off).
         updates: the intact update records, in file order.
@@ -223,9 +230,7 @@ def read_log(path: str | os.PathLike[str]) -> PacketLog:
 def _missing_serials(updates: tuple[LoggedUpdate, ...], frames: np.ndarray) -> tuple[int, ...]:
     """The serials from 1 to the highest named (by an update or a frame) that no update
     holds."""
-    named = [u.serial for u in updates]
-    if "serial" in (frames.dtype.names or ()) and len(frames):
-        named.append(int(frames["serial"].max()))
+    named = [u.serial for u in updates] + ([int(frames["serial"].max())] if len(frames) else [])
     held = {u.serial for u in updates}
     return tuple(s for s in range(1, max(named, default=0) + 1) if s not in held)
 
@@ -241,9 +246,10 @@ def _read_header(path: Path, data: bytes) -> tuple[Hello, int, int]:
         raise LogError(f"{path}: header.version: log format {version} is not supported "
                        f"(this facewire reads {', '.join(map(str, READ_VERSIONS))})")
     if packet_bytes != PACKET_BYTES:
-        raise LogError(f"{path}: header.packet_bytes: {packet_bytes}-byte packets, this "
-                       f"facewire reads protocol {VERSION}'s {PACKET_BYTES}-byte packets "
-                       f"(encode the video again with facewire encode)")
+        known = _PACKET_VERSIONS.get(packet_bytes)
+        what = f"protocol version {known}" if known else "an unknown protocol version"
+        raise LogError(f"{path}: header.packet_bytes: {packet_bytes}-byte packets are {what}; "
+                       f"this facewire reads version {VERSION} ({PACKET_BYTES}-byte packets)")
     if hello_len > MAX_HELLO_BYTES:
         raise LogError(f"{path}: header.hello_length: {hello_len} exceeds {MAX_HELLO_BYTES}")
     end = _HEAD.size + hello_len

@@ -1,14 +1,14 @@
 """The packet rate contract: how often packets go out, and the bit rate that costs.
 
-A stream sends one fixed-size packet (``protocol.packet.PACKET_BYTES``, 39 bytes in version 1)
+A stream sends one fixed-size packet (``protocol.packet.PACKET_BYTES``, 43 bytes in version 2)
 per slot of ``1 / rate_hz`` seconds, so its payload bit rate is
 
     payload kbit/s = PACKET_BYTES * 8 * rate_hz / 1000          (``kbps``, ``payload_kbps``)
 
-The design's rate is ``NOMINAL_HZ`` = 30 Hz: 9.36 kbit/s. The paper's budget,
+The design's rate is ``NOMINAL_HZ`` = 30 Hz: 10.32 kbit/s. The paper's budget,
 ``PAYLOAD_LIMIT_KBPS`` = 12 kbit/s, applies to the payload (the packets' own bytes, no
 transport framing, as in the paper), so a stream stays within it up to
-``PAYLOAD_LIMIT_HZ`` = 12000 / (8 * 39) = 38.46 Hz.
+``PAYLOAD_LIMIT_HZ`` = 12000 / (8 * 43) = 34.88 Hz.
 
 A stream's rate is in [``MIN_RATE_HZ``, ``MAX_RATE_HZ``] (what a Hello may announce): a slot
 longer than a second is no live stream, and a rate near zero would put a receiver's next slot

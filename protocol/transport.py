@@ -14,7 +14,7 @@ address names a sender.
 
 Size limits: every socket that reads from the network refuses a frame larger than its
 protocol allows, at the frame's header and before allocating it (libzmq's ``MAXMSGSIZE``):
-``MAX_PACKET_FRAME`` bytes on a receiver's packet socket (a packet is 39 bytes),
+``MAX_PACKET_FRAME`` bytes on a receiver's packet socket (a packet is 43 bytes),
 ``MAX_CONTROL_FRAME`` on both ends of the control channel (a control message is at most
 ``protocol.control.MAX_MESSAGE_BYTES``; both limits leave room for CURVE's 33 bytes of
 per-message overhead). A peer that sends a larger frame, or only declares one in a frame

@@ -108,6 +108,11 @@ the face present (``Flag.FACE_PRESENT`` set, ``Flag.TRACKING_LOST`` clear), and 
 - on a played packet with the face lost, eased to 0 over ``ease_s`` starting at once, no
   hold ("face_lost"); its pose is used, its residuals and Q are not.
 
+The model version (``serial``) and the light (``shade``) are those of that same last
+face-present packet, never eased (0 and zeros before any): the Q values played refer to
+the model version they were classified against, and the light does not go out when the
+tracker loses the face.
+
 Once easing has started, only a face-present packet stops it. The curve is smoothstep:
 ``weight = 1 - (3 p^2 - 2 p^3)``, ``p = (t - t_begin) / ease_s`` clipped to [0, 1]: it leaves 1
 and reaches 0 with zero slope and never increases; ``weight`` falls by at most
@@ -130,7 +135,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -138,6 +143,7 @@ from facewire.models.geometry import rotation_matrix
 from facewire.protocol.packet import (
     N_REGIONS,
     N_RESIDUAL_POINTS,
+    N_SHADE,
     PACKET_BYTES,
     SEQ_MODULO,
     Flag,
@@ -161,6 +167,14 @@ _HALF = SEQ_MODULO // 2
 _EPS = 1e-9
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+_ZERO_SHADE = _frozen(np.zeros(N_SHADE, np.float32))
+
+
 @dataclass(frozen=True, eq=False)
 class FrameState:
     """What to render for one output frame.
@@ -177,6 +191,9 @@ class FrameState:
         status: one of ``STATUSES`` (module docstring).
         weight: the fraction of the last face-present expression kept, 1 .. 0.
         arrival_s: the played packet's arrival time (the ``push`` argument), else None.
+        serial: the model version ``q`` refers to (``protocol.packet``; 0: the model file).
+        shade: (3,) float32 the light's log-gain field (``protocol.packet``), zeros: the
+            model's own light.
 
     The arrays are read-only.
     """
@@ -190,6 +207,8 @@ class FrameState:
     status: str
     weight: float
     arrival_s: float | None = None
+    serial: int = 0
+    shade: np.ndarray = field(default_factory=lambda: _ZERO_SHADE)
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,6 +222,8 @@ class _Packet:
     residuals: np.ndarray  # (9, 2) float32
     q: np.ndarray  # (8,) float32
     arrival_s: float
+    serial: int
+    shade: np.ndarray  # (3,) float32
 
     @property
     def face(self) -> bool:
@@ -212,11 +233,6 @@ class _Packet:
 def serial_distance(seq: int, ref: int) -> int:
     """Signed distance from ``ref`` to ``seq`` on the 16-bit circle, in [-32768, 32767]."""
     return (seq - ref + _HALF) % SEQ_MODULO - _HALF
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a.setflags(write=False)
-    return a
 
 
 _ZERO_RESIDUALS = _frozen(np.zeros((N_RESIDUAL_POINTS, 2), np.float32))
@@ -290,6 +306,7 @@ class Playout:
         self._translation = _DEFAULT_TRANSLATION
         self._residuals = _ZERO_RESIDUALS  # E, the last face-present expression
         self._q = self._rest_q
+        self._serial, self._shade = 0, _ZERO_SHADE  # E's model version and light
         self._weight = 0.0
         self._easing = True
         self._since = 0  # slots since the last face-present slot
@@ -412,6 +429,7 @@ class Playout:
         self._rotation, self._translation = packet.rotation, packet.translation
         if packet.face:
             self._residuals, self._q = packet.residuals, packet.q
+            self._serial, self._shade = packet.serial, packet.shade
             self._weight, self._easing, self._since = 1.0, False, 0
             return self._state(packet.seq, "received", packet.flags, packet.arrival_s)
         self._advance(face_lost=True)
@@ -437,7 +455,8 @@ class Playout:
         packet = _Packet(frame.seq, Flag(frame.flags), _frozen(rotation_matrix(frame.rotation)),
                          _frozen(frame.translation.astype(np.float64)),
                          _frozen(frame.residuals.astype(np.float32)),
-                         _frozen(frame.q.astype(np.float32)), arrival_s)
+                         _frozen(frame.q.astype(np.float32)), arrival_s, frame.serial,
+                         _frozen(frame.shade.astype(np.float32)))
         return packet, raw
 
     def _far(self, packet: _Packet, raw: bytes) -> None:
@@ -536,7 +555,7 @@ class Playout:
             residuals = _frozen(self._residuals * np.float32(w))
             q = _frozen(self._rest_q + (self._q - self._rest_q) * np.float32(w))
         return FrameState(seq, self._rotation, self._translation, residuals, q, flags, status,
-                          w, arrival_s)
+                          w, arrival_s, self._serial, self._shade)
 
 
 def replay_states(packets: Sequence[bytes] | np.ndarray, times: Sequence[float] | np.ndarray,
@@ -544,7 +563,7 @@ def replay_states(packets: Sequence[bytes] | np.ndarray, times: Sequence[float] 
     """Play a recorded log as if its packets arrived at their recorded times (module docstring).
 
     Args:
-        packets: N packets (bytes, or an (N, 39) uint8 array such as ``PacketLog.packets``);
+        packets: N packets (bytes, or an (N, 43) uint8 array such as ``PacketLog.packets``);
             corrupt ones are counted and skipped like live ones.
         times: (N,) finite arrival times, s (``PacketLog.times``).
         rate_hz: the stream's rate (the Hello's).

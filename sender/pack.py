@@ -59,7 +59,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
         q: (8,) region values, layers; None for neutral (all 0).
 
     Returns:
-        The frame (its ``flags`` include CLAMPED when set), the 39-byte packet and the
+        The frame (its ``flags`` include CLAMPED when set), the 43-byte packet and the
         number of clamped values.
     """
     q = np.zeros(N_REGIONS, np.float32) if q is None else np.asarray(q, np.float32)

@@ -21,7 +21,7 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
 6. ``classify``: ``sender.classify.RegionClassifiers`` -> one Q per region, in the model's
    region order (the packet's Q slots); an open eye's eyelid Q is then held at most at its
    rest state (``sender.eyegate``).
-7. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 39 bytes.
+7. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
 face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
@@ -89,7 +89,7 @@ class SenderOutput:
     Attributes:
         frame: what was packed (its flags include CLAMPED when set); pre-quantisation values
             are in ``rotation``/``translation``/``residuals``.
-        packet: the encoded 39-byte packet.
+        packet: the encoded 43-byte packet.
         points: (68, 2) float tracker points, pixels, or None (no face).
         rotation: (3, 3) float64 pre-quantisation pose (model -> GL camera), or None when
             this frame has no pose (the packet then repeats the last one, and its Q).

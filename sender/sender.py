@@ -6,7 +6,7 @@ Threads. Capture, processing and output do not stall each other:
   newest frame is held and older ones dropped, so a slow tracker gets the current frame;
   a file is decoded up to a few frames ahead;
 - the frame loop (the calling thread), per frame: take the next frame (a video file released
-  in real time, below), run ``sender.pipeline.SenderPipeline``, publish the 39-byte packet
+  in real time, below), run ``sender.pipeline.SenderPipeline``, publish the 43-byte packet
   on the PUB socket (``protocol.transport.PacketPublisher``; ZeroMQ's own I/O thread sends
   it, and a slow receiver's queue drops rather than blocks) and, with a record path, append
   it to a packet log (``protocol.log``; each record stamped with the time it was published:

@@ -32,7 +32,7 @@ from facewire.protocol.control import (
 )
 from facewire.protocol.keys import CurveServer
 from facewire.protocol.log import PacketLog, read_log
-from facewire.protocol.packet import decode, encode
+from facewire.protocol.packet import PACKET_BYTES, decode, encode
 from facewire.protocol.transport import ControlServer, PacketPublisher
 from facewire.sender.pipeline import encode_video
 
@@ -112,7 +112,7 @@ class LogSender(threading.Thread):
                     if self.junk_every and self.sent % self.junk_every == 0:
                         bad = bytearray(packet)
                         bad[5] ^= 0x10
-                        for junk in (rng.bytes(39), b"abc", bytes(bad)):
+                        for junk in (rng.bytes(PACKET_BYTES), b"abc", bytes(bad)):
                             pub.send(junk)
                             self.junk += 1
                     if self.sent == self.count:

@@ -82,10 +82,10 @@ def test_a_30_hz_log_passes_with_every_figure(encoded: Path, tmp_path: Path) -> 
     status, s, lines = bench(at_rate(encoded, tmp_path / "30.fwlog", 30.0))
     assert status == 0 and s["under_limit"]
     assert s["frames"] == 120 and s["rate_hz"] == pytest.approx(30, rel=1e-6)
-    expected = {"payload_kbps": kbps(PACKET_BYTES, 30),  # 9.36
-                "wire_kbps": kbps(PACKET_BYTES + 2, 30),  # 9.84
-                "wire_kbps_curve": kbps(PACKET_BYTES + 35, 30),  # 17.76
-                "ip_kbps": kbps(PACKET_BYTES + 2 + 52, 30)}  # 22.32
+    expected = {"payload_kbps": kbps(PACKET_BYTES, 30),  # 10.32
+                "wire_kbps": kbps(PACKET_BYTES + 2, 30),  # 10.80
+                "wire_kbps_curve": kbps(PACKET_BYTES + 35, 30),  # 18.72
+                "ip_kbps": kbps(PACKET_BYTES + 2 + 52, 30)}  # 23.28
     assert IP_TCP_OVERHEAD == 52
     for key, value in expected.items():
         assert s[key] == pytest.approx(value, abs=1e-3), key
@@ -101,14 +101,14 @@ def test_a_60_hz_log_fails(encoded: Path, tmp_path: Path) -> None:
     assert status == 1 and not s["under_limit"]
     assert s["rate_hz"] == pytest.approx(60, rel=1e-6)
     assert s["packets_max_1s"] == 60
-    assert s["payload_kbps_max_1s"] == pytest.approx(kbps(PACKET_BYTES, 60))  # 18.72
+    assert s["payload_kbps_max_1s"] == pytest.approx(kbps(PACKET_BYTES, 60))  # 20.64
     assert lines[-1].startswith("OVER: the 12 kbit/s budget applies to the payload")
 
 
-@pytest.mark.parametrize(("rate_hz", "status"), [(38.0, 0), (39.0, 1)])
-def test_the_limit_falls_between_38_and_39_hz(encoded: Path, tmp_path: Path, rate_hz: float,
+@pytest.mark.parametrize(("rate_hz", "status"), [(34.0, 0), (35.0, 1)])
+def test_the_limit_falls_between_34_and_35_hz(encoded: Path, tmp_path: Path, rate_hz: float,
                                              status: int) -> None:
-    """38 packets a second are 11.86 kbit/s of payload, 39 are 12.17."""
+    """34 packets a second are 11.70 kbit/s of payload, 35 are 12.04."""
     got, s, _ = bench(at_rate(encoded, tmp_path / "r.fwlog", rate_hz))
     assert got == status and s["packets_max_1s"] == int(rate_hz)
 
@@ -145,8 +145,8 @@ def test_packets_in_last_second_counts_a_trailing_window() -> None:
 
 
 def test_send_warns_of_a_rate_over_the_budget() -> None:
-    assert over_budget_warning(30.0) is None and over_budget_warning(38.0) is None
-    assert "18.72 kbit/s" in over_budget_warning(60.0)
+    assert over_budget_warning(30.0) is None and over_budget_warning(34.0) is None
+    assert "20.64 kbit/s" in over_budget_warning(60.0)
     # the command warns before it refuses the missing model
     out = run("send", "--model", "missing.fwm", "--source", "camera:0", "--rate", "60")
     assert out.returncode == 2

@@ -73,7 +73,8 @@ def _hello_body(**over: object) -> dict:
 
 
 @pytest.mark.parametrize("over,match", [
-    ({"protocol": 2}, "protocol"),
+    ({"protocol": 1}, "protocol version 1, this facewire version 2"),
+    ({"protocol": 3}, "protocol"),
     ({"rate_hz": float("nan")}, "rate_hz"),
     ({"rate_hz": -5.0}, "rate_hz"),
     ({"model_bytes": 0}, "model_bytes"),

@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import math
 import signal
+import struct
 import subprocess
 import sys
 import time
+import zlib
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
-from facewire.protocol.control import Camera, Hello
+from facewire.protocol.control import Camera, Hello, encode_message
 from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
@@ -100,6 +103,38 @@ def test_bad_headers_name_the_field(tmp_path: Path, mutate, field: str) -> None:
     with pytest.raises(LogError, match=field) as err:
         read_log(src)
     assert str(src) in str(err.value)
+
+
+def _version_1_log(path: Path, packet_bytes: int) -> None:
+    """A log as protocol version 1 wrote it: its Hello says protocol 1 and has no serial or
+    shade, its header's packet size is ``packet_bytes`` (39 then), three records."""
+    hello = msgpack.unpackb(encode_message(HELLO))
+    hello["protocol"] = 1
+    hello["quantisers"] = [q for q in hello["quantisers"] if q["name"] != "shade"]
+    body = msgpack.packb(hello)
+    head = struct.pack(">8sHHI", b"\x89FWLOG\r\n", 1, packet_bytes, len(body)) + body
+    records = b""
+    for seq in range(3):
+        record = struct.pack(">d", 100.0 + seq / 30) + bytes([0x10, 0x00, seq]) + bytes(
+            packet_bytes - 3)
+        records += record + struct.pack(">I", zlib.crc32(record))
+    path.write_bytes(head + struct.pack(">I", zlib.crc32(head)) + records)
+
+
+@pytest.mark.parametrize(("packet_bytes", "message"), [
+    (39, r"header.packet_bytes: 39-byte packets are protocol version 1; this facewire reads "
+         r"version 2 \(43-byte packets\)"),
+    (43, r"header.hello: hello.protocol: the sender speaks protocol version 1, this facewire "
+         r"version 2"),
+])
+def test_a_version_1_log_is_refused_naming_the_version(tmp_path: Path, packet_bytes: int,
+                                                       message: str) -> None:
+    """By its packet size when it has version 1's (the real case), else by its Hello."""
+    path = tmp_path / "v1.fwlog"
+    _version_1_log(path, packet_bytes)
+    with pytest.raises(LogError, match=message) as err:
+        read_log(path)
+    assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
 
 
 def test_missing_file(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The version-1 frame packet: layout, quantisers, clamping, CRC, and a decoder fuzz."""
+"""The version-2 frame packet: layout, quantisers, clamping, CRC, and a decoder fuzz."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from facewire.protocol.packet import (
     FRAME_DTYPE,
+    MAX_SERIAL,
     PACKET_BYTES,
     QUANTISERS,
     Flag,
@@ -44,12 +45,15 @@ def _frames() -> st.SearchStrategy[Frame]:
         residuals=st.lists(_in_range("residuals"), min_size=18, max_size=18).map(
             lambda v: np.array(v, np.float32).reshape(9, 2)),
         q=st.lists(_in_range("q"), min_size=8, max_size=8).map(lambda v: np.array(v, np.float32)),
+        serial=st.integers(0, MAX_SERIAL),
+        shade=st.lists(_in_range("shade"), min_size=3, max_size=3).map(
+            lambda v: np.array(v, np.float32)),
     )
 
 
-def test_layout_is_39_bytes_under_12_kbps() -> None:
-    assert PACKET_BYTES == 39
-    bits = 4 + 8 + 16 + sum(q.count * q.bits for q in QUANTISERS) + 16
+def test_layout_is_43_bytes_under_12_kbps() -> None:
+    assert PACKET_BYTES == 43
+    bits = 4 + 8 + 16 + 11 + sum(q.count * q.bits for q in QUANTISERS) + 16
     assert bits == PACKET_BYTES * 8
     assert PACKET_BYTES * 8 * 30 < 12_000
 
@@ -67,7 +71,7 @@ def test_quantiser_targets() -> None:
 @given(_frames())
 def test_round_trip_within_half_a_step(frame: Frame) -> None:
     out = decode(encode(frame))
-    assert out.seq == frame.seq
+    assert out.seq == frame.seq and out.serial == frame.serial
     assert out.flags == frame.flags  # in range: nothing clamped
     tol = 1e-4
     assert np.all(np.abs(np.degrees(out.rotation) - np.degrees(frame.rotation))
@@ -77,6 +81,20 @@ def test_round_trip_within_half_a_step(frame: Frame) -> None:
     assert abs(out.translation[2] - frame.translation[2]) <= Q["shift_z"].step / 2 + tol
     assert np.all(np.abs(out.residuals - frame.residuals) <= Q["residuals"].step / 2 + tol)
     assert np.all(np.abs(out.q - frame.q) <= Q["q"].step / 2 + tol)
+    assert np.all(np.abs(out.shade - frame.shade) <= Q["shade"].step / 2 + tol)
+
+
+def test_serial_and_shade_round_trip_exactly() -> None:
+    """The version-2 fields: the serial at its ends, each shade value on its own slot."""
+    for serial in (0, 1, 1000, MAX_SERIAL):
+        shade = np.array([-1.0, 0.5, 0.984375], np.float32)
+        out = decode(encode(Frame(seq=9, serial=serial, shade=shade)))
+        assert out.serial == serial and out.seq == 9
+        np.testing.assert_array_equal(out.shade, shade)
+        assert not out.flags & Flag.CLAMPED
+    assert Q["shade"].lo == -1.0 and Q["shade"].hi == 0.984375 and Q["shade"].unit == "ln gain"
+    with pytest.raises(ValueError, match="serial"):
+        encode(Frame(serial=MAX_SERIAL + 1))  # a model version is never clamped
 
 
 @pytest.mark.parametrize("name", [q.name for q in QUANTISERS])
@@ -94,18 +112,22 @@ def test_range_edges_are_exact(name: str) -> None:
             frame.translation[2] = value
         elif name == "residuals":
             frame.residuals[:] = value
-        else:
+        elif name == "q":
             frame.q[:] = value
+        else:
+            frame.shade[:] = value
         out = decode(encode(frame))
         assert not out.flags & Flag.CLAMPED, (name, edge)
         got = {"rotation": np.degrees(out.rotation), "shift_xy": out.translation[:2],
-               "shift_z": out.translation[2:], "residuals": out.residuals, "q": out.q}[name]
+               "shift_z": out.translation[2:], "residuals": out.residuals, "q": out.q,
+               "shade": out.shade}[name]
         np.testing.assert_allclose(got, edge, atol=1e-4)
 
 
 @pytest.mark.parametrize("name,beyond", [("residuals", 40.0), ("residuals", -40.0),
                                          ("q", 9.0), ("q", -1.0), ("shift_z", 10.0),
-                                         ("shift_z", -5000.0), ("rotation", 170.0)])
+                                         ("shift_z", -5000.0), ("rotation", 170.0),
+                                         ("shade", 1.5), ("shade", -2.0)])
 def test_out_of_range_is_clamped_and_flagged(name: str, beyond: float) -> None:
     frame = Frame(flags=Flag.FACE_PRESENT)
     if name == "residuals":
@@ -114,6 +136,8 @@ def test_out_of_range_is_clamped_and_flagged(name: str, beyond: float) -> None:
         frame.q[2] = beyond
     elif name == "shift_z":
         frame.translation[2] = beyond
+    elif name == "shade":
+        frame.shade[1] = beyond
     else:
         frame.rotation[1] = np.radians(beyond)
     packets, clamped = encode_frames(frame.to_record().reshape(1))
@@ -123,7 +147,7 @@ def test_out_of_range_is_clamped_and_flagged(name: str, beyond: float) -> None:
     q = Q[name]
     edge = q.hi if beyond > 0 else q.lo
     got = {"residuals": out.residuals[3, 1], "q": out.q[2], "shift_z": out.translation[2],
-           "rotation": np.degrees(out.rotation[1])}[name]
+           "rotation": np.degrees(out.rotation[1]), "shade": out.shade[1]}[name]
     assert got == pytest.approx(edge, abs=1e-4)  # clamped to the edge, never wrapped
 
 
@@ -148,6 +172,8 @@ def test_vectorised_matches_single() -> None:
     frames["translation"] = rng.uniform([-300, -300, -2500], [300, 300, 50], (500, 3))
     frames["residuals"] = rng.uniform(-40, 40, (500, 9, 2))
     frames["q"] = rng.uniform(-1, 9, (500, 8))
+    frames["serial"] = rng.integers(0, 2048, 500)
+    frames["shade"] = rng.uniform(-1.2, 1.2, (500, 3))
     packets, _ = encode_frames(frames)
     decoded, errors = decode_frames(packets)
     assert all(e is None for e in errors)
@@ -156,19 +182,21 @@ def test_vectorised_matches_single() -> None:
         assert single == packets[i].tobytes()
         one = decode(single)
         assert one.seq == decoded[i]["seq"] and one.flags == decoded[i]["flags"]
+        assert one.serial == decoded[i]["serial"] == frames[i]["serial"]
         np.testing.assert_array_equal(one.residuals, decoded[i]["residuals"])
+        np.testing.assert_array_equal(one.shade, decoded[i]["shade"])
 
 
 def test_crc16_matches_binascii() -> None:
     rng = np.random.default_rng(2)
-    rows = rng.integers(0, 256, (200, 37), dtype=np.uint8)  # > 16 rows: the table path
+    rows = rng.integers(0, 256, (200, 41), dtype=np.uint8)  # > 16 rows: the table path
     expected = [binascii.crc_hqx(r.tobytes(), 0xFFFF) for r in rows]
     assert crc16(rows).tolist() == expected
     assert crc16(rows[:3]).tolist() == expected[:3]
 
 
 @pytest.mark.parametrize("data,reason", [
-    (b"", "size"), (b"\x10" * 38, "size"), (b"\x10" * 40, "size"),
+    (b"", "size"), (b"\x20" * 42, "size"), (b"\x20" * 44, "size"), (b"\x10" * 39, "size"),
 ])
 def test_wrong_size(data: bytes, reason: str) -> None:
     with pytest.raises(PacketError) as err:
@@ -179,8 +207,8 @@ def test_wrong_size(data: bytes, reason: str) -> None:
 def test_unknown_version_and_bad_crc() -> None:
     good = bytearray(encode(Frame(seq=3)))
     other = bytearray(good)
-    other[0] = (2 << 4) | (other[0] & 0x0F)
-    with pytest.raises(PacketError) as err:
+    other[0] = (1 << 4) | (other[0] & 0x0F)
+    with pytest.raises(PacketError, match="packet version 1, expected 2") as err:
         decode(bytes(other))
     assert err.value.reason == "version"
     good[20] ^= 0x04
@@ -192,9 +220,9 @@ def test_unknown_version_and_bad_crc() -> None:
 def test_reserved_bits_refused_even_with_valid_crc() -> None:
     raw = np.frombuffer(encode(Frame()), np.uint8).copy()
     raw[0] |= 0x08  # flag bit 7, reserved: flags are stream bits 4..11, MSB first
-    body = raw[:37].reshape(1, -1)
+    body = raw[:41].reshape(1, -1)
     crc = int(crc16(body)[0])
-    raw[37], raw[38] = crc >> 8, crc & 0xFF
+    raw[41], raw[42] = crc >> 8, crc & 0xFF
     with pytest.raises(PacketError) as err:
         decode(raw.tobytes())
     assert err.value.reason == "reserved"

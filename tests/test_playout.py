@@ -26,7 +26,7 @@ from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_stat
 RATE = 30.0
 DEPTH = 3
 # Half steps of the quantisers: rotation (degree), shift_xy, shift_z, residuals (mm), q (layer).
-ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL, Q_STEP = (q.step / 2 for q in QUANTISERS)
+ROT_DEG, SHIFT_XY, SHIFT_Z, RESIDUAL, Q_STEP, _ = (q.step / 2 for q in QUANTISERS)
 FACE = Flag.FACE_PRESENT
 HELD = ("held", "easing", "neutral")
 PLAYED = ("received", "face_lost")
@@ -41,7 +41,8 @@ def make_frame(seq: int, rng: np.random.Generator, flags: Flag = FACE,
         translation=np.array([rng.uniform(-100, 100), rng.uniform(-100, 100),
                               rng.uniform(-1500, -300)], np.float32),
         residuals=rng.uniform(-20, 20, (9, 2)).astype(np.float32),
-        q=(rng.uniform(0.5, 7, 8) if q is None else np.full(8, q)).astype(np.float32))
+        q=(rng.uniform(0.5, 7, 8) if q is None else np.full(8, q)).astype(np.float32),
+        serial=int(rng.integers(0, 2048)), shade=rng.uniform(-1, 0.98, 3).astype(np.float32))
 
 
 def drive(playout: Playout, schedule: dict[int, list[bytes]], ticks: int) -> list[FrameState]:
@@ -63,6 +64,8 @@ def assert_plays(state: FrameState, data: bytes) -> None:
     np.testing.assert_array_equal(state.translation, frame.translation.astype(np.float64))
     np.testing.assert_array_equal(state.residuals, frame.residuals)
     np.testing.assert_array_equal(state.q, frame.q)
+    assert state.serial == frame.serial
+    np.testing.assert_array_equal(state.shade, frame.shade)
 
 
 def ledger(playout: Playout, states: list[FrameState]) -> None:
@@ -109,6 +112,22 @@ def test_before_any_packet_the_state_is_neutral_at_the_default_pose() -> None:
     assert not st.residuals.any() and not st.q.any() and st.flags == Flag(0)
     with pytest.raises(ValueError):  # the arrays are read-only
         st.residuals[0, 0] = 1.0
+
+
+def test_serial_and_shade_are_the_last_face_present_packets() -> None:
+    """A received packet's serial and shade play as they are; a lost slot and a packet with
+    the face lost keep those of the last face-present packet (never eased)."""
+    shades = [np.array([0.25, -0.5, 0.125], np.float32), np.array([-1, 0, 0.5], np.float32)]
+    frames = [Frame(seq=0, flags=FACE, serial=3, shade=shades[0]),
+              Frame(seq=1, flags=FACE, serial=4, shade=shades[1]),
+              Frame(seq=3, flags=Flag.TRACKING_LOST, serial=5, shade=-shades[1])]
+    playout = Playout(RATE, depth=1, hold_s=0.0, ease_s=0.0)
+    states = drive(playout, {k: [encode(f)] for k, f in zip((0, 1, 3), frames)}, 5)
+    assert [st.status for st in states] == ["neutral", "received", "received", "neutral",
+                                           "face_lost"]
+    assert [st.serial for st in states] == [0, 3, 4, 4, 4]
+    for st, want in zip(states, [np.zeros(3), shades[0], *shades[1:] * 3]):
+        np.testing.assert_array_equal(st.shade, want)
 
 
 def test_replay_with_loss_and_reordering_yields_every_slot_once() -> None:

@@ -29,6 +29,7 @@ from logsender import ready as _ready
 from facewire.models.modelfile import ModelFileError
 from facewire.protocol.keys import generate_keys, server_keys
 from facewire.protocol.log import read_log
+from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.transport import TransportError
 from facewire.receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
 from facewire.receiver.playout import FrameState
@@ -183,7 +184,7 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     assert ready.is_set()
     assert sender.sent == 40 and sender.junk == 15
     # on_packet sees every message taken from the socket, junk too, in arrival order
-    assert len(packets) == 55 and sum(len(d) == 39 for d, _ in packets) >= 40
+    assert len(packets) == 55 and sum(len(d) == PACKET_BYTES for d, _ in packets) >= 40
     assert all(a <= b for (_, a), (_, b) in zip(packets, packets[1:]))
     assert summary["ended"] == "idle_timeout" and summary["model_source"] == "file"
     assert not sender.requests["model_request"]
@@ -194,7 +195,7 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     assert frames[0].shape == (SIZE[1], SIZE[0], 3)
     assert all(f.mean() > 5 for f in frames)  # a face in every frame
     assert summary["fps"] == pytest.approx(25, rel=0.2)
-    assert summary["kbps"] > 7  # 39-byte packets at 25 Hz, plus the junk
+    assert summary["kbps"] > 7  # 43-byte packets at 25 Hz, plus the junk
     assert 0 < summary["latency_ms_median"] < 400  # played on arrival (bench speed times it)
 
 

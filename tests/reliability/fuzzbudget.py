@@ -1,8 +1,8 @@
 """The fuzz tests' seed and budget (tests/reliability/test_fuzz.py, test_wire_faults.py).
 
-``SHARES`` gives the packets of each test, 1,100,624 in all per normal run (each test asserts
+``SHARES`` gives the packets of each test, 1,184,720 in all per normal run (each test asserts
 its own count). For a longer run every share is scaled by ``FACEWIRE_FUZZ_PACKETS /
-1,100,624``; every draw is seeded from ``FACEWIRE_FUZZ_SEED`` and the test's own name, and
+1,184,720``; every draw is seeded from ``FACEWIRE_FUZZ_SEED`` and the test's own name, and
 ``WHY``, which names both, goes into every failure message.
 """
 
@@ -14,14 +14,14 @@ import zlib
 import numpy as np
 
 SHARES = {  # packets per test in a normal run
-    "one_and_two_bit_errors": 8 * (312 + 312 * 311 // 2),  # 8 packets, exhaustively
+    "one_and_two_bit_errors": 8 * (344 + 344 * 343 // 2),  # 8 packets, exhaustively
     "random_bit_errors": 200_000,
     "valid_crc_random_fields": 200_000,
     "playout_counts": 200_000,
     "playout_order": 100_000,
     "log_records": 10_000,
 }
-DEFAULT_PACKETS = sum(SHARES.values())  # 1,100,624; and the wire's few hundred
+DEFAULT_PACKETS = sum(SHARES.values())  # 1,184,720; and the wire's few hundred
 PACKETS = int(os.environ.get("FACEWIRE_FUZZ_PACKETS", DEFAULT_PACKETS))
 SEED = int(os.environ.get("FACEWIRE_FUZZ_SEED", 20261126))
 SCALE = PACKETS / DEFAULT_PACKETS

@@ -11,13 +11,13 @@ wherever the oracle knows them.
 Which bit errors are always caught: the CRC's generator x^16 + x^12 + x^5 + 1 is (x + 1)
 times a primitive polynomial of degree 15, so every error of an odd number of bits, every
 two-bit error within 32767 bits and every burst of at most 16 bits changes the CRC; a packet
-is 312 bits. Every 1- and 2-bit error of several packets is tried here (exhaustively), and
+is 344 bits. Every 1- and 2-bit error of several packets is tried here (exhaustively), and
 random odd-weight errors and bursts; errors of 4 or more bits can pass (about 1 in 32768 of
 the even-weight ones): such mutants are valid packets, must decode to in-range values, and
 count as received.
 
-Budget: ``fuzzbudget.SHARES`` (packets per test, 1,100,624 in all per normal run). For a
-longer run every share is scaled by ``FACEWIRE_FUZZ_PACKETS / 1,100,624`` and the seed is
+Budget: ``fuzzbudget.SHARES`` (packets per test, 1,184,720 in all per normal run). For a
+longer run every share is scaled by ``FACEWIRE_FUZZ_PACKETS / 1,184,720`` and the seed is
 ``FACEWIRE_FUZZ_SEED`` (each failure message names it)::
 
     FACEWIRE_FUZZ_PACKETS=10000000 .venv/bin/python -m pytest -q tests/reliability/test_fuzz.py
@@ -41,7 +41,7 @@ if __name__ == "__main__":  # run as a script: the budget from the command line,
     import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--packets", type=int, help="packets in all (default 1,100,624)")
+    parser.add_argument("--packets", type=int, help="packets in all (default 1,184,720)")
     parser.add_argument("--seed", type=int)
     args, REST = parser.parse_known_args()
     for variable, value in (("FACEWIRE_FUZZ_PACKETS", args.packets),
@@ -53,9 +53,11 @@ if __name__ == "__main__":  # run as a script: the budget from the command line,
 from fuzzbudget import DEFAULT_PACKETS, PACKETS, SHARES, WHY, rng_for, share
 from packetoracle import (
     BITS,
+    CODES,
     PACKET,
     RESERVED,
     TOP,
+    VERSION,
     Garbage,
     check_decoded,
     flip,
@@ -79,10 +81,10 @@ def test_the_shares_add_up_to_a_million() -> None:
 # -- decode and decode_frames ----------------------------------------------------------------
 
 def test_every_one_and_two_bit_error_is_caught() -> None:
-    """All 312 one-bit and 48,516 two-bit errors of each of several valid packets: every one
+    """All 344 one-bit and 58,996 two-bit errors of each of several valid packets: every one
     is refused (vectorised and, for one bit, one by one), as the CRC guarantees."""
     rng = rng_for("one_and_two_bit_errors")
-    per = 312 + 312 * 311 // 2
+    per = BITS + BITS * (BITS - 1) // 2
     count = max(1, share("one_and_two_bit_errors") // per)
     base = pack(random_fields(rng, count))
     i, j = np.triu_indices(BITS, 1)
@@ -171,12 +173,13 @@ def test_valid_crc_packets_with_random_fields() -> None:
     for lo in range(0, n, 50_000):
         m = min(50_000, n - lo)
         fields = random_fields(rng, m, extremes=0.25)
-        fields[:, 0] = np.where(rng.random(m) < 0.75, 1, rng.integers(0, 16, m))
+        fields[:, 0] = np.where(rng.random(m) < 0.75, VERSION, rng.integers(0, 16, m))
         fields[:, 1] = rng.integers(0, 256, m)
-        fields[:2, 3:] = [np.zeros_like(TOP), TOP]  # all codes at the bottom, at the top
+        fields[:2, 3] = [0, (1 << 11) - 1]  # the serial at its bottom and top, and
+        fields[:2, CODES:] = [np.zeros_like(TOP), TOP]  # all codes at the bottom, at the top
         packets = pack(fields)
         frames, errors = decode_frames(packets)
-        want = np.where(fields[:, 0] != 1, "version",
+        want = np.where(fields[:, 0] != VERSION, "version",
                         np.where(fields[:, 1] & RESERVED, "reserved", None))
         assert list(errors) == list(want), WHY
         ok = errors == None  # noqa: E711
@@ -310,7 +313,7 @@ def test_a_log_with_corrupt_records_keeps_every_intact_one(tmp_path: Path) -> No
     its time, packet or CRC-32; a right CRC-32 over a corrupt or invalid packet or a NaN or
     infinite time; random bytes; bytes cut out; garbage inserted between records; the tail
     cut): ``read_log`` keeps every intact record, in order, with its time, and counts each
-    damaged one as lost (an insertion of L bytes as ``max(1, round(L / 51))``)."""
+    damaged one as lost (an insertion of L bytes as ``max(1, round(L / 55))``)."""
     rng = rng_for("log_records")
     damaged = share("log_records")
     total = 2 * damaged + 3  # odd records 1 .. 2 damaged - 1 damaged; the last one cut short
@@ -353,7 +356,7 @@ def test_a_log_with_corrupt_records_keeps_every_intact_one(tmp_path: Path) -> No
 def _damage(rng: np.random.Generator, record: bytearray, fields: np.ndarray,
             mutant: np.ndarray) -> tuple[list[bytes], np.ndarray | None, int]:
     """One log record (time, packet, CRC-32) damaged in one of nine ways, drawn from ``rng``;
-    ``fields`` (35,) are its packet's codes and ``mutant`` (39,) a valid packet with random
+    ``fields`` (39,) are its packet's codes and ``mutant`` (43,) a valid packet with random
     fields. Returns the bytes that take its place in the log, the packet that ``read_log``
     must keep of them (None if none) and the number of records it must count as lost."""
     kind = rng.integers(0, 9)

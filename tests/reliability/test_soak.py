@@ -49,7 +49,7 @@ WARM_UP = 10_000
 def play_live(playout: Playout, packets: np.ndarray, arrivals: np.ndarray
               ) -> Iterator[tuple[FrameState, float]]:
     """Yield (state, time played) for every pop of the live receiver's rule (module
-    docstring), ``packets`` (N, 39) uint8 in arrival order at ``arrivals`` (N,) s; then
+    docstring), ``packets`` (N, 43) uint8 in arrival order at ``arrivals`` (N,) s; then
     the slots still buffered, as the receiver drains them at the end."""
     for i in range(len(packets)):
         data, t = packets[i], float(arrivals[i])
