@@ -40,8 +40,21 @@ def _replay(args: argparse.Namespace) -> int:
                f"packets: {s['received']} received, {s['concealed']} slots concealed, "
                f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
                f"{s['lost_records']} damaged log records",
+               *_replay_updates(s),
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
+
+
+def _replay_updates(s: dict[str, Any]) -> list[str]:
+    """``replay``'s line on the model updates, none for a log without any."""
+    if not (s["updates"] or s["lost_updates"] or s["missing_serials"]):
+        return []
+    line = (f"model updates: {s['updates_applied']} of {s['updates']} in the log applied, "
+            f"{s['lost_updates']} damaged")
+    if s["missing_serials"]:
+        line += (f"; lacking serials {', '.join(map(str, s['missing_serials']))}: "
+                 f"{s['clamped_frames']} frames shown clamped to the layers held")
+    return [line]
 
 
 def _rate(text: str) -> float:
