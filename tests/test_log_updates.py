@@ -3,6 +3,7 @@ issued, read back in place; damage to an update record costs that update only, c
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 from learned import learned_update
 
+from facewire.cli import main
 from facewire.models import update as model_update
 from facewire.models.modelfile import load_model
 from facewire.models.update import apply_update, encode_update
@@ -20,12 +22,23 @@ from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 
-def _packets(n: int) -> np.ndarray:
+def _packets(n: int, at: tuple[int, ...] = ()) -> np.ndarray:
+    """n packets; those from ``at[k]`` on refer to model version k + 1."""
     frames = np.zeros(n, FRAME_DTYPE)
     frames["seq"] = np.arange(n)
+    for k, where in enumerate(at):
+        frames["serial"][where:] = k + 1
     frames["flags"] = Flag.FACE_PRESENT
     frames["translation"][:, 2] = -600
     return encode_frames(frames)[0]
+
+
+MODELS: dict[str, Path] = {}
+
+
+def load_model_of(hello: Hello):
+    """The model file of a session's Hello (the conftest's person model)."""
+    return load_model(MODELS[hello.model_sha256])
 
 
 @pytest.fixture(scope="module")
@@ -33,6 +46,7 @@ def session(person_model: Path) -> tuple[Hello, list[bytes]]:
     """The Hello of a session on the real lp_d0 model and two real updates' bytes (the
     mouth learns a state, then the forehead), each encoded against the version before it."""
     model = load_model(person_model)
+    MODELS[model.sha256] = person_model
     hello = Hello(model.sha256, model.file_bytes, 30.0,
                   Camera(500.0, 500.0, 255.5, 255.5, 512, 512),
                   tuple(r.name for r in model.regions))
@@ -44,8 +58,9 @@ def session(person_model: Path) -> tuple[Hello, list[bytes]]:
 
 def _write(path: Path, hello: Hello, updates: list[bytes], at: tuple[int, ...],
            n: int = 30) -> np.ndarray:
-    """n packets at 30 Hz from t = 100 s, update k written just before packet at[k]."""
-    packets = _packets(n)
+    """n packets at 30 Hz from t = 100 s, update k written just before packet at[k], the
+    first to refer to it."""
+    packets = _packets(n, at)
     with LogWriter(path, hello) as log:
         for i, p in enumerate(packets):
             for k, where in enumerate(at):
@@ -156,3 +171,28 @@ def test_writer_refuses_a_bad_update(tmp_path: Path, session) -> None:
 def test_the_logs_bounds_are_the_updates() -> None:
     assert fwlog.MAX_SERIAL == model_update.MAX_SERIAL
     assert fwlog.MAX_UPDATE_BYTES == model_update.MAX_UPDATE_BYTES
+
+
+def test_inspect_lists_the_updates(tmp_path: Path, session,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    hello, updates = session
+    path = tmp_path / "i.fwlog"
+    _write(path, hello, updates, (10, 20))
+    assert main(["inspect", str(path), "--json"]) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads(printed.strip().splitlines()[-1])
+    mouth = next(r for r in load_model_of(hello).regions if r.name == "mouth")
+    assert [(u["serial"], u["region"], u["bytes"], u["before"]) for u in summary["updates"]] \
+        == [(1, "mouth", len(updates[0]), 10), (2, "forehead", len(updates[1]), 20)]
+    assert summary["updates"][0]["position"] == mouth.layers.shape[0]
+    assert summary["updates"][1]["time"] == pytest.approx(100 + 20 / 30)
+    assert summary["update_bytes"] == len(updates[0]) + len(updates[1])
+    assert f"update 1: mouth, state {mouth.layers.shape[0]}, {len(updates[0]):,} bytes" \
+        in printed
+    data = bytearray(path.read_bytes())
+    data[data.index(updates[1]) + 30] ^= 0x08
+    path.write_bytes(bytes(data))
+    assert main(["inspect", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [u["serial"] for u in summary["updates"]] == [1]
+    assert summary["lost_updates"] == 1 and summary["missing_serials"] == [2]
