@@ -9,55 +9,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from learned import learned_update
+from learned import AT, N, Session, write_session
 
 from facewire.cli import main
-from facewire.models.modelfile import PersonModel, load_model
-from facewire.models.update import apply_update, encode_update
-from facewire.protocol.control import Camera, Hello
-from facewire.protocol.log import LogWriter, read_log
-from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
+from facewire.models.modelfile import PersonModel
+from facewire.protocol.log import read_log
 from facewire.receiver.playout import replay_states
 from facewire.receiver.replay import replay_log
 from facewire.receiver.scene import StateRenderer
 
-N, AT = 16, 8  # frames; the update is issued before frame AT, whose serial is 1 from there
 SIZE = (256, 256)
 
 
 @pytest.fixture(scope="module")
-def session(person_model: Path, tmp_path_factory: pytest.TempPathFactory
-            ) -> tuple[Path, Path, PersonModel, PersonModel, bytes]:
-    """A log of the real lp_d0 model: a face at rest, the mouth's Q at the state the update
-    adds (one past the model file's last), and the update (the mouth's rest state with its
-    colours inverted, a plain difference on the picture) issued before frame ``AT``.
-
-    Returns the log, the model file's path, the model file, the updated model and the
-    update's bytes.
-    """
-    base = load_model(person_model)
-    update = learned_update(base, "mouth", 1, base.sha256)
-    updated = apply_update(base, update)
-    data = encode_update(update, base)
-    names = [r.name for r in base.regions]
-    frames = np.zeros(N, FRAME_DTYPE)
-    frames["seq"] = np.arange(N)
-    frames["flags"] = Flag.FACE_PRESENT
-    frames["translation"] = (0.0, 0.0, -420.0)
-    frames["q"][:, :len(names)] = [r.rest for r in base.regions]
-    frames["q"][:, names.index("mouth")] = base.regions[names.index("mouth")].layers.shape[0]
-    frames["serial"][AT:] = 1
-    packets, _ = encode_frames(frames)
-    c = base.camera
-    hello = Hello(base.sha256, base.file_bytes, 30.0,
-                  Camera(c.fx, c.fy, c.cx, c.cy, c.width, c.height), tuple(names))
-    path = tmp_path_factory.mktemp("replay_updates") / "session.fwlog"
-    with LogWriter(path, hello) as log:
-        for i, packet in enumerate(packets):
-            if i == AT:
-                log.write_update(100.0 + i / 30, 1, data)
-            log.write(packet.tobytes(), 100.0 + i / 30)
-    return path, person_model, base, updated, data
+def session(person_model: Path, tmp_path_factory: pytest.TempPathFactory) -> Session:
+    """``write_session``: the mouth learns a state (its rest state with its colours
+    inverted, a plain difference on the picture) before frame ``AT``."""
+    return write_session(person_model, tmp_path_factory.mktemp("replay_updates") / "s.fwlog")
 
 
 def _direct(log: Path, model: PersonModel) -> list[np.ndarray]:
