@@ -126,7 +126,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         for k, state in enumerate(progress(states, "rendering", None)):
             shown = versions.model(state)
             if shown is not renderer.model:
-                renderer.use(shown)
+                renderer.set_model(shown)
             clamped += versions.held < state.serial
             tick = time.perf_counter()
             image = renderer.render(state)

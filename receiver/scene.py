@@ -83,7 +83,7 @@ class StateRenderer:
         self.render_seconds.append(time.perf_counter() - tick)
         return image
 
-    def use(self, model: PersonModel) -> None:
+    def set_model(self, model: PersonModel) -> None:
         """Draw with ``model`` from now on: another version of the same person's model (a
         model update, ``models.update``), whose mesh, and so whose rig, is this one's; its
         texture and regions are uploaded anew.

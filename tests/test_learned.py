@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import write_zip, zip_members
-from learned import Session, write_session
+from sessionlog import Session, write_session
 
 from facewire.cli import main
 from facewire.models.learned import LearnError, learned_model

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from learned import learned_update
+from sessionlog import learned_update
 
 from facewire.cli import main
 from facewire.models import update as model_update

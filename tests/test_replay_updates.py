@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from learned import AT, N, Session, write_session
+from sessionlog import AT, N, Session, write_session
 
 from facewire.cli import main
 from facewire.models.modelfile import PersonModel

@@ -5,7 +5,8 @@ a new last state whose layers are the region's rest state with its colours inver
 every area), so that a rendering that shows it is plainly not one that does not; its
 template is the rest state's. ``write_session`` writes a log of a session on a real model
 that learns one such state. Shared by ``tests/test_log_updates.py``,
-``tests/test_replay_updates.py`` and ``tests/test_learned.py``.
+``tests/test_replay_updates.py``, ``tests/test_learned.py`` and
+``tests/test_quality_updates.py``.
 """
 
 from __future__ import annotations
