@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -113,6 +112,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
     except ValueError as exc:  # the record times (e.g. a span of weeks): the log's fault
         raise ReplayError(f"{log_path}: {exc}") from None
+    versions = _Versions(model, log, Path(log_path))  # a bad update refused before any output
     frames = _SourceFrames(source) if source is not None else None
     out = Path(out)
     out_width = width + (0 if frames is None else frames.width(height))
@@ -121,7 +121,6 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     t0 = float(np.min(log.times)) if len(log.times) else 0.0
     written = clamped = 0
     render_seconds = 0.0
-    versions = _Versions(ModelVersions(model), log, Path(log_path))
     with StateRenderer(model, width, height, hello.camera, view) as renderer, writer:
         for k, state in enumerate(progress(states, "rendering", None)):
             shown = versions.model(state)
@@ -138,7 +137,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     elapsed = time.perf_counter() - start
     return {"out": str(out), "view": view, "width": width, "height": height,
             "frames": written, **playout.stats, "lost_records": log.lost,
-            "updates": len(log.updates), "updates_applied": versions.held,
+            "updates": len(log.updates), "updates_applied": versions.applied,
             "lost_updates": log.lost_updates, "missing_serials": list(log.missing_serials),
             "clamped_frames": clamped,
             "seconds": round(elapsed, 2),
@@ -146,28 +145,36 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
 
 
 class _Versions:
-    """The model versions a replay holds as it goes (module docstring, "Model updates")."""
+    """The model versions a replay holds as it goes (module docstring, "Model updates").
 
-    def __init__(self, versions: ModelVersions, log: PacketLog, path: Path) -> None:
-        self._versions = versions
-        self._pending = deque(log.updates)
-        self._path = path
+    Every intact update record is decoded at the start, in file order, so that a bad one is
+    refused before any output is written; update n is then held from the first state whose
+    packet's time is at or after the records of updates 1 .. n.
+    """
+
+    def __init__(self, model: PersonModel, log: PacketLog, path: Path) -> None:
+        self._versions = ModelVersions(model)
+        issued: dict[int, float] = {}
+        for record in log.updates:
+            self._versions.add(record.serial, record.data, f"{path}: update record "
+                                                           f"{record.serial}")
+            issued.setdefault(record.serial, record.time)
+        # version n is held once every record up to n is: the running maximum of their times
+        self._ready = np.maximum.accumulate([issued[n] for n in range(1, self.applied + 1)])
         self._clock = -math.inf
+        self.held = 0
 
     @property
-    def held(self) -> int:
+    def applied(self) -> int:
+        """The updates the log lets a replay apply (every serial up to it intact)."""
         return self._versions.held
 
     def model(self, state: FrameState) -> PersonModel:
-        """The model to show ``state`` with, after taking the updates issued up to its
-        packet's time."""
+        """The model to show ``state`` with (``held`` is its version's newest possible)."""
         if state.arrival_s is not None:
             self._clock = max(self._clock, state.arrival_s)
-        while self._pending and self._pending[0].time <= self._clock:
-            update = self._pending.popleft()
-            self._versions.add(update.serial, update.data,
-                               f"{self._path}: update record {update.serial}")
-        return self._versions.model(state.serial)
+        self.held = int(np.searchsorted(self._ready, self._clock, side="right"))
+        return self._versions.model(min(state.serial, self.held))
 
 
 class _SourceFrames:

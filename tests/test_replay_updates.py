@@ -13,7 +13,7 @@ from sessionlog import AT, N, Session, write_session
 
 from facewire.cli import main
 from facewire.models.modelfile import PersonModel
-from facewire.protocol.log import read_log
+from facewire.protocol.log import LogWriter, read_log
 from facewire.receiver.playout import replay_states
 from facewire.receiver.replay import replay_log
 from facewire.receiver.scene import StateRenderer
@@ -73,3 +73,22 @@ def test_a_lost_update_leaves_its_frames_clamped_and_says_so(session, tmp_path: 
     assert f"lacking serials 1: {N - AT} frames shown clamped" in printed
     shown, before = _replayed(out), _direct(log, base)
     assert all(np.array_equal(a, b) for a, b in zip(shown, before, strict=True))
+
+
+def test_an_update_that_does_not_decode_is_refused_before_any_output(
+        session, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An intact record (its CRC-32 right) whose bytes are no update (here: cut short) is
+    refused in one line naming the log and the record, and nothing is written."""
+    log = read_log(session.log)
+    bad = tmp_path / "bad.fwlog"
+    with LogWriter(bad, log.hello) as writer:
+        for i, packet in enumerate(log.packets):
+            if i == AT:
+                writer.write_update(float(log.times[i]), 1, session.data[:-20])
+            writer.write(packet.tobytes(), float(log.times[i]))
+    out = tmp_path / "out.mp4"
+    assert main(["replay", str(bad), "--model", str(session.model_file), "--out",
+                 str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: update record 1:" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
