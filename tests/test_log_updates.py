@@ -196,3 +196,25 @@ def test_inspect_lists_the_updates(tmp_path: Path, session,
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [u["serial"] for u in summary["updates"]] == [1]
     assert summary["lost_updates"] == 1 and summary["missing_serials"] == [2]
+
+
+def test_versions_wait_for_an_earlier_update_and_follow_the_serial(session) -> None:
+    """``ModelVersions``: update 2 arriving before 1 waits; a frame is shown with the version
+    it names when held, else the newest held."""
+    hello, updates = session
+    base = load_model_of(hello)
+    versions = model_update.ModelVersions(base)
+    assert versions.add(2, updates[1]) == [] and versions.held == 0
+    assert versions.model(2) is base  # version 2 named, none held: the model file
+    applied = versions.add(1, updates[0])
+    assert [u.serial for u in applied] == [1, 2] and versions.held == 2
+    assert versions.add(1, updates[0]) == []  # a second copy changes nothing
+    layers = {r.name: r.layers.shape[0] for r in base.regions}
+    one, two = versions.model(1), versions.model(2)
+    assert [r.layers.shape[0] for r in one.regions if r.name == "mouth"] == [
+        layers["mouth"] + 1]
+    assert [r.layers.shape[0] for r in one.regions if r.name == "forehead"] == [
+        layers["forehead"]]
+    assert [r.layers.shape[0] for r in two.regions if r.name == "forehead"] == [
+        layers["forehead"] + 1]
+    assert versions.model(0) is base and versions.model(7) is two
