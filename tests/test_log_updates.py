@@ -139,19 +139,26 @@ def test_junk_inserted_around_an_update_costs_only_what_it_touches(tmp_path: Pat
 
 
 def test_a_format_1_log_is_read_as_before(tmp_path: Path, session) -> None:
-    """A log of format 1 (no update records) reads as it did; a byte "U" after a record's
-    time is no update there."""
+    """A log of format 1 (no update records) reads as it did: the head of an update record
+    in it is junk there, counted as one lost packet record (in format 2: a lost update)."""
     hello, _ = session
-    path = tmp_path / "old.fwlog"
-    packets = _write(path, hello, [], (), n=12)
-    data = bytearray(path.read_bytes())
-    data[8:10] = struct.pack(">H", 1)
-    end = 16 + struct.unpack_from(">I", data, 12)[0]
-    data[end:end + 4] = struct.pack(">I", zlib.crc32(bytes(data[:end])))
-    path.write_bytes(bytes(data))
-    log = read_log(path)
-    np.testing.assert_array_equal(log.packets, packets)
-    assert log.updates == () and log.lost == 0
+    packets = _packets(12)
+    junk = struct.pack(">dBHI", 100.0, ord("U"), 1, 30) + bytes(34)  # a head, a cut body
+    for version, lost, lost_updates in ((1, 1, 0), (2, 0, 1)):
+        path = tmp_path / f"v{version}.fwlog"
+        with LogWriter(path, hello) as log:
+            for i, p in enumerate(packets):
+                log.write(p.tobytes(), 100.0 + i / 30)
+        data = bytearray(path.read_bytes())
+        data[8:10] = struct.pack(">H", version)
+        end = 16 + struct.unpack_from(">I", data, 12)[0]
+        data[end:end + 4] = struct.pack(">I", zlib.crc32(bytes(data[:end])))
+        at = len(data) - 6 * RECORD_BYTES
+        data[at:at] = junk  # between packets 5 and 6
+        path.write_bytes(bytes(data))
+        log = read_log(path)
+        np.testing.assert_array_equal(log.packets, packets)
+        assert (log.updates, log.lost, log.lost_updates) == ((), lost, lost_updates), version
 
 
 def test_writer_refuses_a_bad_update(tmp_path: Path, session) -> None:
