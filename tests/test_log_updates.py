@@ -225,3 +225,17 @@ def test_versions_wait_for_an_earlier_update_and_follow_the_serial(session) -> N
     assert [r.layers.shape[0] for r in two.regions if r.name == "forehead"] == [
         layers["forehead"] + 1]
     assert versions.model(0) is base and versions.model(7) is two
+
+
+def test_inspect_names_an_update_it_cannot_read(tmp_path: Path, session,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    hello, _ = session
+    path = tmp_path / "junk.fwlog"
+    with LogWriter(path, hello) as log:
+        log.write(_packets(1)[0].tobytes(), 100.0)
+        log.write_update(100.01, 1, b"junk")
+    assert main(["inspect", str(path), "--json"]) == 0
+    printed = capsys.readouterr().out
+    entry = json.loads(printed.strip().splitlines()[-1])["updates"][0]
+    assert entry["region"] is None and "update record 1: not a msgpack map" in entry["error"]
+    assert "update 1: unreadable: update record 1: not a msgpack map" in printed
