@@ -73,6 +73,14 @@ def test_another_base_or_no_update_is_refused_in_one_line(
     assert not out.exists()
 
 
+@pytest.fixture(scope="module")
+def learned_file(session: Session, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The session's learned model, written once."""
+    path = tmp_path_factory.mktemp("learned_file") / "good.fwm"
+    save_model(learned_model(session.log, session.model_file)[0], path)
+    return path
+
+
 @pytest.mark.parametrize("spoil, field", [
     (lambda d: d["updates"][0].update(serial=2), "learned.updates\\[0\\].serial"),
     (lambda d: d["updates"][0].update(region="nose"), "'nose' is not a region"),
@@ -80,12 +88,9 @@ def test_another_base_or_no_update_is_refused_in_one_line(
     (lambda d: d.update(updates=[]), "learned.updates"),
     (lambda d: d.update(extra=1), "learned: unknown key 'extra'"),
 ])
-def test_a_bad_learned_record_is_refused_naming_its_field(session: Session, tmp_path: Path,
+def test_a_bad_learned_record_is_refused_naming_its_field(learned_file: Path, tmp_path: Path,
                                                           spoil, field: str) -> None:
-    model, _ = learned_model(session.log, session.model_file)
-    good = tmp_path / "good.fwm"
-    save_model(model, good)
-    members = zip_members(good)
+    members = zip_members(learned_file)
     manifest = json.loads(members["model.json"])
     spoil(manifest["learned"])
     members["model.json"] = json.dumps(manifest).encode()
