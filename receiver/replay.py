@@ -24,7 +24,9 @@ frame with the model version its packet's ``serial`` names, as a live receiver d
 (``models.update.ModelVersions``): once the update is held, the frames that refer to it
 show its state; a frame that refers to an update the replay does not hold (its record lost
 to damage, ``missing_serials``) is shown with the newest version held, whose regions clamp
-Q to the layers they have, and counted (``clamped_frames``). An intact update record that
+Q to the layers they have, and counted (``clamped_frames``). A face lost after a version is
+taken eases to that version's rest states (``Playout.rest_q``): an update that inserts a
+state before a region's rest state moves it. An intact update record that
 does not decode against the version it applies to is refused (``UpdateError``, naming the
 log).
 
@@ -126,6 +128,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
             shown = versions.model(state)
             if shown is not renderer.model:
                 renderer.set_model(shown)
+                playout.rest_q = rest_q(shown)  # a lost face eases to this version's rest
             clamped += versions.held < state.serial
             tick = time.perf_counter()
             image = renderer.render(state)

@@ -26,12 +26,13 @@ N, AT = 16, 8  # a session's frames; its update is issued before frame AT, which
 
 
 def learned_update(model: PersonModel, region: str, serial: int, base_sha256: str,
-                   replaces: int | None = None) -> ModelUpdate:
-    """A new last state of ``region`` (replacing state ``replaces``, or inserted), made for
-    the version ``model`` of the session of ``base_sha256``."""
+                   replaces: int | None = None, position: int | None = None) -> ModelUpdate:
+    """A new state of ``region`` at ``position`` (by default the last; replacing state
+    ``replaces``, or inserted), made for the version ``model`` of the session of
+    ``base_sha256``."""
     r = next(r for r in model.regions if r.name == region)
     rest = round(r.rest)
-    k = r.layers.shape[0] - (replaces is not None)
+    k = r.layers.shape[0] - (replaces is not None) if position is None else position
     return ModelUpdate(base_sha256=base_sha256, serial=serial, region=region, position=k,
                        replaces=replaces,
                        layers=tuple(255 - p.layers[rest] for p in r.parts()),

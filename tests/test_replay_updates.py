@@ -9,14 +9,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from sessionlog import AT, N, Session, write_session
+from sessionlog import AT, N, Session, learned_update, write_session
 
 from facewire.cli import main
 from facewire.models.modelfile import PersonModel
+from facewire.models.update import apply_update, encode_update
 from facewire.protocol.log import LogWriter, read_log
+from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 from facewire.receiver.playout import replay_states
 from facewire.receiver.replay import replay_log
-from facewire.receiver.scene import StateRenderer
+from facewire.receiver.scene import StateRenderer, rest_q
 
 SIZE = (256, 256)
 
@@ -92,3 +94,33 @@ def test_an_update_that_does_not_decode_is_refused_before_any_output(
     err = capsys.readouterr().err
     assert f"{bad}: update record 1:" in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_a_face_lost_after_an_update_eases_to_the_new_versions_rest(
+        session, tmp_path: Path) -> None:
+    """An update that inserts a state before the mouth's rest state moves the rest; a face
+    lost after it eases to the state at rest, not to the inserted one."""
+    base = session.base
+    names = [r.name for r in base.regions]
+    mouth = names.index("mouth")
+    update = learned_update(base, "mouth", 1, base.sha256,
+                            position=round(base.regions[mouth].rest))
+    updated = apply_update(base, update)
+    frames = np.zeros(40, FRAME_DTYPE)
+    frames["seq"] = np.arange(40)
+    frames["flags"][:12] = Flag.FACE_PRESENT  # then the face is lost: eased to rest
+    frames["translation"] = (0.0, 0.0, -420.0)
+    frames["q"][:8, :len(names)] = rest_q(base)[:len(names)]
+    frames["q"][8:, :len(names)] = rest_q(updated)[:len(names)]
+    frames["serial"][8:] = 1
+    packets, _ = encode_frames(frames)
+    hello = read_log(session.log).hello
+    log = tmp_path / "rest.fwlog"
+    with LogWriter(log, hello) as writer:
+        for i, packet in enumerate(packets):
+            if i == 8:
+                writer.write_update(100.0 + i / 30, 1, encode_update(update, base))
+            writer.write(packet.tobytes(), 100.0 + i / 30)
+    replay_log(log, session.model_file, tmp_path / "frames", size=SIZE)
+    shown = _replayed(tmp_path / "frames")
+    assert np.array_equal(shown[-1], shown[11])  # at rest, as the last face at rest was
