@@ -40,8 +40,21 @@ def _replay(args: argparse.Namespace) -> int:
                f"packets: {s['received']} received, {s['concealed']} slots concealed, "
                f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
                f"{s['lost_records']} damaged log records",
+               *_replay_updates(s),
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
+
+
+def _replay_updates(s: dict[str, Any]) -> list[str]:
+    """``replay``'s line on the model updates, none for a log without any."""
+    if not (s["updates"] or s["lost_updates"] or s["missing_serials"]):
+        return []
+    line = (f"model updates: {s['updates_applied']} of {s['updates']} in the log applied, "
+            f"{s['lost_updates']} damaged")
+    if s["missing_serials"]:
+        line += (f"; lacking serials {', '.join(map(str, s['missing_serials']))}: "
+                 f"{s['clamped_frames']} frames shown clamped to the layers held")
+    return [line]
 
 
 def _rate(text: str) -> float:
@@ -241,10 +254,15 @@ def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.enroll.build import build_model, is_photo
 
-    if (args.video is None) == (args.guided is None):
-        raise CommandError("model build: give one of VIDEO, PHOTO or --guided CAMERA")
+    if sum(x is not None for x in (args.video, args.guided, args.from_log)) != 1:
+        raise CommandError("model build: give one of VIDEO, PHOTO, --guided CAMERA or "
+                           "--from-log LOG")
+    if (args.model is None) != (args.from_log is None):
+        raise CommandError("model build: --from-log LOG and --model BASE go together")
     if args.guided is not None:
         return _model_build_guided(args)
+    if args.from_log is not None:
+        return _model_build_from_log(args)
     frames = _frames(args.frames)
     check = None
     if not args.no_self_check:
@@ -255,6 +273,26 @@ def _model_build(args: argparse.Namespace) -> int:
     result = build_model(args.video, args.output, frames, progress=_progress, check=check)
     s = result.summary()
     report(s, _build_lines(s), args.json)
+    return 0
+
+
+def _model_build_from_log(args: argparse.Namespace) -> int:
+    """``model build --from-log LOG --model BASE``: the base with the session's model updates
+    (``models.learned``)."""
+    from facewire.models.learned import write_learned_model
+    from facewire.report import report
+
+    s = write_learned_model(args.from_log, args.model, args.output)
+    grown = ", ".join(f"{name} {old} -> {new}" for name, (old, new) in s["layers"].items()
+                      if old != new) or "none (states replaced)"
+    lines = [f"model:    {s['path']} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
+             f"learned:  {len(s['applied'])} model updates of {s['log']} applied to "
+             f"{s['base']} (sha256 {s['base_sha256'][:16]}...)",
+             f"layers:   {grown}"]
+    if s["left_out"] or s["missing_serials"]:
+        lines.append(f"left out: updates {', '.join(map(str, s['left_out'])) or 'none'}; the "
+                     f"log lacks serials {', '.join(map(str, s['missing_serials']))}")
+    report(s, lines, args.json)
     return 0
 
 
@@ -400,7 +438,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "source": None if model.info.source is None else model.info.source.as_dict(),
          "coverage": model.coverage,
          "self_check": None if model.self_check is None else model.self_check.as_dict(),
-         "region_frames": region_frames_summary(model)}
+         "region_frames": region_frames_summary(model),
+         "learned": None if model.learned is None else model.learned.as_dict()}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -415,8 +454,19 @@ def _model_info(args: argparse.Namespace) -> int:
                *_region_frames_lines(s["region_frames"]),
                *_coverage_lines(model.coverage),
                _stored_self_check(model.self_check),
+               _learned_line(model.learned),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
+
+
+def _learned_line(learned: Any) -> str:
+    """``model info``'s line on the session updates a model includes."""
+    if learned is None:
+        return "learned:  nothing (no session's model updates)"
+    states = ", ".join(f"{u.region} state {u.position}" + (
+        "" if u.replaces is None else f" (replacing {u.replaces})") for u in learned.updates)
+    return (f"learned:  {len(learned.updates)} model updates of session {learned.log} on "
+            f"base {learned.base_sha256[:16]}...: {states}")
 
 
 def _stored_self_check(check: Any) -> str:
@@ -533,6 +583,12 @@ def _add_model(sub: Commands) -> None:
                    "neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
+    m.add_argument("--from-log", metavar="LOG", help="instead of enrolling: the model a "
+                   "session's receivers ended with, the base model (--model) with the model "
+                   "updates the session's log holds, so that the next session starts from "
+                   "them; the base's sha256 must be the log's")
+    m.add_argument("--model", metavar="BASE", help="with --from-log: the model file the "
+                   "session started from")
     m.add_argument("--no-self-check", action="store_true",
                    help="skip the self-check (the model rendered at up to 40 of its own "
                    "frames and scored: face SSIM, render NME; about 4 s)")
