@@ -47,7 +47,7 @@ class Packed:
 
 
 def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
-         q: np.ndarray | None = None) -> Packed:
+         q: np.ndarray | None = None, serial: int = 0) -> Packed:
     """Quantise and encode one frame.
 
     Args:
@@ -57,6 +57,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
         residuals: (9, 2) finite tangent-frame residuals (u, v), mm, ``NONRIGID`` order
             (``Rig.to_tangent``).
         q: (8,) region values, layers; None for neutral (all 0).
+        serial: the model version ``q`` refers to (0: the model file; ``sender.learn``).
 
     Returns:
         The frame (its ``flags`` include CLAMPED when set), the 43-byte packet and the
@@ -72,7 +73,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
     frame = Frame(seq=int(seq) % SEQ_MODULO, flags=Flag(int(flags)),
                   rotation=rotation_vector(pose.rotation).astype(np.float32),
                   translation=np.asarray(pose.translation, np.float32).copy(),
-                  residuals=uv.copy(), q=q)
+                  residuals=uv.copy(), q=q, serial=int(serial))
     packets, clamped = encode_frames(frame.to_record().reshape(1))
     if clamped[0]:
         frame.flags |= Flag.CLAMPED
