@@ -11,7 +11,11 @@ Threads. Capture, processing and output do not stall each other:
   it, and a slow receiver's queue drops rather than blocks) and, with a record path, append
   it to a packet log (``protocol.log``; each record stamped with the time it was published:
   the Unix time at the start plus the monotonic clock since, so that a wall-clock change
-  during a recording cannot make the log's times step back or jump);
+  during a recording cannot make the log's times step back or jump); a model update the
+  pipeline learned on the frame (``sender.learn``) is encoded against the version it applies
+  to (``models.update.encode_update``), handed to the control thread
+  (``UpdateStore.publish_update``) and logged, after the frame's packet, which still names
+  the version before it;
 - the control thread answers receivers' requests (below).
 
 The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
@@ -72,6 +76,7 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import ModelFileError, load_model
+from facewire.models.update import encode_update
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
@@ -261,7 +266,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         stack.callback(responder.stop)
         try:
             counts, stopped = _stream(src, pipeline, publisher, log, peers, rate, loop, stop,
-                                      report, start)
+                                      report, start, store)
         except CaptureError:
             if log is not None and log.records == 0:
                 log.close()
@@ -296,10 +301,13 @@ def _rates(counts: dict[str, Any]) -> dict[str, Any]:
 
 def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             log: LogWriter | None, peers: PeerCounter, rate_hz: float, loop: bool,
-            stop: threading.Event, report: Status, hold: threading.Event | None
-            ) -> tuple[dict[str, Any], str]:
+            stop: threading.Event, report: Status, hold: threading.Event | None,
+            store: UpdateStore) -> tuple[dict[str, Any], str]:
     """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
-    the first frame waits until it is set (or ``stop`` is)."""
+    the first frame waits until it is set (or ``stop`` is). An update the pipeline learns on
+    a frame is encoded against the version it applies to, published to the receivers
+    (``store``) and logged, after that frame's packet (which still names the version
+    before it)."""
     counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0,
                               "updates": 0}
     start = cpu = None
@@ -315,10 +323,16 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             if stop.is_set():
                 stopped = "stop"
                 break
+            before = pipeline.model
             out = pipeline.process(image, t)
             publisher.send(out.packet)
             if log is not None:
                 log.write(out.packet, epoch + time.monotonic())
+            if out.update is not None:
+                data = encode_update(out.update, before)
+                store.publish_update(out.update.serial, data)
+                if log is not None:
+                    log.write_update(epoch + time.monotonic(), out.update.serial, data)
             now = time.monotonic()
             if start is None:
                 start, cpu, window = now, time.process_time(), (now, 1)

@@ -18,7 +18,9 @@ model's own layers, encoded by ``models.update.encode_update``) or real ones dam
 - a receiver stopped mid-session and started again, behind ``facewire relay``, catches up to
   the sender's version (late joiners get every update);
 - fuzzed update requests never break the sender's control thread, and fuzzed update chunks
-  never decode into anything invalid.
+  never decode into anything invalid;
+- the real ``facewire send``, learning, publishes what it learns and logs it, and its
+  receiver reaches the same version.
 """
 
 from __future__ import annotations
@@ -38,9 +40,10 @@ from conftest import free_endpoint, start
 from learned import session_updates
 from logsender import encoded_log, free_port_pair
 from lossy import Faults, LossyRelay
+from test_learn import _mouth_states
 from updatesender import UpdateSender
 
-from facewire.models.modelfile import load_model
+from facewire.models.modelfile import load_model, save_model
 from facewire.protocol.control import (
     ControlError,
     Error,
@@ -49,6 +52,7 @@ from facewire.protocol.control import (
     decode_message,
     encode_message,
 )
+from facewire.protocol.log import read_log
 from facewire.protocol.relay import relay
 from facewire.protocol.shaper import UpdateShaper
 from facewire.protocol.transport import control_endpoint
@@ -57,6 +61,7 @@ from facewire.receiver.receiver import receive
 from facewire.receiver.scene import StateRenderer
 from facewire.receiver.updates import UpdateFetcher
 from facewire.sender.responder import answer_request
+from facewire.sender.sender import send
 from facewire.sender.updates import UpdateStore
 
 RATE_HZ = 30.0
@@ -326,3 +331,39 @@ def test_a_restarted_sender_of_the_same_model_starts_the_updates_anew(
     assert "error" not in result, result.get("error")
     assert any("a new session, its updates fetched anew" in line for line in lines), lines
     assert result["updates"] == 3 and result["model_serial"] == 1
+
+
+def test_the_real_sender_learns_and_its_receiver_reaches_the_same_version(
+        person_model: Path, shared_data: Path, tmp_path: Path) -> None:
+    """``facewire send`` itself (learning on), its model's mouth cut to one closed state
+    (as tests/test_learn.py does), on lp_d0's first frames (the mouth opens): what it learns
+    goes to the receiver and into its log."""
+    path = tmp_path / "closed.fwm"
+    save_model(_mouth_states(load_model(person_model), 1), path)
+    store = UpdateStore(load_model(path).sha256)
+    endpoint, log = free_endpoint(), tmp_path / "session.fwlog"
+    ready, lines = threading.Event(), []
+    receiver, stop_receiver, received = start(
+        receive, connect=endpoint, size=SIZE, cache_dir=tmp_path, ready=ready,
+        status=lines.append)
+    sender, stop_sender, sent = start(
+        send, model_path=path, source=str(shared_data / "video" / "lp_d0.mp4"),
+        bind=endpoint, frames=slice(0, 40), loop=True, start=ready, updates=store,
+        record=log)
+    try:
+        _wait(lambda: store.serial >= 1 and any(
+            line.startswith(f"model update {store.serial} fetched") for line in lines), 60,
+            f"no update learned and fetched: {lines[-3:]}")
+    finally:
+        stop_sender.set()
+        sender.join(30)
+        time.sleep(0.5)
+        stop_receiver.set()
+        receiver.join(30)
+    assert "error" not in sent and "error" not in received, (sent, received)
+    assert received["updates_refused"] == 0 and received["updates"] >= 1
+    assert received["model_serial"] == received["updates"] <= sent["updates"] == store.serial
+    assert sent["control"]["update_bytes"] > sent["update_bytes_total"] > 0
+    logged = read_log(log).updates
+    assert [u.serial for u in logged] == list(range(1, store.serial + 1))
+    assert sum(len(u.data) for u in logged) == store.bytes_total
