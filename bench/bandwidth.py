@@ -30,7 +30,8 @@ Model updates travel beside the packets, on the control channel. Their traffic i
 real loopback sockets by ``bench.updatetraffic`` (the sender's control thread serving them at
 their issue times, one receiver fetching them): ``update_bytes_total``, ``update_kbps_max_1s``,
 ``update_kbps_max_60s`` (limits 32 and 8 kbit/s, ``protocol.shaper``), ``update_first_s``; a
-session without updates has none (zeros).
+session without updates has none (zeros). The updates are the log's (``protocol.log``), in
+serial order up to the first the log lacks.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from facewire.bench.updatetraffic import update_traffic
-from facewire.protocol.log import read_log
+from facewire.protocol.log import LoggedUpdate, read_log
 from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.rate import PAYLOAD_LIMIT_KBPS, kbps
 from facewire.protocol.transport import WIRE_OVERHEAD
@@ -76,14 +77,9 @@ def rates(rate_hz: float) -> dict[str, float]:
             "ip_kbps": kbps(plain + IP_TCP_OVERHEAD, rate_hz)}
 
 
-def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None = None,
-              updates: Sequence[tuple[float, bytes]] = ()) -> tuple[dict[str, Any], list[str]]:
+def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None = None
+              ) -> tuple[dict[str, Any], list[str]]:
     """Measure and judge a packet log (module docstring).
-
-    Args:
-        log: the packet log.
-        plot: a PNG to draw the rates into, or None.
-        updates: the session's model updates, (issue time s, bytes) in serial order.
 
     Returns:
         The summary (``frames``, ``rate_hz``, ``packet_bytes``, ``payload_kbps``,
@@ -130,7 +126,7 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         f"payload (as in the paper); worst 1-s payload {peak['payload_kbps']:.2f} kbit/s is "
         f"{'under' if under else 'at or over'} it",
     ]
-    traffic = update_traffic(updates, data.hello)
+    traffic = update_traffic(_served(data.updates), data.hello)
     summary.update(traffic)
     lines.insert(-1, f"model updates: {traffic['updates']} ({traffic['update_bytes_total']} "
                  f"bytes), measured on loopback: worst 1 s "
@@ -142,6 +138,16 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         _plot(data.times, Path(plot))
         lines.append(f"plot: {plot}")
     return summary, lines
+
+
+def _served(updates: Sequence[LoggedUpdate]) -> list[tuple[float, bytes]]:
+    """(time, bytes) of the log's updates 1, 2, ... up to the first it lacks: what a sender
+    serves in order (a receiver cannot apply an update past a missing one)."""
+    by_serial = {u.serial: u for u in updates}
+    served: list[tuple[float, bytes]] = []
+    while (update := by_serial.get(len(served) + 1)) is not None:
+        served.append((update.time, update.data))
+    return served
 
 
 def _plot(times: np.ndarray, path: Path) -> None:
