@@ -16,10 +16,10 @@ arrival time and size (its msgpack bytes, what the shaper counts) give:
 - ``update_first_s``: from the first update's issue to its last chunk's arrival (the receiver
   can apply it then), and ``update_fetch_s_max``: the longest such time of any update.
 
-Time: a gap between two issues longer than ``MAX_GAP_S`` is shortened to it. By then the
-shaper's buckets are full again (the deep one refills in depth / rate = 24.3 s), so every
-transfer goes as it would in real time; only the 60-s figure can be higher than in real time
-(the transfers sit closer together), never lower: it is an upper bound.
+Time: a gap between two issues longer than ``MAX_GAP_S`` (25.4 s) is shortened to it. By
+then the shaper is as new (its bucket refills in depth / rate = 24.3 s, its window empties in
+1.1 s), so every transfer goes as it would in real time; only the 60-s figure can be higher
+than in real time (the transfers sit closer together), never lower: it is an upper bound.
 """
 
 from __future__ import annotations
@@ -37,7 +37,14 @@ from facewire.protocol.control import (
     encode_message,
 )
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.shaper import BUCKETS, LIMIT_KBPS_1S, LIMIT_KBPS_60S, window_kbps
+from facewire.protocol.shaper import (
+    BUCKET,
+    GUARD_S,
+    LIMIT_KBPS_1S,
+    LIMIT_KBPS_60S,
+    WINDOW_S,
+    window_kbps,
+)
 from facewire.protocol.transport import (
     ControlClient,
     ControlServer,
@@ -47,7 +54,7 @@ from facewire.protocol.transport import (
 from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
-MAX_GAP_S = max(depth / rate for rate, depth in BUCKETS) + 1.0
+MAX_GAP_S = BUCKET[1] / BUCKET[0] + WINDOW_S + GUARD_S  # the shaper is as new by then
 CHUNK_TIMEOUT_S = 10.0
 
 

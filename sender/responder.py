@@ -17,10 +17,10 @@ thread waits on the socket only until the next held reply is due, so Hellos and 
 are never held behind it. A receiver is its routing envelope (one per DEALER socket, one more
 identity per relay), so receivers behind a relay are shaped each on its own; a receiver that
 opens its control socket again (``receiver.acquire.ControlChannel`` does after a timeout,
-``receiver.updates.CHUNK_TIMEOUT_S``, longer than any hold) is a new one, with full buckets:
-a lost reply can let a receiver's traffic exceed the limits by one bucket's depth. At most
-``MAX_HELD_PER_PEER`` replies are held for one receiver (a receiver asks for one chunk at a
-time) and ``MAX_HELD`` in all; a request beyond that gets an ``Error`` at once.
+``receiver.updates.CHUNK_TIMEOUT_S``, longer than any hold) is a new one, shaped afresh:
+a lost reply can let a receiver's traffic exceed the limits (by a window, or the bucket's
+depth). At most ``MAX_HELD_PER_PEER`` replies are held for one receiver (a receiver asks for
+one chunk at a time) and ``MAX_HELD`` in all; a request beyond that gets an ``Error`` at once.
 
 The frame loop never waits for this thread: it runs on its own, with its own socket, and the
 packets go out on the PUB socket; held replies delay only the update traffic.

@@ -47,7 +47,7 @@ def test_receivers_are_shaped_each_on_its_own_and_forgotten_when_full() -> None:
     second = _greedy(shaper, "b", [1000] * 5)
     assert np.allclose(first, second)  # b does not wait behind a
     assert shaper.peers() == 2
-    shaper.schedule("c", 10, 1000.0)  # long after: a's and b's buckets are full again
+    shaper.schedule("c", 10, 1000.0)  # long after: a and b are as new again
     assert shaper.peers() == 1
 
 
@@ -66,3 +66,11 @@ def test_bad_sizes_and_shapes_are_refused() -> None:
     with pytest.raises(ValueError, match="times and sizes"):
         window_kbps([0.0, 1.0], [1], 1.0)
     assert window_kbps([], [], 1.0) == 0.0
+
+
+def test_three_chunks_go_at_once_and_three_more_when_the_window_has_passed() -> None:
+    times = _greedy(UpdateShaper(), "a", [1314] * 9)
+    assert np.allclose(times, [0, 0, 0, 1.1, 1.1, 1.1, 2.2, 2.2, 2.2])
+    # arrivals up to 0.1 s late still carry at most 4000 bytes in any second
+    late = times + np.tile([0.1, 0.0, 0.0], 3)
+    assert window_kbps(late, [1314] * 9, 1.0) <= LIMIT_KBPS_1S

@@ -31,7 +31,7 @@ from facewire.protocol.control import (
     encode_message,
 )
 from facewire.protocol.packet import Flag
-from facewire.protocol.shaper import LIMIT_KBPS_1S, UpdateShaper, window_kbps
+from facewire.protocol.shaper import LIMIT_KBPS_1S, WINDOW_BYTES, UpdateShaper, window_kbps
 from facewire.protocol.transport import ControlClient, ControlServer, control_endpoint
 from facewire.receiver.playout import FrameState
 from facewire.receiver.scene import StateRenderer
@@ -41,7 +41,7 @@ from facewire.sender.updates import UpdateStore
 
 SIZE = (160, 120)
 CAMERA = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
-FAST = ((1e7, 1e6), (1e7, 1e6))  # a shaper that holds nothing, for tests not about rate
+FAST = (10**9, 1.1, (1e9, 1e9))  # a shaper that holds nothing, for tests not about rate
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +105,7 @@ class _Server:
             self.store.publish_update(serial, data)
         self.server = ControlServer(control_endpoint(endpoint))
         self.responder = Responder(self.server, _hello(model), [], self.store,
-                                   shaper or UpdateShaper(FAST))
+                                   shaper or UpdateShaper(*FAST))
         self.responder.start()
 
     def close(self) -> None:
@@ -166,19 +166,20 @@ def test_a_receiver_asking_too_many_chunks_at_once_is_told_to_ask_one_at_a_time(
     server = _Server(endpoint, model, data[:1], UpdateShaper())
     client = ControlClient(control_endpoint(endpoint))
     try:
-        # all at once, without waiting: the first goes out at once (the buckets are full),
+        # all at once, without waiting: as many as the shaper's window holds go out at once,
         # the next MAX_HELD_PER_PEER are held, the last is refused
-        for index in range(MAX_HELD_PER_PEER + 2):
+        size = len(encode_message(server.store.chunk(UpdateRequest(model.sha256, 1, 0))))
+        count = WINDOW_BYTES // size + MAX_HELD_PER_PEER + 1
+        for index in range(count):
             client.socket.send_multipart(
                 [b"", encode_message(UpdateRequest(model.sha256, 1, index % 4))])
         replies = [decode_message(client.socket.recv_multipart()[-1])
-                   for _ in range(MAX_HELD_PER_PEER + 2)
-                   if client.socket.poll(5000)]
+                   for _ in range(count) if client.socket.poll(5000)]
     finally:
         client.close()
         server.close()
     errors = [r for r in replies if isinstance(r, Error)]
     assert len(errors) == 1 and "ask one at a time" in errors[0].message
     assert [r.index for r in replies if isinstance(r, UpdateChunk)] == \
-        [index % 4 for index in range(MAX_HELD_PER_PEER + 1)]
+        [index % 4 for index in range(count - 1)]
     assert server.responder.counts["errors"] == 1

@@ -66,7 +66,7 @@ from facewire.sender.updates import UpdateStore
 
 RATE_HZ = 30.0
 SIZE = (64, 48)
-FAST = ((1e7, 1e6), (1e7, 1e6))  # a shaper that holds nothing, for tests not about rate
+FAST = (10**9, 1.1, (1e9, 1e9))  # a shaper that holds nothing, for tests not about rate
 FIRST_APPLIED_S = 3.0
 
 
@@ -85,7 +85,7 @@ def _sender(stream: dict[str, Any], count: int, issue: dict[int, bytes] | None =
     port = free_port_pair()
     sender = UpdateSender(port, stream["hello"], stream["path"].read_bytes(),
                           stream["log"].packets, count, issue, go,
-                          shaper or UpdateShaper(FAST))
+                          shaper or UpdateShaper(*FAST))
     return sender, f"tcp://127.0.0.1:{port}"
 
 
@@ -309,7 +309,7 @@ def test_a_restarted_sender_of_the_same_model_starts_the_updates_anew(
     go = threading.Event()
     first = UpdateSender(port, stream["hello"], stream["path"].read_bytes(),
                          stream["log"].packets, 90, {5: data[0], 10: data[1]}, go,
-                         UpdateShaper(FAST))
+                         UpdateShaper(*FAST))
     lines: list[str] = []
     thread, stop, result = start(receive, connect=f"tcp://127.0.0.1:{port}",
                                  model_path=stream["path"], size=SIZE, cache_dir=tmp_path,
@@ -320,7 +320,7 @@ def test_a_restarted_sender_of_the_same_model_starts_the_updates_anew(
         first.stop()
         second = UpdateSender(port, stream["hello"], stream["path"].read_bytes(),
                               stream["log"].packets, 90, {30: other[0]}, None,
-                              UpdateShaper(FAST))
+                              UpdateShaper(*FAST))
         assert second.done.wait(20)
         time.sleep(0.5)
         second.stop()
