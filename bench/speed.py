@@ -19,11 +19,13 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
 - ``pose_ms`` (pose fit alternated with the lift, and the One-Euro filter), ``lift_ms`` (the
   lift with the filtered pose), ``heuristics_ms`` (``ResidualFilter`` and the tangent
   projection), ``sample_ms`` (``AppearanceSampler``: every region's five offset samples,
-  grey conversion included) and ``classify_ms`` (``RegionClassifiers``: all regions, five
-  offsets each): medians over the frames with a face (a model without regions gives None
-  for the last two); ``pack_ms``: median over all frames.
+  grey conversion included), ``classify_ms`` (``RegionClassifiers``: all regions, five
+  offsets each) and ``shade_ms`` (``sender.shading.ShadingEstimator``: the light's fit and
+  its smoothing): medians over the frames with a face (a model without regions gives None
+  for sample and classify); ``pack_ms``: median over all frames.
 - ``sender_ms_median``: median over all frames of the sum of the stages (track, pose,
-  lift, heuristics, sample, classify, pack); ``sender_fps`` = 1000 / ``sender_ms_median``.
+  lift, heuristics, sample, classify, shade, pack); ``sender_fps`` = 1000 /
+  ``sender_ms_median``.
 - The receiver, on the packets the sender made (``_time_receiver``), BLAS pinned to one
   thread, after ``RECEIVER_WARMUP`` frames: ``decode_ms`` (``protocol.packet.decode``),
   ``render_ms`` (``receiver.render.FaceRenderer.render``: the vertex upload, the draw with
@@ -111,8 +113,8 @@ RECEIVER_WARMUP = 3  # frames rendered before timing (shader compilation, first 
 ENCODE_FRAMES = 60  # rendered frames kept for timing the encoder (55 MB at 640x480)
 LOOPBACK_S = 30.0
 TARGET_SIZE = (640, 480)
-SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "pack")
-_FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify")
+SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "shade", "pack")
+_FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify", "shade")
 
 TARGETS = {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K, "track_ms": TARGET_TRACK_MS,
            "sender_fps": TARGET_SENDER_FPS, "classify_ms": TARGET_CLASSIFY_MS,
@@ -151,9 +153,9 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         A dict: ``frames`` (frames tracked), ``tracked_frames``, ``detect_frames``,
         ``no_face_frames``, ``track_ms`` (None if no frame was tracked after acquisition),
         ``track_detect_ms``, ``pose_ms``, ``lift_ms``, ``heuristics_ms``, ``sample_ms``,
-        ``classify_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``, ``sender_fps``,
-        ``width``, ``height``, ``vertices``, ``morph_ms``, ``morph_ms_default_threads``,
-        ``morph_calls``, ``threads`` (what was pinned),
+        ``classify_ms``, ``shade_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``,
+        ``sender_fps``, ``width``, ``height``, ``vertices``, ``morph_ms``,
+        ``morph_ms_default_threads``, ``morph_calls``, ``threads`` (what was pinned),
         ``encode_ms``, the keys of ``bench.loopback.measure_loopback`` (None when skipped),
         ``targets`` and ``met`` (per target), ``not_measured`` (the loopback keys when it was
         skipped); times in milliseconds.
@@ -362,7 +364,7 @@ def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
             vertices = rig.morph(rig.from_tangent(frame.residuals))
             view = sender_view(camera, frame.rotation, frame.translation, width, height)
             t2 = time.perf_counter()
-            image = renderer.render(vertices, frame.q, view)
+            image = renderer.render(vertices, frame.q, view, frame.shade)
             t3 = time.perf_counter()
             if len(images) < keep:
                 images.append(image)
