@@ -17,13 +17,47 @@ Applying an update to a region with k states (``apply_update``):
 
 Q stays a scalar along the region's axis because the new state is inserted where it belongs
 in the ordering; the region's rest Q moves with the state it names.
+
+An update's bytes, format 1 (``encode_update``, ``decode_update``): one msgpack map
+
+=============  =====================================================================
+key            value
+=============  =====================================================================
+format         1
+base_sha256    str, 64 lowercase hex
+serial         int, 1 .. ``MAX_SERIAL``
+region         str, the region's name
+position       int
+replaces       int or nil
+opacity        float in [0, 1]
+template       bin, 1024 bytes: the (16, 16) float32 template, little-endian
+areas          array, one per area of the region, main first: maps {shape: [h, w],
+               diff: bin}, ``diff`` the zlib stream of the (h, w, 3) uint8 array
+               (layer - reference) mod 256
+=============  =====================================================================
+
+The reference of every area is its state that the new one will sit just before (the state
+at index ``position`` of the kept states, or the last one when it goes at the end), in the
+model version the update applies to. Texels the update does not change are zero in the
+difference and cost almost nothing once compressed: the capture copies the reference's
+texels wherever it saw no change, so an update carries only the texels that changed. The
+coding is lossless, so the sender's model and every receiver's stay identical.
+
+Decoding treats the bytes as hostile, like a model file: at most ``MAX_UPDATE_BYTES``, a
+map with exactly these keys and types, every size checked against the region it names
+before anything is inflated, and no zlib stream inflated past the one size it must have (a
+decompression bomb is refused after reading that many bytes). Every failure is an
+``UpdateError`` naming the update and the field.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import zlib
 from dataclasses import dataclass
+from typing import Any
 
+import msgpack
 import numpy as np
 
 from facewire.models.fields import (
@@ -37,6 +71,14 @@ from facewire.models.modelfile import Area, ModelError, PersonModel, Region
 
 MAX_LEARNED_LAYERS = 8
 MAX_SERIAL = 2047
+FORMAT = 1
+MAX_UPDATE_BYTES = 1024 * 1024
+_KEYS = {"format", "base_sha256", "serial", "region", "position", "replaces", "opacity",
+         "template", "areas"}
+
+
+class UpdateError(ModelError):
+    """An update's bytes are malformed or do not fit the model they are applied to."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,14 +140,8 @@ def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
     unknown region, a position or replaced index out of range, the rest state replaced, a
     region already at ``MAX_LEARNED_LAYERS`` states, or layer images of the wrong shape.
     """
-    names = [r.name for r in model.regions]
-    if update.region not in names:
-        raise ModelError(f"update {update.serial}: region: {update.region!r} is not a region "
-                         f"of the model")
-    index = names.index(update.region)
-    old = model.regions[index]
+    old, keep = _neighbours(model, update)
     k = old.layers.shape[0]
-    keep = list(range(k))
     rest = old.rest
     if update.replaces is not None:
         if update.replaces >= k:
@@ -114,7 +150,6 @@ def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
         if update.replaces == round(old.rest):
             raise ModelError(f"update {update.serial}: replaces: state {update.replaces} is "
                              f"the rest state")
-        keep.remove(update.replaces)
         rest -= update.replaces < rest
     elif k >= MAX_LEARNED_LAYERS:
         raise ModelError(f"update {update.serial}: region {update.region!r} already has "
@@ -142,6 +177,123 @@ def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
         rest=float(min(max(rest, 0.0), len(opacity) - 1)),
         areas=tuple(Area(a.uv_rect, s, a.mask) for a, s in zip(old.areas, stacks[1:],
                                                                 strict=True)))
-    regions = list(model.regions)
-    regions[index] = region
+    regions = [region if r.name == update.region else r for r in model.regions]
     return dataclasses.replace(model, regions=tuple(regions), sha256="", file_bytes=0)
+
+
+def _neighbours(model: PersonModel, update: ModelUpdate) -> tuple[Region, list[int]]:
+    """The update's region in ``model`` and the indices of the states it keeps."""
+    names = [r.name for r in model.regions]
+    if update.region not in names:
+        raise ModelError(f"update {update.serial}: region: {update.region!r} is not a region "
+                         f"of the model")
+    region = model.regions[names.index(update.region)]
+    keep = [j for j in range(region.layers.shape[0]) if j != update.replaces]
+    return region, keep
+
+
+def _references(model: PersonModel, update: ModelUpdate) -> list[np.ndarray]:
+    """(h, w, 3) uint8 per area: the state the new one will sit just before."""
+    region, keep = _neighbours(model, update)
+    j = keep[min(update.position, len(keep) - 1)]
+    return [part.layers[j] for part in region.parts()]
+
+
+def encode_update(update: ModelUpdate, model: PersonModel) -> bytes:
+    """The update's bytes (format 1, the module docstring), against ``model``, the version
+    it applies to (its layers are the references of the differences).
+
+    Raises ``ModelError`` when the update does not fit the model (``apply_update``'s checks).
+    """
+    apply_update(model, update)
+    areas = []
+    for image, reference in zip(update.layers, _references(model, update), strict=True):
+        diff = ((image.astype(np.int16) - reference) & 0xFF).astype(np.uint8)
+        areas.append({"shape": list(image.shape[:2]), "diff": zlib.compress(diff.tobytes(), 9)})
+    data = msgpack.packb({
+        "format": FORMAT, "base_sha256": update.base_sha256, "serial": update.serial,
+        "region": update.region, "position": update.position, "replaces": update.replaces,
+        "opacity": update.opacity, "template": update.template.astype("<f4").tobytes(),
+        "areas": areas}, use_bin_type=True)
+    if len(data) > MAX_UPDATE_BYTES:
+        raise UpdateError(f"update {update.serial}: {len(data)} bytes, at most "
+                          f"{MAX_UPDATE_BYTES}")
+    return data
+
+
+def decode_update(data: bytes, model: PersonModel, base_sha256: str,
+                  where: str = "update") -> ModelUpdate:
+    """The update held in ``data``, checked against ``model`` (the version it applies to,
+    which comes from the model file ``base_sha256``).
+
+    Args:
+        data: the update's bytes.
+        model: the model version the update applies to.
+        base_sha256: the sha256 of the session's model file.
+        where: how messages name the update (a log record, a chunk set).
+
+    Raises:
+        UpdateError: the bytes are malformed, or the update does not fit ``model``; the
+            message names ``where`` and the field.
+    """
+    try:
+        return _decode(data, model, base_sha256)
+    except ModelError as e:
+        raise UpdateError(f"{where}: {e}") from e
+
+
+def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
+    if not isinstance(data, (bytes, bytearray)) or len(data) > MAX_UPDATE_BYTES:
+        raise UpdateError(f"expected at most {MAX_UPDATE_BYTES} bytes")
+    try:
+        fields = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True,
+                                 max_bin_len=MAX_UPDATE_BYTES, max_str_len=1024,
+                                 max_array_len=64, max_map_len=16, max_ext_len=0)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as e:
+        raise UpdateError(f"not a msgpack map: {e}") from e
+    if not isinstance(fields, dict) or set(fields) != _KEYS:
+        raise UpdateError(f"expected a map with the keys {sorted(_KEYS)}")
+    if fields["format"] != FORMAT:
+        raise UpdateError(f"format: {fields['format']!r}, expected {FORMAT}")
+    if fields["base_sha256"] != base_sha256:
+        raise UpdateError("base_sha256: made for another model file")
+    template = fields["template"]
+    if not isinstance(template, bytes) or len(template) != 4 * TEMPLATE_SIZE ** 2:
+        raise UpdateError(f"template: expected {4 * TEMPLATE_SIZE ** 2} bytes")
+    areas = fields["areas"]
+    if not isinstance(areas, list) or not all(isinstance(a, dict) and set(a) == {"shape", "diff"}
+                                              for a in areas):
+        raise UpdateError("areas: expected an array of maps {shape, diff}")
+    shell = ModelUpdate(  # checks every scalar field; the layers are stand-ins until inflated
+        base_sha256=fields["base_sha256"], serial=fields["serial"], region=fields["region"],
+        position=fields["position"], replaces=fields["replaces"], opacity=fields["opacity"],
+        template=np.frombuffer(template, "<f4").reshape(TEMPLATE_SIZE, TEMPLATE_SIZE)
+        .astype(np.float32), layers=(np.zeros((1, 1, 3), np.uint8),))
+    references = _references(model, shell)
+    if len(areas) != len(references):
+        raise UpdateError(f"areas: {len(areas)} areas, the region has {len(references)}")
+    layers = tuple(_inflate(area, reference, n)
+                   for n, (area, reference) in enumerate(zip(areas, references, strict=True)))
+    update = dataclasses.replace(shell, layers=layers)
+    apply_update(model, update)
+    return update
+
+
+def _inflate(area: dict[str, Any], reference: np.ndarray, n: int) -> np.ndarray:
+    """One area's layer image: its difference inflated (to exactly the reference's size, never
+    past it) and added to the reference."""
+    if area["shape"] != list(reference.shape[:2]):
+        raise UpdateError(f"areas[{n}]: shape: expected {list(reference.shape[:2])}, the "
+                          f"area's layers")
+    if not isinstance(area["diff"], bytes):
+        raise UpdateError(f"areas[{n}]: diff: expected bin")
+    size = reference.size
+    inflater = zlib.decompressobj()
+    try:
+        raw = inflater.decompress(area["diff"], size + 1)
+    except zlib.error as e:
+        raise UpdateError(f"areas[{n}]: diff: not a zlib stream: {e}") from e
+    if len(raw) != size or not inflater.eof or inflater.unconsumed_tail or inflater.unused_data:
+        raise UpdateError(f"areas[{n}]: diff: expected a zlib stream of exactly {size} bytes")
+    diff = np.frombuffer(raw, np.uint8).reshape(reference.shape)
+    return ((reference.astype(np.int16) + diff) & 0xFF).astype(np.uint8)

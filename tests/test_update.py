@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
 from facewire.models.modelfile import ModelError, load_model
-from facewire.models.update import MAX_LEARNED_LAYERS, ModelUpdate, apply_update
+from facewire.models.update import (
+    MAX_LEARNED_LAYERS,
+    ModelUpdate,
+    UpdateError,
+    apply_update,
+    decode_update,
+    encode_update,
+)
 
 BASE = "ab" * 32
 
@@ -82,3 +91,65 @@ def test_a_bad_update_is_refused_naming_its_field(person_model: Path, change: di
     kwargs.update(change)
     with pytest.raises(ModelError, match=field):
         apply_update(model, ModelUpdate(**kwargs))
+
+
+def _learned(model, region: str) -> ModelUpdate:
+    """A state like the region's rest state with a 12 x 12 patch changed (a captured layer
+    copies the reference wherever it saw no change)."""
+    r = _region(model, region)
+    rest = round(r.rest)
+    layers = []
+    for part in r.parts():
+        image = part.layers[rest].copy()
+        image[:12, :12] = 255 - image[:12, :12]
+        layers.append(image)
+    return ModelUpdate(base_sha256=BASE, serial=1, region=region, position=rest, replaces=None,
+                       layers=tuple(layers), template=_region(model, region).templates[rest],
+                       opacity=1.0)
+
+
+def test_update_bytes_round_trip_and_carry_only_what_changed(person_model: Path) -> None:
+    model = load_model(person_model)
+    update = _learned(model, "mouth")
+    data = encode_update(update, model)
+    raw = sum(image.nbytes for image in update.layers)
+    assert len(data) < raw / 10, (len(data), raw)
+    back = decode_update(data, model, BASE)
+    for a, b in zip(back.layers, update.layers, strict=True):
+        assert np.array_equal(a, b)
+    assert np.array_equal(back.template, update.template)
+    assert (back.serial, back.region, back.position, back.replaces) == (1, "mouth",
+                                                                         update.position, None)
+
+
+def _fields(data: bytes) -> dict:
+    return msgpack.unpackb(data, raw=False)
+
+
+@pytest.mark.parametrize("spoil, field", [
+    (lambda f: f.update(base_sha256="cd" * 32), "base_sha256"),
+    (lambda f: f.update(serial=-1), "serial"),
+    (lambda f: f.update(position=50), "position"),
+    (lambda f: f.update(replaces=40), "replaces"),
+    (lambda f: f.update(opacity=float("nan")), "opacity"),
+    (lambda f: f.update(template=np.full(256, np.nan, "<f4").tobytes()), "template"),
+    (lambda f: f.update(template=b"\0" * 12), "template"),
+    (lambda f: f.pop("areas"), "keys"),
+    (lambda f: f["areas"][0].update(shape=[3, 3]), "shape"),
+    (lambda f: f["areas"][0].update(diff=b"junk"), "zlib"),
+    (lambda f: f["areas"][0].update(diff=zlib.compress(bytes(50_000_000))), "exactly"),
+    (lambda f: f["areas"].pop(), "areas"),
+])
+def test_malformed_update_bytes_are_refused_naming_the_field(person_model: Path, spoil,
+                                                             field: str) -> None:
+    model = load_model(person_model)
+    fields = _fields(encode_update(_learned(model, "mouth"), model))
+    spoil(fields)
+    with pytest.raises(UpdateError, match=f"log record 3: .*{field}"):
+        decode_update(msgpack.packb(fields, use_bin_type=True), model, BASE, "log record 3")
+
+
+@pytest.mark.parametrize("data", [b"", b"\x81", b"\xc1" * 10, bytes(2 * 1024 * 1024)])
+def test_bytes_that_are_no_update_are_refused(person_model: Path, data: bytes) -> None:
+    with pytest.raises(UpdateError):
+        decode_update(data, load_model(person_model), BASE)

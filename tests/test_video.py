@@ -111,3 +111,42 @@ def test_video_without_frames(tmp_path: Path) -> None:
     assert str(path) in str(err.value)
     with pytest.raises(VideoError):
         list(read_frames(path))
+
+
+def test_decoded_once_serves_later_passes_from_memory(small_video: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    import facewire.models.infra.video as video
+
+    opened = []
+    real_open = video._open
+    monkeypatch.setattr(video, "_open", lambda path: opened.append(path) or real_open(path))
+    plain = [f.image.copy() for f in read_frames(small_video, slice(2, 9))]
+    with video.decoded_once(small_video):
+        first = list(read_frames(small_video))  # decodes: the whole file, now known to end
+        again = list(read_frames(small_video, slice(2, 9)))
+        tail = list(read_frames(small_video, slice(10, 50)))
+        assert len(opened) == 2  # the plain pass and the first pass inside
+        assert not again[0].image.flags.writeable  # shared, so read-only
+    assert [f.index for f in first] == list(range(12))
+    assert [f.index for f in tail] == [10, 11]
+    for a, b in zip(plain, again, strict=True):
+        assert np.array_equal(a, b.image)
+    list(read_frames(small_video, slice(2, 9)))
+    assert len(opened) == 3  # outside the block, decoded again
+
+
+def test_decoded_once_past_its_budget_decodes_again(small_video: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    import facewire.models.infra.video as video
+
+    opened = []
+    real_open = video._open
+    monkeypatch.setattr(video, "_open", lambda path: opened.append(path) or real_open(path))
+    monkeypatch.setattr(video, "CACHE_BYTES", 5 * 48 * 64 * 3)  # five frames
+    with video.decoded_once(small_video):
+        list(read_frames(small_video))
+        held = [f.index for f in read_frames(small_video, slice(0, 5))]
+        assert len(opened) == 1
+        again = [f.index for f in read_frames(small_video, slice(3, 8))]
+        assert len(opened) == 2
+    assert held == list(range(5)) and again == list(range(3, 8))

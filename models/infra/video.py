@@ -3,19 +3,30 @@
 Frames come out as (H, W, 3) uint8 BGR arrays (OpenCV's order, which dlib and cv2 expect),
 with their index in the file and their presentation time in seconds. ``frame_range`` parses
 the ``--frames A:B`` option (Python slice semantics, B exclusive, either side optional).
+
+Decoding once (``decoded_once``). A model build reads the same frames in several passes
+(tracking, the base texture's views, the appearance step, the layers' frames, the
+self-check), and decoding is a large share of its time. Inside ``with decoded_once(path)``,
+``read_frames`` keeps the frames it decodes from that file in memory, up to
+``CACHE_BYTES`` of images (the first frames decoded; past the budget frames are decoded
+each time, as without it), and serves a later range from memory when it holds all of it.
+The kept images are read-only, since every reader shares them.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import av
 import numpy as np
 
 from facewire.protocol.errors import FacewireError
+
+CACHE_BYTES = 1024**3
 
 
 class VideoError(FacewireError, ValueError):
@@ -85,15 +96,74 @@ def video_info(path: str | os.PathLike[str]) -> VideoInfo:
                          int(stream.frames or 0))
 
 
+@dataclass
+class _Cache:
+    """The frames of one file decoded so far, and where the file ends once known."""
+
+    frames: dict[int, VideoFrame] = field(default_factory=dict)
+    used: int = 0
+    end: int | None = None
+
+    def serves(self, frames: slice) -> range | None:
+        """The indices of ``frames`` when every one of them is held, else None."""
+        stop = frames.stop if self.end is None else min(frames.stop or self.end, self.end)
+        if stop is None:
+            return None
+        wanted = range(frames.start or 0, stop)
+        return wanted if all(i in self.frames for i in wanted) else None
+
+    def keep(self, frame: VideoFrame) -> None:
+        if frame.index not in self.frames and self.used + frame.image.nbytes <= CACHE_BYTES:
+            frame.image.flags.writeable = False
+            self.frames[frame.index] = frame
+            self.used += frame.image.nbytes
+
+
+_CACHES: dict[Path, _Cache] = {}
+
+
+@contextmanager
+def decoded_once(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Within the block, ``read_frames`` of ``path`` decodes each frame once (module
+    docstring)."""
+    key = Path(path).resolve()
+    if key in _CACHES:  # already inside one for this file
+        yield
+        return
+    _CACHES[key] = _Cache()
+    try:
+        yield
+    finally:
+        del _CACHES[key]
+
+
 def read_frames(path: str | os.PathLike[str], frames: slice = slice(0, None)
                 ) -> Iterator[VideoFrame]:
-    """Decode the frames of a file whose index falls in ``frames`` (a step of 1).
+    """Decode the frames of a file whose index falls in ``frames`` (a step of 1); from memory
+    inside ``decoded_once`` when it holds them all.
 
     Raises:
         VideoError: the file is missing, not a video, or undecodable (a corrupt frame: the
             message says how many frames were decoded before it).
     """
-    path = Path(path)
+    cache = _CACHES.get(Path(path).resolve())
+    if cache is None:
+        yield from _decode(Path(path), frames)
+        return
+    held = cache.serves(frames)
+    if held is not None:
+        yield from (cache.frames[i] for i in held)
+        return
+    last = (frames.start or 0) - 1
+    for frame in _decode(Path(path), frames):
+        cache.keep(frame)
+        last = frame.index
+        yield frame
+    if frames.stop is None or last + 1 < frames.stop:  # the file ended first
+        cache.end = last + 1
+
+
+def _decode(path: Path, frames: slice) -> Iterator[VideoFrame]:
     with _open(path) as container:
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"

@@ -100,6 +100,7 @@ from facewire.models.infra.raster import Camera as ViewCamera
 from facewire.models.infra.raster import MeshRenderer
 from facewire.models.infra.video import (
     VideoFrame,
+    decoded_once,
     frames_in_range,
     range_text,
     read_frames,
@@ -253,10 +254,11 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
             raise BuildError(f"{video}: a photo has one frame; --frames is for videos")
         return build_photo(video, out, name, progress, check)
     info = video_info(video)
-    return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
-                  frames_in_range(frames, info.frames), out, frames, name or video.stem,
-                  progress, video if appearance else None, str(video), video, check=check,
-                  guide=guide)
+    with decoded_once(video):  # tracking, texture, appearance and self-check share frames
+        return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
+                      frames_in_range(frames, info.frames), out, frames, name or video.stem,
+                      progress, video if appearance else None, str(video), video,
+                      check=check, guide=guide)
 
 
 def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLike[str],

@@ -549,7 +549,7 @@ class _AreaTexels:
         x, y = project(self.points.positions(seen.residuals), seen.rotation, seen.translation,
                        camera)
         x, y = x.reshape(h, w), y.reshape(h, w)
-        colour = bilinear(image[..., ::-1].copy(), x, y)
+        colour = bilinear(image, x, y)[..., ::-1]  # BGR read, RGB out
         normals = self.normals @ seen.rotation.T.astype(np.float32)  # camera frame
         facing = normals[..., 2] > 0.05
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
