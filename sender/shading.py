@@ -22,11 +22,12 @@ hair) are left out: a ratio of small numbers is noise.
 
 Per frame. The points are projected with the sent pose and residuals; the grey frame's
 crop around them is reduced by a Gaussian pyramid (``cv2.pyrDown``, L times, 2^L the
-largest power of 2 not above ``CELL_MM`` in pixels, ``fx / depth`` pixels per mm, L at most
+largest power of 2 not above ``CELL_MM`` in pixels, ``fx / -t_z`` pixels per mm, L at most
 ``MAX_LEVELS``: about the texture's blur) and read bilinearly at the points. A point counts
 when it is on the image, faces the camera (cos of the angle between its normal and the
-view ray > ``MIN_FACING``) and its frame level is in (``MIN_LEVEL``, ``MAX_LEVEL``) (not
-black, not clipped). With I_i the frame's level and T_i the reference,
+view ray to the model origin > ``MIN_FACING``; the face spans a few degrees of the view)
+and its frame level is in (``MIN_LEVEL``, ``MAX_LEVEL``) (not black, not clipped). With I_i
+the frame's level and T_i the reference,
 
     y_i = ln I_i - ln T_i ≈ s0 + s1 x_i / 100 + s2 y_i / 100        (x_i, y_i neutral, mm)
 
@@ -182,14 +183,15 @@ class ShadingEstimator:
         translation = np.asarray(translation, np.float64)
         height, width = gray.shape[:2]
         x, y = self._points.project(residuals, rotation, translation, self.camera)
-        cam = self._neutral @ rotation.T + translation
-        ray = cam / np.maximum(np.linalg.norm(cam, axis=1, keepdims=True), 1e-9)
-        facing = -np.einsum("ij,ij->i", self._normals @ rotation.T, ray)
+        depth = max(-float(translation[2]), 1.0)
+        # the view ray to the model origin, in model space: the face spans a few degrees
+        toward = -(rotation.T @ translation) / np.linalg.norm(translation)
+        facing = self._normals @ toward
         ok = (facing > MIN_FACING) & (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-        if ok.sum() < MIN_POINTS:
+        if np.count_nonzero(ok) < MIN_POINTS:
             return None
         x, y = x[ok], y[ok]
-        levels = self._read(gray, x, y, float(np.median(-cam[ok, 2])))
+        levels = self._read(gray, x, y, depth)
         ok_level = (levels > MIN_LEVEL) & (levels < MAX_LEVEL)
         if ok_level.sum() < MIN_POINTS:
             return None
@@ -240,18 +242,26 @@ def _robust_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray | None:
         u = r * (1.0 / (TUKEY_C * scale))
         weight = np.maximum(1.0 - u * u, 0.0) ** 2
         aw = a.T * weight
-        normal = aw @ a
-        if _degenerate(normal):
+        solved = _solve3(aw @ a, aw @ y)
+        if solved is None:
             return None
-        s = np.linalg.solve(normal, aw @ y)
+        s = solved
     if np.count_nonzero(weight) < MIN_INLIERS * len(y):
         return None
     return s
 
 
-def _degenerate(normal: np.ndarray) -> bool:
-    """Whether a 3 x 3 normal matrix is singular to working precision: its determinant
-    against the product of its diagonal (1 for independent columns, 0 for dependent ones)."""
+def _solve3(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """The solution of a symmetric 3 x 3 system by Cramer's rule (a tenth of
+    ``np.linalg.solve``'s time at this size), or None when the matrix is singular to working
+    precision: its determinant under 1e-9 of the product of its diagonal (1 for independent
+    columns, 0 for dependent ones)."""
     (a, b, c), (_, e, f), (_, _, i) = normal.tolist()
-    det = a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c)
-    return not det > 1e-9 * a * e * i
+    r0, r1, r2 = rhs.tolist()
+    ei_ff, bi_fc, bf_ec = e * i - f * f, b * i - f * c, b * f - e * c
+    det = a * ei_ff - b * bi_fc + c * bf_ec
+    if not det > 1e-9 * a * e * i:
+        return None
+    return np.array([r0 * ei_ff - r1 * bi_fc + r2 * bf_ec,
+                     -r0 * bi_fc + r1 * (a * i - c * c) - r2 * (a * f - b * c),
+                     r0 * bf_ec - r1 * (a * f - c * b) + r2 * (a * e - b * b)]) / det
