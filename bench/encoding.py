@@ -3,10 +3,14 @@
 ``encode_frames`` runs ``sender.pipeline.SenderPipeline`` over the frames in order (or each
 frame as a stream of its own, ``independent``) and keeps, besides each frame's packet, what
 the measures need (``Run``): the tracker's 68 points, the frame itself, the mean grey level
-of the landmarks' box, the regions' enrollment cues (``sender.enroll.layers.region_cues``)
+of the landmarks' box, the regions' enrollment cues (``sender.cues.region_cues``)
 and the eye aspect ratios, and a crop of the eyes for the plots. ``decode_run`` decodes the
 packets with ``protocol.packet.decode_frames``, so a measurement sees only what a receiver
-sees; every packet must be ``PACKET_BYTES`` long and decode. ``bench quality`` and the
+sees; every packet must be ``PACKET_BYTES`` long and decode. A sender that learns during the
+session (``sender.learn``) classifies later frames against a newer model version; ``Run``'s
+``versions`` holds, for each serial the packets name, the model the sender classified those
+frames with (its ``model`` before the frame), which a receiver holding the session's updates
+renders them with (``bench.rendering``). ``bench quality`` and the
 build's self-check (``bench.selfcheck``) both measure through them.
 """
 
@@ -21,9 +25,10 @@ import numpy as np
 from facewire.models.infra.progress import Progress
 from facewire.models.infra.video import VideoFrame
 from facewire.models.landmarks import eye_aspect_ratio
+from facewire.models.modelfile import PersonModel
 from facewire.models.regions import REGION_NAMES
 from facewire.protocol.packet import PACKET_BYTES, decode_frames
-from facewire.sender.enroll.layers import region_cues
+from facewire.sender.cues import region_cues
 from facewire.sender.pipeline import SenderPipeline
 
 
@@ -40,6 +45,7 @@ class Run(NamedTuple):
     #                          when the model's regions are not the ones the cues define
     ratios: np.ndarray  # (F, 2) eye aspect ratios, NaN where not sampled
     eyes: dict[int, np.ndarray]  # frame position -> BGR crop of the eyes (plots only)
+    versions: dict[int, PersonModel]  # serial -> the model version it names (module docstring)
 
 
 def encode_frames(pipeline: SenderPipeline, frames: Iterable[VideoFrame], progress: Progress,
@@ -52,14 +58,16 @@ def encode_frames(pipeline: SenderPipeline, frames: Iterable[VideoFrame], progre
     frames, spread over a range, are not one stream (``bench.selfcheck``).
     """
     cued = pipeline.sampler.names == REGION_NAMES  # the cues are defined for these regions
-    run = Run([], [], [], [], [], np.empty(0), None, np.empty(0), {})
+    run = Run([], [], [], [], [], np.empty(0), None, np.empty(0), {}, {})
     brightness: list[float] = []
     cues: list[np.ndarray] = []
     ratios: list[np.ndarray] = []
     for frame in progress(frames, "encoding", total):
         if independent:
             pipeline.reset()
+        model = pipeline.model  # the version this frame is classified with
         out = pipeline.process(frame.image, frame.time)
+        run.versions.setdefault(out.frame.serial, model)
         if keep_eyes and out.points is not None:
             run.eyes[len(run.indices)] = _eye_crop(frame.image, out.points)
         brightness.append(np.nan if out.points is None

@@ -5,6 +5,14 @@ ty_mm, tz_mm``, the residuals ``res<k>_u, res<k>_v`` (k = 0..8 in the protocol's
 order), then ``q_<region>`` for each region named in the log's Hello, then ``serial`` (the
 model version the Q values refer to) and the light's log-gain field ``shade_centre, shade_x,
 shade_y`` (``protocol.packet``).
+
+Model updates: the summary's ``updates`` lists the log's intact update records in file
+order, each ``serial``, ``region`` (read from the update's own bytes,
+``models.update.update_head``, without the model: None with an ``error`` when they do not
+parse), ``position``, ``replaces``, ``bytes``, ``time`` (s) and ``before`` (the intact packets
+before it); ``update_bytes`` their total, ``lost_updates`` the damaged update records and
+``missing_serials`` the serials the frames or updates name that no intact record holds
+(``protocol.log``). One report line per update.
 """
 
 from __future__ import annotations
@@ -15,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from facewire.protocol.log import read_log
+from facewire.models.update import UpdateError, update_head
+from facewire.protocol.log import LoggedUpdate, read_log
 from facewire.protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
 
 
@@ -38,6 +47,10 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
         "clamped_frames": int(np.count_nonzero(f["flags"] & Flag.CLAMPED)),
         "model_sha256": data.hello.model_sha256,
         "regions": list(data.hello.regions),
+        "updates": [_update(u) for u in data.updates],
+        "update_bytes": sum(len(u.data) for u in data.updates),
+        "lost_updates": data.lost_updates,
+        "missing_serials": list(data.missing_serials),
     }
     lines = [
         f"{log}: {n} frames over {span:.2f} s ({summary['rate_hz']} Hz)",
@@ -46,11 +59,42 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
         f"face present in {summary['face_frames']} frames; clamped in "
         f"{summary['clamped_frames']}",
         f"model {data.hello.model_sha256[:16]}…, regions: {', '.join(data.hello.regions)}",
+        *_update_lines(summary),
     ]
     if csv_path is not None:
         _write_csv(csv_path, data.times, f, data.hello.regions)
         lines.append(f"csv: {csv_path}")
     return summary, lines
+
+
+def _update(record: LoggedUpdate) -> dict[str, Any]:
+    """One update record as the summary lists it (module docstring)."""
+    entry: dict[str, Any] = {"serial": record.serial, "bytes": len(record.data),
+                             "time": round(record.time, 6), "before": record.before}
+    try:
+        head = update_head(record.data, f"update record {record.serial}")
+    except UpdateError as e:
+        return {**entry, "region": None, "position": None, "replaces": None, "error": str(e)}
+    return {**entry, "region": head.region, "position": head.position,
+            "replaces": head.replaces}
+
+
+def _update_lines(summary: dict[str, Any]) -> list[str]:
+    """The report's lines on the model updates: a count, then one per update."""
+    updates = summary["updates"]
+    if not (updates or summary["lost_updates"] or summary["missing_serials"]):
+        return ["model updates: none"]
+    lines = [f"model updates: {len(updates)} ({summary['update_bytes']:,} bytes), "
+             f"{summary['lost_updates']} damaged"
+             + (f"; lacking serials {', '.join(map(str, summary['missing_serials']))}"
+                if summary["missing_serials"] else "")]
+    for u in updates:
+        what = (f"{u['region']}, state {u['position']}"
+                + ("" if u["replaces"] is None else f" replacing {u['replaces']}")
+                if u["region"] is not None else f"unreadable: {u['error']}")
+        lines.append(f"  update {u['serial']}: {what}, {u['bytes']:,} bytes, at "
+                     f"{u['time']:.3f} s (after {u['before']} packets)")
+    return lines
 
 
 def _write_csv(path: str | os.PathLike[str], times: np.ndarray, f: np.ndarray,

@@ -34,6 +34,15 @@ decoded, and measured in the same boxes:
 ``h264_face_ssim_mean``, ``h264_face_psnr_mean``. ``met.face_ssim_above_h264`` says whether
 our face SSIM beats x264's (issue 6's target).
 
+Model updates. A sender that learns during the session (``sender.learn``) classifies later
+frames against newer model versions and says which in each packet (``serial``). Every
+frame is rendered with the version its packet names, the one the sender classified it with
+(``bench.encoding``'s ``Run.versions``), as a receiver that holds the session's updates
+renders it (a replay of the session's log shows the same: ``receiver.replay``);
+``model_updates`` lists each version past the model file's by ``serial`` and the video frame
+of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
+the last version's.
+
 What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
 full-frame detection per image, nothing carried from frame to frame) on the real frame, on
 our rendering of it and on x264's decoding of it, and the rendering's and x264's 68 points
@@ -71,7 +80,7 @@ and the mean, standard deviation, minimum and maximum of the decoded Q over the 
 frames; ``brightness_r``, the correlation of Q with the mean grey level of the face's
 landmark box (lighting should not move Q: near 0 on a clip whose light changes); and
 ``cue_r``, the correlation of Q with the landmark or image cue that ordered the region's
-states at enrollment (``sender.enroll.layers.region_cues``: brow raise, brow convergence, minus
+states at enrollment (``sender.cues.region_cues``: brow raise, brow convergence, minus
 the eye aspect ratio, the iris position across the eyeball sample on open-eyed frames, the
 inner-lip gap). The cue is not truth, and at run time only the classifier decides Q; on
 frames the model was not built from, ``cue_r`` says how well the appearance alone recovers
@@ -229,8 +238,9 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     model = load_model(model_path)
     overlap = check_overlap(model, source, frames, allow_overlap)
     src = open_source(str(source), pace=False, frames=frames)
+    # the model file's own packets: the rendering here does not yet follow learned updates
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
-                              rate_hz=stream_rate(src.rate_hz))
+                              rate_hz=stream_rate(src.rate_hz), learn=False)
     camera = pipeline.hello().camera
     with src:
         run = encode_frames(pipeline, src, progress, src.frames or None, keep_eyes)
@@ -272,7 +282,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         "nme_heldout": mean is not None and mean <= TARGET_NME_HELDOUT,
         "below_rigid_only": mean is not None and mean < rigid,
     }
-    layers = {r.name: int(r.layers.shape[0]) for r in model.regions}
+    layers = {r.name: int(r.layers.shape[0]) for r in run.versions[max(run.versions)].regions}
     q = {name: np.where(posed, decoded["q"][:, k].astype(np.float64), np.nan)
          for k, name in enumerate(pipeline.hello().regions)}
     summary["q_regions"] = _q_regions(q, layers, run)
@@ -282,9 +292,10 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["targets"].update(TARGET_Q)
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
+    summary["model_updates"] = _model_updates(decoded, run.indices)
     appearance = _appearance(model, camera, decoded, run.tracked, posed, run.images,
                              stream_rate(src.rate_hz), summary["payload_kbps"], progress,
-                             keep_examples=keep_eyes)
+                             keep_examples=keep_eyes, versions=run.versions)
     summary.update(appearance.summary)
     summary["met"]["face_ssim_above_h264"] = (
         appearance.summary["face_ssim_mean"] is not None
@@ -294,6 +305,14 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
     return summary, _Series(np.array(run.indices), np.array(run.times), posed, result, q,
                             layers, run.eyes, appearance)
 
+
+
+def _model_updates(decoded: np.ndarray, indices: list[int]) -> list[dict[str, int]]:
+    """Each model version past the file's that the packets name: its ``serial`` and the
+    video frame of the first packet that refers to it (module docstring)."""
+    serials = decoded["serial"].astype(np.int64)
+    return [{"serial": int(s), "first_frame": int(indices[int(np.argmax(serials == s))])}
+            for s in np.unique(serials) if s > 0]
 
 
 def _q_regions(q: dict[str, np.ndarray], layers: dict[str, int], run: Run
@@ -318,14 +337,16 @@ class _Appearance(NamedTuple):
 def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
                 tracked: list[np.ndarray | None], posed: np.ndarray,
                 images: list[np.ndarray], rate_hz: float, payload_kbps: float,
-                progress: Progress, keep_examples: bool = False) -> _Appearance:
+                progress: Progress, keep_examples: bool = False,
+                versions: dict[int, PersonModel] | None = None) -> _Appearance:
     """Our rendering of every measured frame scored against the real frame
-    (``render_scores``), then the same for x264 at our payload rate (module docstring).
+    (``render_scores``, each frame with the model version its serial names), then the same
+    for x264 at our payload rate (module docstring).
     With ``keep_examples``, the face crops of ``EXAMPLES`` frames evenly spread over the
     measured ones (real, ours, x264) come back for the plot."""
     tracker = LandmarkTracker()
     ours = render_scores(model, camera, decoded, tracked, posed, images, progress, tracker,
-                         keep_faces=keep_examples)
+                         keep_faces=keep_examples, versions=versions)
     ssim, peak, boxes, masks = ours.ssim, ours.psnr, ours.boxes, ours.masks
     rendered_faces, real_points = ours.faces, ours.real_points
     missing = {"real": ours.real_missing, "render": ours.seen.missing, "h264": 0}

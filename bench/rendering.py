@@ -5,14 +5,18 @@ receiver's renderer (``receiver.render.FaceRenderer``) from the sender's camera
 (``receiver.views.sender_view``) with the decoded pose, residuals, Q and light, and scores it
 against the real frame inside the face box and its mask (``bench.fidelity``): grayscale SSIM
 and PSNR, and the render NME of the project's tracker run afresh on both pictures
-(``bench.render_nme``; ``FreshTracker`` times it). ``bench.quality``'s docstring states the
-measures ("Appearance fidelity", "What the viewer sees"); ``bench quality`` and the build's
-self-check (``bench.selfcheck``) both score through it.
+(``bench.render_nme``; ``FreshTracker`` times it). Each frame is drawn with the model version
+its packet's ``serial`` names (``versions``, from a sender that learned during the session:
+``bench.encoding``), as a receiver holding the session's model updates draws it.
+``bench.quality``'s docstring states the measures ("Appearance fidelity", "What the viewer
+sees"); ``bench quality`` and the build's self-check (``bench.selfcheck``) both score
+through it.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import cv2
@@ -58,7 +62,8 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
                   tracked: list[np.ndarray | None], posed: np.ndarray,
                   images: list[np.ndarray], progress: Progress, tracker: LandmarkTracker,
                   keep_faces: bool = False,
-                  truths: list[np.ndarray | None] | None = None) -> RenderScores:
+                  truths: list[np.ndarray | None] | None = None,
+                  versions: Mapping[int, PersonModel] | None = None) -> RenderScores:
     """Render every measured frame (a pose of its own and tracked points) with the
     receiver's renderer from the sender's camera and score it against the real frame: face
     SSIM and PSNR in the face box, and the fresh tracker's points on both (``bench.quality``'s
@@ -77,6 +82,9 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
         truths: the real frames' fresh tracks when already made (a pipeline reset before
             every frame detects afresh: ``encode_frames(independent=True)``); else tracked
             here.
+        versions: {serial: model version} for the serials the packets name (``Run.versions``;
+            the same mesh as ``model``); each frame is drawn with its serial's version.
+            None: every frame with ``model``.
     """
     rig = Rig(model.mesh)
     ssim = np.full(len(decoded), np.nan)
@@ -88,12 +96,18 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
     real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
     missing = {"real": 0, "render": 0}
     fresh = FreshTracker(tracker)
-    with FaceRenderer(model, camera.width, camera.height) as renderer:
+    shown = model
+    renderer = FaceRenderer(model, camera.width, camera.height)
+    try:
         for k, image in enumerate(progress(images, "rendering", len(images))):
             points = tracked[k]
             if not posed[k] or points is None:
                 continue
             record = decoded[k]
+            version = model if versions is None else versions[int(record["serial"])]
+            if version is not shown:
+                renderer.release()
+                renderer, shown = FaceRenderer(version, camera.width, camera.height), version
             vertices = rig.morph(rig.from_tangent(record["residuals"]))
             view = sender_view(camera, record["rotation"], record["translation"],
                                camera.width, camera.height)
@@ -115,6 +129,8 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
                 missing["render"] += 1
             else:
                 seen[k] = picture_nme(truth, drawn)
+    finally:
+        renderer.release()
     return RenderScores(ssim, peak, FaceCounts(seen, missing["render"]), real_points,
                         missing["real"], boxes, masks, rendered_faces, fresh.seconds)
 

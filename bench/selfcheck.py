@@ -191,7 +191,8 @@ def score_frames(model: PersonModel, frames: Sequence[VideoFrame], rate_hz: floa
                 "self_check_frames": 0, "self_check_face_missing": 0,
                 "self_check_seconds": 0.0}
     height, width = frames[0].image.shape[:2]
-    pipeline = SenderPipeline(model, sender_camera(width, height), rate_hz=stream_rate(rate_hz))
+    pipeline = SenderPipeline(model, sender_camera(width, height), rate_hz=stream_rate(rate_hz),
+                              learn=False)  # the model as built, on its own frames
     camera = wire_camera(pipeline.camera)
     run = encode_frames(pipeline, frames, progress, len(frames), independent=True)
     decoded = decode_run(run.packets, run.indices)

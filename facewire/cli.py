@@ -40,8 +40,21 @@ def _replay(args: argparse.Namespace) -> int:
                f"packets: {s['received']} received, {s['concealed']} slots concealed, "
                f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
                f"{s['lost_records']} damaged log records",
+               *_replay_updates(s),
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
+
+
+def _replay_updates(s: dict[str, Any]) -> list[str]:
+    """``replay``'s line on the model updates, none for a log without any."""
+    if not (s["updates"] or s["lost_updates"] or s["missing_serials"]):
+        return []
+    line = (f"model updates: {s['updates_applied']} of {s['updates']} in the log applied, "
+            f"{s['lost_updates']} damaged")
+    if s["missing_serials"]:
+        line += (f"; lacking serials {', '.join(map(str, s['missing_serials']))}: "
+                 f"{s['clamped_frames']} frames shown clamped to the layers held")
+    return [line]
 
 
 def _rate(text: str) -> float:
@@ -74,14 +87,16 @@ def _send(args: argparse.Namespace) -> int:
         while banner:
             print(banner.pop(), file=sys.stderr)
         return (f"{t['seconds']:7.1f} s  {t['fps']:5.1f} fps  {t['payload_kbps']:5.2f} "
-                f"kbit/s  face {'yes' if t['face'] else 'no '}  receivers {t['receivers']}")
+                f"kbit/s  face {'yes' if t['face'] else 'no '}  receivers {t['receivers']}  "
+                f"updates {t['updates']}")
 
     with _StatusLine(status) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
-                 status=line, loop=args.loop)
+                 status=line, loop=args.loop, learn=not args.no_learn)
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
-               f"kbit/s payload, at most {s['receivers_max']} receivers",
+               f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
+               f"updates learned",
                f"model {s['model_sha256'][:16]}... ({s['model_bytes']} bytes, "
                f"{s['model_chunks']} chunks); stopped: {s['stopped']}"
                + (f"; log: {s['log']}" if s["log"] else "")], args.json)
@@ -239,10 +254,15 @@ def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.enroll.build import build_model, is_photo
 
-    if (args.video is None) == (args.guided is None):
-        raise CommandError("model build: give one of VIDEO, PHOTO or --guided CAMERA")
+    if sum(x is not None for x in (args.video, args.guided, args.from_log)) != 1:
+        raise CommandError("model build: give one of VIDEO, PHOTO, --guided CAMERA or "
+                           "--from-log LOG")
+    if (args.model is None) != (args.from_log is None):
+        raise CommandError("model build: --from-log LOG and --model BASE go together")
     if args.guided is not None:
         return _model_build_guided(args)
+    if args.from_log is not None:
+        return _model_build_from_log(args)
     frames = _frames(args.frames)
     check = None
     if not args.no_self_check:
@@ -253,6 +273,26 @@ def _model_build(args: argparse.Namespace) -> int:
     result = build_model(args.video, args.output, frames, progress=_progress, check=check)
     s = result.summary()
     report(s, _build_lines(s), args.json)
+    return 0
+
+
+def _model_build_from_log(args: argparse.Namespace) -> int:
+    """``model build --from-log LOG --model BASE``: the base with the session's model updates
+    (``models.learned``)."""
+    from facewire.models.learned import write_learned_model
+    from facewire.report import report
+
+    s = write_learned_model(args.from_log, args.model, args.output)
+    grown = ", ".join(f"{name} {old} -> {new}" for name, (old, new) in s["layers"].items()
+                      if old != new) or "none (states replaced)"
+    lines = [f"model:    {s['path']} ({s['bytes']:,} bytes, sha256 {s['sha256'][:16]}...)",
+             f"learned:  {len(s['applied'])} model updates of {s['log']} applied to "
+             f"{s['base']} (sha256 {s['base_sha256'][:16]}...)",
+             f"layers:   {grown}"]
+    if s["left_out"] or s["missing_serials"]:
+        lines.append(f"left out: updates {', '.join(map(str, s['left_out'])) or 'none'}; the "
+                     f"log lacks serials {', '.join(map(str, s['missing_serials']))}")
+    report(s, lines, args.json)
     return 0
 
 
@@ -398,7 +438,8 @@ def _model_info(args: argparse.Namespace) -> int:
          "source": None if model.info.source is None else model.info.source.as_dict(),
          "coverage": model.coverage,
          "self_check": None if model.self_check is None else model.self_check.as_dict(),
-         "region_frames": region_frames_summary(model)}
+         "region_frames": region_frames_summary(model),
+         "learned": None if model.learned is None else model.learned.as_dict()}
     regions = ", ".join(f"{r.name} ({r.layers.shape[0]} layers)" for r in model.regions)
     source = model.info.source
     built = "unknown (a model written before the range was stored)" if source is None else \
@@ -413,8 +454,19 @@ def _model_info(args: argparse.Namespace) -> int:
                *_region_frames_lines(s["region_frames"]),
                *_coverage_lines(model.coverage),
                _stored_self_check(model.self_check),
+               _learned_line(model.learned),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
+
+
+def _learned_line(learned: Any) -> str:
+    """``model info``'s line on the session updates a model includes."""
+    if learned is None:
+        return "learned:  nothing (no session's model updates)"
+    states = ", ".join(f"{u.region} state {u.position}" + (
+        "" if u.replaces is None else f" (replacing {u.replaces})") for u in learned.updates)
+    return (f"learned:  {len(learned.updates)} model updates of session {learned.log} on "
+            f"base {learned.base_sha256[:16]}...: {states}")
 
 
 def _stored_self_check(check: Any) -> str:
@@ -452,12 +504,15 @@ def _encode(args: argparse.Namespace) -> int:
     from facewire.sender.pipeline import encode_video
 
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
-                     focal=args.focal, calib=args.calib, progress=_progress)
+                     focal=args.focal, calib=args.calib, progress=_progress,
+                     learn=not args.no_learn)
     report(s, [f"log:      {s['log']}",
                f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
                f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
                f"flags:    {s['clamped']} frames clamped ({s['clamped_values']} values), "
                f"{s['held']} held, {s['mirrored']} mirrored, {s['tracking_lost']} tracking lost",
+               f"learned:  {s['updates']} model updates"
+               + (f" ({', '.join(s['update_regions'])})" if s["update_regions"] else ""),
                f"time:     {s['seconds']} s"], args.json)
     return 0
 
@@ -528,6 +583,12 @@ def _add_model(sub: Commands) -> None:
                    "neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
+    m.add_argument("--from-log", metavar="LOG", help="instead of enrolling: the model a "
+                   "session's receivers ended with, the base model (--model) with the model "
+                   "updates the session's log holds, so that the next session starts from "
+                   "them; the base's sha256 must be the log's")
+    m.add_argument("--model", metavar="BASE", help="with --from-log: the model file the "
+                   "session started from")
     m.add_argument("--no-self-check", action="store_true",
                    help="skip the self-check (the model rendered at up to 40 of its own "
                    "frames and scored: face SSIM, render NME; about 4 s)")
@@ -575,6 +636,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "encrypt, and admit only the receivers in DIR/authorized")
+    _add_no_learn(s)
     _add_json(s)
     s.set_defaults(run=_send)
 
@@ -597,6 +659,14 @@ def _add_send_receive(sub: Commands) -> None:
     r.set_defaults(run=_receive)
 
 
+def _add_no_learn(parser: argparse.ArgumentParser) -> None:
+    """``--no-learn``: the sender's learning (on by default) turned off."""
+    parser.add_argument("--no-learn", action="store_true", help="do not learn: by default "
+                        "an appearance the model lacks (a new expression held for a moment) "
+                        "is captured as a model update, a new state of that region, for the "
+                        "receivers; with --no-learn the model stays as its file")
+
+
 def _add_encode_replay(sub: Commands) -> None:
     """``encode`` (a video into a packet log) and ``replay`` (a packet log into a video)."""
     e = sub.add_parser("encode", help="run the sender pipeline on a video into a packet log")
@@ -607,6 +677,7 @@ def _add_encode_replay(sub: Commands) -> None:
     e.add_argument("--focal", type=float, help="camera focal length in pixels (default: "
                    "estimated from the image width)")
     e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
+    _add_no_learn(e)
     _add_json(e)
     e.set_defaults(run=_encode)
 

@@ -43,6 +43,15 @@ at most 16 of them) how many were rejected; the remaining ``candidates - len(use
 rejected`` were clean but not chosen (never below 0). At most ``MAX_REGIONS`` regions; absent
 in models built before it, and for a model without regions.
 
+A fourth is optional in the same way: ``"learned": {"base_sha256": 64 lowercase hex, "log":
+file name, "updates": [{"serial": n, "region": name, "position": p, "replaces": r or null},
+...]}``, the model updates of one session this model includes (``Learned``;
+``models.learned``, ``model build --from-log``): the model file the session started from, the
+session's log, and per update, in serial order 1, 2, ... (at most ``MAX_LEARNED_UPDATES``),
+the region it taught a state to and where (``models.update.ModelUpdate``). Absent in a model
+that no session taught. A model learned from a session whose base had itself learned keeps
+only its own session's record; the base's sha256 leads to the one before.
+
 ``members`` lists every member but ``model.json``, with the dtype and shape its content must
 have. ``regions`` is in packet order (the order of the Q values on the wire) and may be
 empty; its names match ``[a-z][a-z0-9_]{0,31}``; rects are in UV, 0 <= u0 < u1 <= 1 and
@@ -106,6 +115,7 @@ READ_VERSIONS = (1, 2, 3, 4)
 MAX_MEMBER_BYTES = 64 * 1024**2
 MAX_SMALL_BYTES = 1024**2
 MAX_REASONS = 16
+MAX_LEARNED_UPDATES = 2047  # a session's serials (protocol.packet.MAX_SERIAL)
 
 MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
 TEXTURE_MEMBER = "textures/neutral.png"
@@ -352,6 +362,60 @@ def check_region_frames(value: object) -> dict[str, RegionFrames]:
     return out
 
 
+class LearnedState(NamedTuple):
+    """One update a model includes (``Learned.updates``): its serial, the region it taught a
+    state to, that state's index after it, and the index it replaced (None: inserted)."""
+
+    serial: int
+    region: str
+    position: int
+    replaces: int | None
+
+
+@dataclass(frozen=True)
+class Learned:
+    """The model updates of one session a model includes (module docstring, ``learned``).
+
+    Attributes:
+        base_sha256: the sha256 of the model file the session started from (64 hex).
+        log: the session's log file name (no folder), 1 to 1024 printable characters.
+        updates: the updates applied, serials 1, 2, ... in order, at least one.
+    """
+
+    base_sha256: str
+    log: str
+    updates: tuple[LearnedState, ...]
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.base_sha256, str) and HEX64.fullmatch(self.base_sha256)):
+            raise ModelError("learned.base_sha256: expected 64 lowercase hex digits")
+        check_text(self.log, "learned.log", 1, 1024)
+        if not isinstance(self.updates, (tuple, list)) \
+                or not 1 <= len(self.updates) <= MAX_LEARNED_UPDATES:
+            raise ModelError(f"learned.updates: expected 1 to {MAX_LEARNED_UPDATES} updates, "
+                             f"got {type_name(self.updates)}")
+        states = []
+        items: list[object] = list(self.updates)  # from the manifest: objects, not yet records
+        for n, item in enumerate(items, 1):
+            field = f"learned.updates[{n - 1}]"
+            entry = item if isinstance(item, LearnedState) else LearnedState(
+                **check_keys(item, field, set(LearnedState._fields)))
+            if check_integer(entry.serial, f"{field}.serial", n, n) != n:
+                raise ModelError(f"{field}.serial: expected {n}")
+            check_region_name(entry.region, f"{field}.region")
+            check_integer(entry.position, f"{field}.position", 0, MAX_LAYERS)
+            if entry.replaces is not None:
+                check_integer(entry.replaces, f"{field}.replaces", 0, MAX_LAYERS)
+            states.append(LearnedState(int(entry.serial), entry.region, int(entry.position),
+                                       None if entry.replaces is None else int(entry.replaces)))
+        object.__setattr__(self, "updates", tuple(states))
+
+    def as_dict(self) -> dict[str, Any]:
+        """The manifest's ``learned`` object (also ``model info --json``'s)."""
+        return {"base_sha256": self.base_sha256, "log": self.log,
+                "updates": [u._asdict() for u in self.updates]}
+
+
 # ---- the schema table -------------------------------------------------------------------
 
 class Spec(NamedTuple):
@@ -426,6 +490,7 @@ class Manifest(NamedTuple):
     coverage: dict[str, bool] | None
     self_check: SelfCheck | None
     region_frames: dict[str, RegionFrames] | None
+    learned: Learned | None
 
 
 def parse_manifest(raw: bytes) -> Manifest:
@@ -433,10 +498,10 @@ def parse_manifest(raw: bytes) -> Manifest:
 
     The fields are checked in the order they are listed here: the keys, ``format``,
     ``format_version``, ``camera``, ``info``, ``members``, ``regions``, then the optional
-    ``coverage``, ``self_check`` and ``region_frames``.
+    ``coverage``, ``self_check``, ``region_frames`` and ``learned``.
     """
     doc = _decode_json(raw)
-    optional = {"coverage", "self_check", "region_frames"} & (
+    optional = {"coverage", "self_check", "region_frames", "learned"} & (
         doc.keys() if isinstance(doc, dict) else set())
     check_keys(doc, "manifest", {"format", "format_version", "camera", "info", "members",
                                  "regions"} | optional)
@@ -448,7 +513,8 @@ def parse_manifest(raw: bytes) -> Manifest:
     coverage = check_coverage(doc["coverage"]) if "coverage" in optional else None
     check = _self_check(doc["self_check"]) if "self_check" in optional else None
     frames = check_region_frames(doc["region_frames"]) if "region_frames" in optional else None
-    return Manifest(camera, info, members, regions, coverage, check, frames)
+    learned = _learned(doc["learned"]) if "learned" in optional else None
+    return Manifest(camera, info, members, regions, coverage, check, frames, learned)
 
 
 def _decode_json(raw: bytes) -> Any:
@@ -562,6 +628,12 @@ def _self_check(value: object) -> SelfCheck:
     entry = check_keys(value, "self_check", {"ssim", "render_nme", "frames", "poor", "causes"})
     return SelfCheck(entry["ssim"], entry["render_nme"], entry["frames"], entry["poor"],
                      entry["causes"])
+
+
+def _learned(value: object) -> Learned:
+    """The optional ``learned`` object."""
+    entry = check_keys(value, "learned", {"base_sha256", "log", "updates"})
+    return Learned(entry["base_sha256"], entry["log"], entry["updates"])
 
 
 def _shape_text(shape: tuple[int | str, ...]) -> str:

@@ -112,6 +112,7 @@ from facewire.models.manifest import (
     MANIFEST_MEMBER,
     MESH_FIELDS,
     TEXTURE_MEMBER,
+    Learned,
     Manifest,
     ModelInfo,
     RegionFrames,
@@ -259,6 +260,9 @@ class PersonModel:
             (``sender.enroll.usage``), or None when not recorded (older models, models
             without regions). The manifest's optional ``region_frames`` key; every name is
             one of ``regions``.
+        learned: the model updates of a session this model includes (``models.learned``),
+            or None. The manifest's optional ``learned`` key; every region it names is one
+            of ``regions``.
     """
 
     mesh: Mesh
@@ -271,6 +275,7 @@ class PersonModel:
     coverage: dict[str, bool] | None = None
     self_check: SelfCheck | None = None
     region_frames: dict[str, RegionFrames] | None = None
+    learned: Learned | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -306,6 +311,13 @@ class PersonModel:
             if unknown:
                 raise ModelError(f"region_frames.{unknown[0]}: not a region of the model")
             object.__setattr__(self, "region_frames", frames)
+        if self.learned is not None:
+            if not isinstance(self.learned, Learned):
+                raise ModelError(f"learned: expected a Learned or None, got "
+                                 f"{type_name(self.learned)}")
+            strange = [u.region for u in self.learned.updates if u.region not in names]
+            if strange:
+                raise ModelError(f"learned.updates: {strange[0]!r} is not a region of the model")
 
 
 def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
@@ -398,7 +410,8 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
                                   r.opacity, r.rest, tuple(areas)))
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
-                           manifest.coverage, manifest.self_check, manifest.region_frames)
+                           manifest.coverage, manifest.self_check, manifest.region_frames,
+                           manifest.learned)
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -481,6 +494,8 @@ def _encode(model: PersonModel) -> bytes:
     if model.region_frames is not None:
         manifest["region_frames"] = {name: frames.as_dict()
                                      for name, frames in model.region_frames.items()}
+    if model.learned is not None:
+        manifest["learned"] = model.learned.as_dict()
     members[MANIFEST_MEMBER] = (json.dumps(manifest, sort_keys=True, indent=1, ensure_ascii=True,
                                            allow_nan=False) + "\n").encode("ascii")
     return zip_bytes(members)

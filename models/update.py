@@ -55,7 +55,7 @@ from __future__ import annotations
 import dataclasses
 import zlib
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
@@ -192,8 +192,10 @@ def _neighbours(model: PersonModel, update: ModelUpdate) -> tuple[Region, list[i
     return region, keep
 
 
-def _references(model: PersonModel, update: ModelUpdate) -> list[np.ndarray]:
-    """(h, w, 3) uint8 per area: the state the new one will sit just before."""
+def references(model: PersonModel, update: ModelUpdate) -> list[np.ndarray]:
+    """(h, w, 3) uint8 per area of the update's region, main first: the state the new one
+    will sit just before in ``model`` (the module docstring), its bytes' reference; the
+    sender's capture copies its texels where the new state shows no change."""
     region, keep = _neighbours(model, update)
     j = keep[min(update.position, len(keep) - 1)]
     return [part.layers[j] for part in region.parts()]
@@ -207,7 +209,7 @@ def encode_update(update: ModelUpdate, model: PersonModel) -> bytes:
     """
     apply_update(model, update)
     areas = []
-    for image, reference in zip(update.layers, _references(model, update), strict=True):
+    for image, reference in zip(update.layers, references(model, update), strict=True):
         diff = ((image.astype(np.int16) - reference) & 0xFF).astype(np.uint8)
         areas.append({"shape": list(image.shape[:2]), "diff": zlib.compress(diff.tobytes(), 9)})
     data = msgpack.packb({
@@ -242,7 +244,33 @@ def decode_update(data: bytes, model: PersonModel, base_sha256: str,
         raise UpdateError(f"{where}: {e}") from e
 
 
-def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
+class UpdateHead(NamedTuple):
+    """What an update's bytes say of it without the model (``update_head``)."""
+
+    base_sha256: str
+    serial: int
+    region: str
+    position: int
+    replaces: int | None
+
+
+def update_head(data: bytes, where: str = "update") -> UpdateHead:
+    """The scalar fields of an update's bytes, checked, without the model its layers need
+    (``facewire inspect`` lists a log's updates with it).
+
+    Raises:
+        UpdateError: the bytes are malformed; the message names ``where`` and the field.
+    """
+    try:
+        shell = _shell(_unpack(data))
+    except ModelError as e:
+        raise UpdateError(f"{where}: {e}") from e
+    return UpdateHead(shell.base_sha256, shell.serial, shell.region, shell.position,
+                      shell.replaces)
+
+
+def _unpack(data: bytes) -> dict[str, Any]:
+    """The update's msgpack map, its keys, format, template and areas' types checked."""
     if not isinstance(data, (bytes, bytearray)) or len(data) > MAX_UPDATE_BYTES:
         raise UpdateError(f"expected at most {MAX_UPDATE_BYTES} bytes")
     try:
@@ -255,8 +283,6 @@ def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
         raise UpdateError(f"expected a map with the keys {sorted(_KEYS)}")
     if fields["format"] != FORMAT:
         raise UpdateError(f"format: {fields['format']!r}, expected {FORMAT}")
-    if fields["base_sha256"] != base_sha256:
-        raise UpdateError("base_sha256: made for another model file")
     template = fields["template"]
     if not isinstance(template, bytes) or len(template) != 4 * TEMPLATE_SIZE ** 2:
         raise UpdateError(f"template: expected {4 * TEMPLATE_SIZE ** 2} bytes")
@@ -264,16 +290,30 @@ def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
     if not isinstance(areas, list) or not all(isinstance(a, dict) and set(a) == {"shape", "diff"}
                                               for a in areas):
         raise UpdateError("areas: expected an array of maps {shape, diff}")
-    shell = ModelUpdate(  # checks every scalar field; the layers are stand-ins until inflated
+    return fields
+
+
+def _shell(fields: dict[str, Any]) -> ModelUpdate:
+    """The update of ``_unpack``'s fields, every scalar checked; its layers are stand-ins
+    until inflated."""
+    return ModelUpdate(
         base_sha256=fields["base_sha256"], serial=fields["serial"], region=fields["region"],
         position=fields["position"], replaces=fields["replaces"], opacity=fields["opacity"],
-        template=np.frombuffer(template, "<f4").reshape(TEMPLATE_SIZE, TEMPLATE_SIZE)
+        template=np.frombuffer(fields["template"], "<f4").reshape(TEMPLATE_SIZE, TEMPLATE_SIZE)
         .astype(np.float32), layers=(np.zeros((1, 1, 3), np.uint8),))
-    references = _references(model, shell)
-    if len(areas) != len(references):
-        raise UpdateError(f"areas: {len(areas)} areas, the region has {len(references)}")
+
+
+def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
+    fields = _unpack(data)
+    if fields["base_sha256"] != base_sha256:
+        raise UpdateError("base_sha256: made for another model file")
+    shell = _shell(fields)
+    areas = fields["areas"]
+    refs = references(model, shell)
+    if len(areas) != len(refs):
+        raise UpdateError(f"areas: {len(areas)} areas, the region has {len(refs)}")
     layers = tuple(_inflate(area, reference, n)
-                   for n, (area, reference) in enumerate(zip(areas, references, strict=True)))
+                   for n, (area, reference) in enumerate(zip(areas, refs, strict=True)))
     update = dataclasses.replace(shell, layers=layers)
     apply_update(model, update)
     return update
@@ -297,3 +337,65 @@ def _inflate(area: dict[str, Any], reference: np.ndarray, n: int) -> np.ndarray:
         raise UpdateError(f"areas[{n}]: diff: expected a zlib stream of exactly {size} bytes")
     diff = np.frombuffer(raw, np.uint8).reshape(reference.shape)
     return ((reference.astype(np.int16) + diff) & 0xFF).astype(np.uint8)
+
+
+class ModelVersions:
+    """A session's model versions as a receiver holds them: version 0 is the model file,
+    version n the model with updates 1 .. n applied in order (module docstring).
+
+    An update can be decoded only against the version it applies to, so update n is held
+    once updates 1 .. n - 1 are; one that comes early waits (``pending``). A frame whose Q
+    values refer to version s is shown with ``model(s)``: version s when held, else the
+    newest held, whose regions clamp Q to the layers they have (``receiver.render``).
+
+    Each version shares every array with the one before but its updated region's, so a
+    version costs the memory of that region's states.
+
+    Attributes:
+        base: the model file (version 0); its ``sha256`` is the session's base sha256.
+        updates: the updates applied, in serial order (``updates[n - 1]`` made version n).
+        pending: {serial: bytes} received but not yet applicable.
+    """
+
+    def __init__(self, base: PersonModel) -> None:
+        if not (isinstance(base, PersonModel) and HEX64.fullmatch(base.sha256)):
+            raise ModelError("versions: the base must be a model read from its file (its "
+                             "sha256 known)")
+        self.base = base
+        self.updates: list[ModelUpdate] = []
+        self.pending: dict[int, bytes] = {}
+        self._models = [base]
+
+    @property
+    def held(self) -> int:
+        """The newest version held: every update up to it is applied."""
+        return len(self._models) - 1
+
+    def add(self, serial: int, data: bytes, where: str = "update") -> list[ModelUpdate]:
+        """Take update ``serial``'s bytes; returns the updates this made applicable, in order
+        (none when it waits for an earlier one, or was held already).
+
+        Raises:
+            UpdateError: the bytes (of this update or of one it unblocked) are malformed or
+                do not fit the version they apply to; the message names ``where``.
+        """
+        check_integer(serial, f"{where}: serial", 1, MAX_SERIAL)
+        if serial > self.held:
+            self.pending.setdefault(serial, bytes(data))
+        applied = []
+        while self.held + 1 in self.pending:
+            n = self.held + 1
+            update = decode_update(self.pending.pop(n), self._models[-1], self.base.sha256,
+                                   where if n == serial else f"update {n}")
+            if update.serial != n:
+                raise UpdateError(f"{where}: serial: the bytes say {update.serial}, the "
+                                  f"record {n}")
+            self._models.append(apply_update(self._models[-1], update))
+            self.updates.append(update)
+            applied.append(update)
+        return applied
+
+    def model(self, serial: int) -> PersonModel:
+        """The version to show a frame whose Q values refer to version ``serial`` with:
+        ``serial`` itself when held, else the newest held."""
+        return self._models[min(max(int(serial), 0), self.held)]

@@ -313,6 +313,20 @@ class Playout:
         self._ease_begin = 0.0  # the value of _since at which the ease began, slots
 
     @property
+    def rest_q(self) -> np.ndarray:
+        """(8,) float32, read-only: the Q of each slot on the neutral face (``__init__``)."""
+        return self._rest_q
+
+    @rest_q.setter
+    def rest_q(self, value: np.ndarray) -> None:
+        """Another model version's rest Q (``models.update`` moves a region's rest state when
+        it inserts before it); a face lost from now on eases to it."""
+        rest = np.asarray(value, np.float32)
+        if rest.shape != (N_REGIONS,) or not np.isfinite(rest).all():
+            raise ValueError(f"rest_q: expected {N_REGIONS} finite values, got {value!r}")
+        self._rest_q = _frozen(rest.copy())
+
+    @property
     def latency_s(self) -> float:
         """The latency the buffer adds to an on-time packet on a tick clock
         (``replay_states``), s: ``depth / rate_hz``; a live receiver playing on arrival

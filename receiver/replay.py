@@ -17,6 +17,19 @@ the received rotation (640 x 480 unless given). ``side_by_side`` puts the source
 frame at the slot's time (the nearest frame, as the log's times come from the source) on
 the left: input | reconstruction, for evaluation videos.
 
+Model updates (``models.update``): the log holds each update where the sender issued it
+(``protocol.log``). The replay takes an update when the playout reaches its place, i.e. for
+the first state whose packet's time is at or after the update record's, and shows each
+frame with the model version its packet's ``serial`` names, as a live receiver does
+(``models.update.ModelVersions``): once the update is held, the frames that refer to it
+show its state; a frame that refers to an update the replay does not hold (its record lost
+to damage, ``missing_serials``) is shown with the newest version held, whose regions clamp
+Q to the layers they have, and counted (``clamped_frames``). A face lost after a version is
+taken eases to that version's rest states (``Playout.rest_q``): an update that inserts a
+state before a region's rest state moves it. An intact update record that
+does not decode against the version it applies to is refused (``UpdateError``, naming the
+log).
+
 Output: a path ending in ``.mp4`` is an H.264 video (``receiver.output.VideoWriter``, encoded
 on its own thread); any other path is a folder of PNG frames. The model must be the one the
 log was made with (its sha256 is in the log's Hello).
@@ -24,6 +37,7 @@ log was made with (its sha256 is in the log's Hello).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -33,11 +47,12 @@ import numpy as np
 
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames
-from facewire.models.modelfile import load_model
+from facewire.models.modelfile import PersonModel, load_model
+from facewire.models.update import ModelVersions
 from facewire.protocol.errors import FacewireError
-from facewire.protocol.log import read_log
+from facewire.protocol.log import PacketLog, read_log
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
-from facewire.receiver.playout import Playout, replay_states
+from facewire.receiver.playout import FrameState, Playout, replay_states
 from facewire.receiver.scene import VIEWS, StateRenderer, rest_q
 
 VIRTUAL_SIZE = (640, 480)
@@ -65,13 +80,17 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
 
     Returns:
         A summary: ``frames`` written, the playout's counts (``received``, ``concealed``,
-        ``corrupt`` ...), ``lost_records`` (damaged log records), ``width``, ``height``,
-        ``view``, ``out``, ``seconds``, ``render_fps``.
+        ``corrupt`` ...), ``lost_records`` (damaged packet records), ``updates`` (the log's
+        intact update records), ``updates_applied``, ``lost_updates`` (damaged update
+        records), ``missing_serials``, ``clamped_frames`` (frames shown with an older
+        version than the one they refer to), ``width``, ``height``, ``view``, ``out``,
+        ``seconds``, ``render_fps``.
 
     Raises:
         ReplayError: a bad view or size, the model is not the log's, the log holds no
             intact packet, or its record times span more than the playout replays.
-        LogError / ModelFileError / VideoError / OutputError: unreadable inputs or output.
+        LogError / ModelFileError / VideoError / OutputError / UpdateError: unreadable
+            inputs or output.
     """
     start = time.perf_counter()
     if view not in VIEWS:
@@ -95,16 +114,22 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         states = replay_states(log.packets, log.times, hello.rate_hz, playout=playout)
     except ValueError as exc:  # the record times (e.g. a span of weeks): the log's fault
         raise ReplayError(f"{log_path}: {exc}") from None
+    versions = _Versions(model, log, Path(log_path))  # a bad update refused before any output
     frames = _SourceFrames(source) if source is not None else None
     out = Path(out)
     out_width = width + (0 if frames is None else frames.width(height))
     writer = VideoWriter(out, out_width, height, hello.rate_hz) if out.suffix == ".mp4" \
         else FrameFolderWriter(out)
     t0 = float(np.min(log.times)) if len(log.times) else 0.0
-    written = 0
+    written = clamped = 0
     render_seconds = 0.0
     with StateRenderer(model, width, height, hello.camera, view) as renderer, writer:
         for k, state in enumerate(progress(states, "rendering", None)):
+            shown = versions.model(state)
+            if shown is not renderer.model:
+                renderer.set_model(shown)
+                playout.rest_q = rest_q(shown)  # a lost face eases to this version's rest
+            clamped += versions.held < state.serial
             tick = time.perf_counter()
             image = renderer.render(state)
             render_seconds += time.perf_counter() - tick
@@ -115,8 +140,44 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     elapsed = time.perf_counter() - start
     return {"out": str(out), "view": view, "width": width, "height": height,
             "frames": written, **playout.stats, "lost_records": log.lost,
+            "updates": len(log.updates), "updates_applied": versions.applied,
+            "lost_updates": log.lost_updates, "missing_serials": list(log.missing_serials),
+            "clamped_frames": clamped,
             "seconds": round(elapsed, 2),
             "render_fps": round(written / render_seconds, 1) if render_seconds else None}
+
+
+class _Versions:
+    """The model versions a replay holds as it goes (module docstring, "Model updates").
+
+    Every intact update record is decoded at the start, in file order, so that a bad one is
+    refused before any output is written; update n is then held from the first state whose
+    packet's time is at or after the records of updates 1 .. n.
+    """
+
+    def __init__(self, model: PersonModel, log: PacketLog, path: Path) -> None:
+        self._versions = ModelVersions(model)
+        issued: dict[int, float] = {}
+        for record in log.updates:
+            self._versions.add(record.serial, record.data, f"{path}: update record "
+                                                           f"{record.serial}")
+            issued.setdefault(record.serial, record.time)
+        # version n is held once every record up to n is: the running maximum of their times
+        self._ready = np.maximum.accumulate([issued[n] for n in range(1, self.applied + 1)])
+        self._clock = -math.inf
+        self.held = 0
+
+    @property
+    def applied(self) -> int:
+        """The updates the log lets a replay apply (every serial up to it intact)."""
+        return self._versions.held
+
+    def model(self, state: FrameState) -> PersonModel:
+        """The model to show ``state`` with (``held`` is its version's newest possible)."""
+        if state.arrival_s is not None:
+            self._clock = max(self._clock, state.arrival_s)
+        self.held = int(np.searchsorted(self._ready, self._clock, side="right"))
+        return self._versions.model(min(state.serial, self.held))
 
 
 class _SourceFrames:

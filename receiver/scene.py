@@ -84,6 +84,20 @@ class StateRenderer:
         self.render_seconds.append(time.perf_counter() - tick)
         return image
 
+    def set_model(self, model: PersonModel) -> None:
+        """Draw with ``model`` from now on: another version of the same person's model (a
+        model update, ``models.update``), whose mesh, and so whose rig, is this one's; its
+        texture and regions are uploaded anew.
+
+        Raises:
+            RenderError: ``model``'s mesh is not this renderer's.
+        """
+        if model.mesh is not self.model.mesh:
+            raise RenderError("model: a version of another mesh; make a new StateRenderer")
+        renderer = FaceRenderer(model, self.width, self.height)
+        self._renderer.release()
+        self._renderer, self.model = renderer, model
+
     def release(self) -> None:
         """Free the renderer's OpenGL context."""
         self._renderer.release()

@@ -49,7 +49,8 @@ class Packed:
 
 
 def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
-         q: np.ndarray | None = None, shade: np.ndarray | None = None) -> Packed:
+         q: np.ndarray | None = None, serial: int = 0,
+         shade: np.ndarray | None = None) -> Packed:
     """Quantise and encode one frame.
 
     Args:
@@ -59,6 +60,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
         residuals: (9, 2) finite tangent-frame residuals (u, v), mm, ``NONRIGID`` order
             (``Rig.to_tangent``).
         q: (8,) region values, layers; None for neutral (all 0).
+        serial: the model version ``q`` refers to (0: the model file; ``sender.learn``).
         shade: (3,) the light's log-gain field (s0, s1, s2); None for the model's own light.
 
     Returns:
@@ -75,7 +77,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
     frame = Frame(seq=int(seq) % SEQ_MODULO, flags=Flag(int(flags)),
                   rotation=rotation_vector(pose.rotation).astype(np.float32),
                   translation=np.asarray(pose.translation, np.float32).copy(),
-                  residuals=uv.copy(), q=q,
+                  residuals=uv.copy(), q=q, serial=int(serial),
                   shade=np.zeros(N_SHADE, np.float32) if shade is None
                   else np.asarray(shade, np.float32).reshape(N_SHADE).copy())
     packets, clamped = encode_frames(frame.to_record().reshape(1))

@@ -21,10 +21,17 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
 6. ``classify``: ``sender.classify.RegionClassifiers`` -> one Q per region, in the model's
    region order (the packet's Q slots); an open eye's eyelid Q is then held at most at its
    rest state (``sender.eyegate``).
-7. ``shade``: ``sender.shading.ShadingEstimator`` -> the light's log-gain field relative to
+7. ``learn`` (on by default; ``learn=False``, ``--no-learn``, turns it off):
+   ``sender.learn.Learner`` watches how far each region's best template lies from the
+   frame's sample; an appearance held unlike every template for a few clean frames becomes
+   a model update (a new state of that region), applied at once to the pipeline's model,
+   classifier and eye gate, kept in ``updates`` for the transport and the log; ``serial``
+   is the model version the packets' Q refer to.
+8. ``shade``: ``sender.shading.ShadingEstimator`` -> the light's log-gain field relative to
    the model's texture, fitted on plain skin of the grey frame at the sent pose and
    residuals, smoothed over time.
-8. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes.
+9. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes, its ``serial`` the
+   pipeline's.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
 face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
@@ -65,6 +72,7 @@ from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
 from facewire.models.rig import Rig
+from facewire.models.update import ModelUpdate
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import N_REGIONS, Flag, Frame
@@ -80,6 +88,7 @@ from facewire.sender.capture import (
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.eyegate import EyeGate
 from facewire.sender.heuristics import ResidualFilter
+from facewire.sender.learn import Learner, can_learn
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
 from facewire.sender.pose import PoseFilter, PoseSolver
@@ -107,10 +116,12 @@ class SenderOutput:
         samples: (R, 5, 16, 16) float32 the regions' samples that were classified, or None
             with ``offsets``.
         timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
-            ``classify``, ``shade``, ``pack``.
+            ``classify``, ``learn``, ``shade``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
         clamped: values clamped by the quantisers on this frame.
         grazing: non-rigid points whose lift was capped at a grazing angle.
+        update: the model update learned on this frame (``sender.learn``), or None; the
+            frame's own Q came from the model before it.
     """
 
     frame: Frame
@@ -126,6 +137,7 @@ class SenderOutput:
     detected: bool = False
     clamped: int = 0
     grazing: int = 0
+    update: ModelUpdate | None = None
 
 
 class SenderPipeline:
@@ -137,9 +149,16 @@ class SenderPipeline:
             calibration).
         rate_hz: the stream's nominal rate (announced in the Hello; the time step of a frame
             whose time does not advance).
+        learn: learn unseen appearance during the session (``sender.learn``; only a model
+            loaded from its file, with the regions of ``models.regions.REGIONS``, can).
+
+    Attributes:
+        model: the model as learned so far (version ``serial``).
+        learner: the ``sender.learn.Learner``, or None when not learning.
     """
 
-    def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ) -> None:
+    def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ,
+                 learn: bool = True) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
@@ -163,9 +182,24 @@ class SenderPipeline:
                                          tuple(r.name for r in regions))
         self.classifiers = RegionClassifiers([r.templates for r in regions]) if regions \
             else None
+        self._landmarks = landmarks
         self.eye_gate = EyeGate(regions, landmarks)
+        self.learner = Learner(model, camera, self.rig, self.classifiers) \
+            if learn and self.classifiers is not None and can_learn(model) else None
         self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()
+
+    @property
+    def updates(self) -> list[ModelUpdate]:
+        """The model updates this session issued, in order (the transport sends them, the log
+        keeps them); empty when not learning."""
+        return [] if self.learner is None else self.learner.updates
+
+    @property
+    def serial(self) -> int:
+        """The model version the packets' Q values refer to: the last update's serial, 0 for
+        the model file."""
+        return 0 if self.learner is None else self.learner.serial
 
     def hello(self) -> Hello:
         """The Hello announcing this stream (module docstring)."""
@@ -187,9 +221,10 @@ class SenderPipeline:
         self._seq = 0
         self._time: float | None = None
         self._q = np.zeros(len(self.sampler.names), np.float32)
+        self._q_serial = self.serial  # the model version self._q refers to
 
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
-        """Process one frame: the module docstring's eight stages, each timed.
+        """Process one frame: the module docstring's nine stages, each timed.
 
         Args:
             image: (H, W, 3) uint8 BGR frame.
@@ -225,12 +260,21 @@ class SenderPipeline:
                 result = self.classifiers.classify(samples)
                 assert points is not None
                 self._q, offsets = self.eye_gate.apply(result.q, points), result.offset
+                self._q_serial = self.serial
         t6 = clock()
+        update = None
+        if self.learner is not None and samples is not None:
+            assert pose is not None and points is not None
+            update = self.learner.observe(image, points, pose.rotation, pose.translation,
+                                          residuals, samples, result, flags, time_s)
+            if update is not None:
+                self._learned(update)
+        t7 = clock()
         if pose is not None:
             self.shading.estimate(gray, pose.rotation, pose.translation, residuals, dt)
-        t7 = clock()
-        packed = self._pack(flags, tangent)
         t8 = clock()
+        packed = self._pack(flags, tangent)
+        t9 = clock()
         return SenderOutput(
             frame=packed.frame, packet=packed.packet,
             points=None if points is None else np.asarray(points, np.float64).reshape(
@@ -240,9 +284,21 @@ class SenderPipeline:
             residuals=residuals, q=self._q.copy(), offsets=offsets, samples=samples,
             timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
                      "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
-                     "shade": t7 - t6, "pack": t8 - t7},
+                     "learn": t7 - t6, "shade": t8 - t7, "pack": t9 - t8},
             detected=bool(tracked.detected), clamped=packed.clamped,
-            grazing=0 if lifted is None else int(lifted.grazing.sum()))
+            grazing=0 if lifted is None else int(lifted.grazing.sum()), update=update)
+
+    def _learned(self, update: ModelUpdate) -> None:
+        """Take the learner's new model: its region's templates into the classifier, its
+        rest state into the eye gate, from the next frame on."""
+        assert self.learner is not None and self.classifiers is not None
+        self.model = self.learner.model
+        regions = self.model.regions[:N_REGIONS]
+        changed = [r.name for r in regions].index(update.region)
+        self.classifiers = RegionClassifiers([
+            regions[r].templates if r == changed else c
+            for r, c in enumerate(self.classifiers.regions)])
+        self.eye_gate = EyeGate(regions, self._landmarks)
 
     def _time_step(self, time_s: float) -> float:
         """This frame's time step, s: since the last frame, or 1 / rate when time stood still."""
@@ -301,11 +357,13 @@ class SenderPipeline:
         return tangent, residuals, flags
 
     def _pack(self, flags: Flag, tangent: np.ndarray) -> Packed:
-        """Stage 8: the packet of the last sent pose, Q and light, and the next sequence
-        number."""
+        """Stage 9: the packet of the last sent pose, Q (with the model version that Q refers
+        to: a frame that issued an update was classified before it) and light, and the next
+        sequence number."""
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
-        packed = pack(self._seq, flags, self._sent, tangent, q, self.shading.shade)
+        packed = pack(self._seq, flags, self._sent, tangent, q, self._q_serial,
+                      self.shading.shade)
         self._seq = (self._seq + 1) % (1 << 16)
         return packed
 
@@ -337,7 +395,7 @@ def sender_camera(width: int, height: int, focal: float | None = None,
 def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
-                 progress: Progress = no_progress) -> dict[str, Any]:
+                 progress: Progress = no_progress, learn: bool = True) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log.
 
     Args:
@@ -348,11 +406,13 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         focal: focal length in pixels (``--focal``), else estimated.
         calib: a calibration JSON file (``--calib``).
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
+        learn: learn unseen appearance (``sender.learn``); ``--no-learn`` turns it off.
 
     Returns:
         ``frames``, ``face_frames`` (the tracker saw a face), ``packets``, ``payload_kbps``
         (at 30 Hz), ``clamped`` (frames with CLAMPED), ``clamped_values``, ``held``,
         ``mirrored``, ``tracking_lost`` (frames with that flag), ``grazing`` (capped lifts),
+        ``updates`` (model updates learned), ``update_regions`` (their regions, in order),
         ``seconds`` (wall time), ``rate_hz``, ``camera``, ``model_sha256``, ``log``.
 
     Raises:
@@ -366,10 +426,10 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
-    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz))
+    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn)
     hello = pipeline.hello()
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
-              "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0}
+              "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0, "updates": 0}
     try:
         with src, LogWriter(out_log, hello) as log:
             _encode_frames(src, pipeline, log, counts, progress)
@@ -384,6 +444,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         raise CaptureError(f"{source}: no frames to encode")
     return {
         **counts,
+        "update_regions": [u.region for u in pipeline.updates],
         "payload_kbps": round(payload_kbps(NOMINAL_HZ), 3),
         "seconds": round(time.perf_counter() - start, 3),
         "rate_hz": pipeline.rate_hz,
@@ -410,3 +471,4 @@ def _encode_frames(src: Any, pipeline: SenderPipeline, log: LogWriter, counts: d
         counts["mirrored"] += bool(flags & Flag.MIRRORED)
         counts["tracking_lost"] += bool(flags & Flag.TRACKING_LOST)
         counts["grazing"] += out.grazing
+        counts["updates"] += out.update is not None

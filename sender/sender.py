@@ -254,8 +254,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          record: str | os.PathLike[str] | None = None, rate_hz: float = NOMINAL_HZ,
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
-         frames: slice = slice(0, None), start: threading.Event | None = None
-         ) -> dict[str, Any]:
+         frames: slice = slice(0, None), start: threading.Event | None = None,
+         learn: bool = True) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -270,17 +270,19 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             authorised receivers, or None for plain TCP.
         status: called about once per second from this thread with ``seconds``, ``frames``,
             ``fps``, ``payload_kbps`` (measured over the last period), ``face`` (the last
-            frame had one) and ``receivers``.
+            frame had one), ``receivers`` and ``updates`` (model updates learned so far).
         stop: set it (from another thread) to stop cleanly.
         loop: start a video file again when it ends (until stopped).
         frames: which frames of a file or folder, by index (step 1; a camera ignores it).
         start: hold the first frame until it is set, or None to start at once (module
             docstring).
+        learn: learn unseen appearance as model updates (``sender.learn``).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
         ``payload_kbps``, ``cpu_percent`` (the process's CPU time over ``seconds``; 100 is
-        one core), ``receivers_max``, ``log`` (path or None), ``model_sha256``,
+        one core), ``receivers_max``, ``updates`` (model updates learned), ``log`` (path or
+        None), ``model_sha256``,
         ``model_bytes``, ``model_chunks``, ``rate_hz`` (the stream's), ``endpoint``,
         ``control_endpoint``, ``encrypted``, ``warning`` (``unencrypted_warning`` or None),
         ``control`` (``hello_requests``, ``chunk_requests``, ``errors``) and ``stopped``
@@ -306,7 +308,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         publisher = stack.enter_context(PacketPublisher(bind, curve))
         server = stack.enter_context(ControlServer(control_at, curve))
         peers = stack.enter_context(PeerCounter(publisher))
-        pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate)
+        pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
+                                  learn=learn)
         hello = pipeline.hello()
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None
@@ -353,7 +356,8 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             ) -> tuple[dict[str, Any], str]:
     """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
     the first frame waits until it is set (or ``stop`` is)."""
-    counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0}
+    counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0,
+                              "updates": 0}
     start = cpu = None
     window = (0.0, 0)  # (start of the status period, frames up to its first)
     face = False
@@ -378,6 +382,7 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             counts["frames"] += 1
             counts["packets"] += 1
             counts["face_frames"] += face
+            counts["updates"] += out.update is not None
             if now - window[0] >= STATUS_PERIOD_S:
                 report(_status(counts, peers, now - start, now - window[0],
                                counts["frames"] - window[1], face))
@@ -398,4 +403,4 @@ def _status(counts: dict[str, Any], peers: PeerCounter, elapsed: float, period: 
     return {"seconds": round(elapsed, 1), "frames": counts["frames"],
             "fps": round(frames / period, 1),
             "payload_kbps": round(payload_kbps(frames / period), 2),
-            "face": face, "receivers": peers.count()}
+            "face": face, "receivers": peers.count(), "updates": counts["updates"]}

@@ -10,16 +10,15 @@ import pytest
 
 from facewire.models.modelfile import load_model
 from facewire.models.regions import REGION_NAMES, ramp_mask, spec
+from facewire.sender.cues import _iris_position, region_cues
 from facewire.sender.enroll.layers import (
-    SHADING_SIGMA,
     EnrollError,
     _choose_states,
     _gaze_cost,
-    _iris_position,
     enroll_regions,
-    region_cues,
     without_closed_eyes,
 )
+from facewire.sender.texels import SHADING_SIGMA
 
 
 def test_states_span_the_cue_at_even_levels() -> None:

@@ -149,7 +149,7 @@ def test_the_build_says_which_frames_it_kept_out(occluded_models):
 def test_a_blurred_face_box_scores_less_sharp():
     """``sharpness``: the variance of the Laplacian in the landmarks' box falls with blur,
     and does not depend on the face's size in the frame (the box is resized first)."""
-    from facewire.sender.enroll.evidence import sharpness
+    from facewire.sender.clean import sharpness
 
     rng = np.random.default_rng(0)
     texture = rng.integers(0, 256, (60, 60, 3), dtype=np.uint8)

@@ -133,7 +133,8 @@ def test_an_open_mouth_frame_gives_the_persons_own_teeth_where_it_saw_them(
     cavity = texels.cavity
     w = weights[0]
     assert (w > 0.95).sum() > 500  # frame 125: a wide-open grin, upper teeth showing
-    colour, _ = cavity.area.read(model.camera, image, seen[125])
+    o = seen[125]
+    colour = cavity.area.read(model.camera, image, o.rotation, o.translation, o.residuals)[0]
     c = np.where(w >= MIN_WEIGHT, w, 0.0)  # a mere brush of the polygon: unseen
     walls = continued(colour * (c > 0)[..., None], c, cavity.inside)
     assert walls is not None  # its own colours carry over the walls it did not see

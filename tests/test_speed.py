@@ -42,7 +42,7 @@ def test_keys_and_values(result: dict) -> None:
     assert result["morph_calls"] >= 300
     assert set(result["not_measured"]) == set(LOOPBACK_KEYS)  # the loopback run was skipped
     assert all(result[key] is None for key in LOOPBACK_KEYS)  # never faked
-    assert set(result["met"]) == {"morph", "track", "sender", "classify", "receiver",
+    assert set(result["met"]) == {"morph", "track", "sender", "classify", "learn", "receiver",
                                   "receiver_1280x720", "latency", "memory"}
     assert result["met"]["latency"] is False and result["met"]["memory"] is False
     # the receiver renders the sender's packets for real, at two sizes
@@ -58,6 +58,7 @@ def test_keys_and_values(result: dict) -> None:
     assert result["regions"] == 0
     assert result["classify_ms"] is None and result["sample_ms"] is None
     assert result["met"]["classify"] is False
+    assert result["learn_ms_per_frame"] is None and result["learn_updates"] == 0
 
 
 def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
@@ -65,10 +66,11 @@ def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
     result = measure_speed(person_model, shared_data / "video" / "lp_d0.mp4",
                            frame_range("0:30"), loopback_s=0)
     assert result["regions"] == 7
-    for key in ("sample_ms", "classify_ms", "shade_ms"):
+    for key in ("sample_ms", "classify_ms", "learn_ms", "learn_ms_per_frame", "shade_ms"):
         assert isinstance(result[key], float) and 0 < result[key] < result["sender_ms_median"]
     assert result["met"]["classify"] == (result["classify_ms"] <= 1.0)
-    assert "classify: " in format_speed(result)
+    assert result["met"]["learn"] == (result["learn_ms_per_frame"] <= 0.5)
+    assert "classify: " in format_speed(result) and "learn: " in format_speed(result)
 
 
 def test_report_lines_with_a_live_loopback_run(result: dict, generic_model: Path,

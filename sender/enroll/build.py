@@ -112,13 +112,13 @@ from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region, model_summary, save_model
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
+from facewire.sender.clean import sharpness
 from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage
 from facewire.sender.enroll.evidence import (
     clean_views,
     frame_scores,
     occluded_parts,
     part_masks,
-    sharpness,
     texture_views,
 )
 from facewire.sender.enroll.fit import Fit, FitError, fit_person

@@ -8,7 +8,7 @@ cue, ``region_cues``, from rest to extreme, in layer order), which of ten states
 and says for each one it lacks what the rendering will do instead.
 
 Measures of one frame (``state_measures``, from the tracked 68 points, the sent residuals,
-the cues of ``sender.enroll.layers.region_cues`` and the frame; ``MEASURES`` order):
+the cues of ``sender.cues.region_cues`` and the frame; ``MEASURES`` order):
 
 ============  =============================================================================
 measure       definition

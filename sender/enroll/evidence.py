@@ -15,8 +15,8 @@ views that were outliers over a part of the face tell which frames were occluded
 
        blur = (max(0, 1 - b / median b) / 0.25)^2,
 
-   b the variance of the Laplacian of the grey face box (the landmarks' bounding box,
-   resized to ``BLUR_BOX_PX`` wide so faces of any size compare). A frame whose landmarks
+   b the sharpness of the face box (``sender.clean.sharpness``: the variance of the
+   Laplacian of the grey landmarks' box at ``BLUR_BOX_PX`` wide). A frame whose landmarks
    do not line up with the fitted model, an RMS residual over the stable points (17-67)
    above ``MISFIT_RATIO`` (2) times the video's median, is not a candidate at all: a tracking
    slip puts every feature a few pixels off, and its texture would ghost.
@@ -55,7 +55,8 @@ views that were outliers over a part of the face tell which frames were occluded
    base texture in luma. When more than ``RING_OCCLUDED_FRACTION`` (15 %) of the ring's seen
    texels depart by more than ``RING_DEPART_LEVELS`` grey levels, the part is occluded in
    that frame and the region takes nothing from it: neither a layer nor its cue's
-   percentiles. The parts judged (``REGION_PARTS``) are the mouth, for the mouth region,
+   percentiles (the check is ``sender.clean``'s, shared with the sender's learning). The
+   parts judged (``REGION_PARTS``) are the mouth, for the mouth region,
    and each eye, for its eyelid and its eyeball, with the same ring and bound. Measured on
    the reproduction (``bench.occluded``; the model of the clean frames gives the base
    texture; "over": the ring's texels departing on more than 15 %):
@@ -97,51 +98,21 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
 from facewire.models.geometry import Intrinsics
 from facewire.models.mesh import Mesh
 from facewire.models.regions import texel_rect
+from facewire.sender.clean import PARTS, part_rect
 from facewire.sender.enroll.fit import Fit, frame_costs
 from facewire.sender.enroll.fusion import Fusion
 
 TEXTURE_VIEWS = 9
 MISFIT_RATIO = 2.0
-BLUR_BOX_PX = 128
 BLUR_SCALE = 0.25
 OCCLUDED_FRACTION = 0.3
 PART_MARGIN = 0.25
-RING_INNER = 0.1  # the ring around a part: its box grown by 10 % ...
-RING_OUTER = 0.6  # ... to 60 % of its size on every side
-RING_DEPART_LEVELS = 40.0  # grey levels a ring texel must depart by to count
-RING_OCCLUDED_FRACTION = 0.15  # of the ring's seen texels, beyond which the part is occluded
-RING_MIN_TEXELS = 50
 NEUTRAL_PARTS = ("mouth", "nose")  # the parts whose occlusion makes the neutral taken again
-REGION_PARTS = {"mouth": "mouth", "eyelid_right": "right_eye", "eyeball_right": "right_eye",
-                "eyelid_left": "left_eye", "eyeball_left": "left_eye"}  # judged per frame
-PARTS = {"mouth": np.arange(48, 68), "right_eye": np.arange(36, 42),
-         "left_eye": np.arange(42, 48), "nose": np.arange(27, 36),
-         "brows": np.arange(17, 27)}
-
-
-def sharpness(image: np.ndarray, points: np.ndarray) -> float:
-    """b: the variance of the Laplacian of the grey face box (module docstring, 1).
-
-    Args:
-        image: (h, w, 3) uint8 BGR frame.
-        points: (68, 2) its landmarks, px.
-    """
-    x0, y0 = np.floor(points.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(points.max(axis=0)).astype(int)
-    h, w = image.shape[:2]
-    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(w, x1 + 1), min(h, y1 + 1)
-    if x1 - x0 < 4 or y1 - y0 < 4:
-        return 0.0
-    grey = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY)
-    size = (BLUR_BOX_PX, max(4, round(BLUR_BOX_PX * (y1 - y0) / (x1 - x0))))
-    grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
-    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
 
 
 def frame_scores(points: Sequence[np.ndarray | None], fit: Fit, camera: Intrinsics,
@@ -190,57 +161,14 @@ def texture_views(fit: Fit, scores: dict[int, float], count: int = TEXTURE_VIEWS
     return tuple(views), primary
 
 
-def part_rect(mesh: Mesh, part: str, grow: float = PART_MARGIN
-              ) -> tuple[float, float, float, float]:
-    """(u0, v0, u1, v1): the UV bounding box of a part's landmark vertices, grown by
-    ``grow`` of its size on every side and clipped to [0, 1]."""
-    uv = mesh.uv[mesh.landmarks[PARTS[part]]].astype(np.float64)
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    margin = grow * (hi - lo)
-    (u0, v0), (u1, v1) = np.clip(lo - margin, 0, 1), np.clip(hi + margin, 0, 1)
-    return float(u0), float(v0), float(u1), float(v1)
-
-
 def part_masks(mesh: Mesh, shape: tuple[int, int]) -> dict[str, np.ndarray]:
     """Each part's (H, W) bool texel mask (module docstring, 3) in a texture of ``shape``."""
     out = {}
     for name in PARTS:
         mask = np.zeros(shape, bool)
-        mask[texel_rect(part_rect(mesh, name), shape)[1]] = True
+        mask[texel_rect(part_rect(mesh, name, PART_MARGIN), shape)[1]] = True
         out[name] = mask
     return out
-
-
-def ring_mask(mesh: Mesh, part: str, shape: tuple[int, int]
-              ) -> tuple[tuple[float, float, float, float], np.ndarray]:
-    """The skin around a part (module docstring, 4): the UV rectangle grown by
-    ``RING_OUTER``, and the (h, w) bool mask of its texels outside the one grown by
-    ``RING_INNER``."""
-    outer, (rows, cols) = texel_rect(part_rect(mesh, part, RING_OUTER), shape)
-    inner = np.zeros(shape, bool)
-    inner[texel_rect(part_rect(mesh, part, RING_INNER), shape)[1]] = True
-    return outer, ~inner[rows, cols]
-
-
-def ring_occluded(colour: np.ndarray, seen: np.ndarray, base: np.ndarray,
-                  ring: np.ndarray) -> bool:
-    """Whether a frame's ring around a part departs from the base texture (module
-    docstring, 4).
-
-    Args:
-        colour: (h, w, 3) float RGB, the frame read at the ring's texels.
-        seen: (h, w) bool, where the frame sees them.
-        base: (h, w, 3) uint8 RGB, the base texture there.
-        ring: (h, w) bool, the ring's texels (``ring_mask``).
-    """
-    use = seen & ring
-    if use.sum() < RING_MIN_TEXELS:
-        return False
-    c, b = colour[use].astype(np.float64), base[use].astype(np.float64)
-    gain = np.clip(np.median(b, axis=0) / np.maximum(np.median(c, axis=0), 1.0), 0.5, 2.0)
-    luma = np.array([0.299, 0.587, 0.114])
-    depart = np.abs((c * gain) @ luma - b @ luma) > RING_DEPART_LEVELS
-    return bool(depart.mean() > RING_OCCLUDED_FRACTION)
 
 
 def occluded_parts(fusion: Fusion, masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

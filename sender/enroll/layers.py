@@ -13,20 +13,9 @@ the sender's pose and lift.
    occluded in a frame takes nothing from it, its cue there is dropped) and the
    coverage's measures (``sender.enroll.coverage.state_measures``: once the states are
    chosen, ``coverage.measure_coverage`` judges which expression states their frames show).
-2. Cues (landmark-derived, used only here; at run time only the classifier decides Q):
-
-   =============  =========================================================================
-   region         cue, growing along the region's axis
-   =============  =========================================================================
-   forehead       brow raise: mean y residual of the brow points 19, 21, 22, 24 (mm)
-   brow_furrow    brows drawn together: x residual of 21 minus that of 22 (mm)
-   eyelid_*       eye closure: minus the eye aspect ratio of that eye
-   eyeball_*      gaze: where the iris lies across the eyeball's sample, 0 .. 1 along the
-                  model's +x: the centroid of the darkness (below the median) of the
-                  columns of its middle 8 rows (frames with the lid open only: aspect
-                  ratio over 0.8 of the median)
-   mouth          opening: inner-lip gap |p66 - p62| over the outer-eye distance
-   =============  =========================================================================
+2. Cues (``sender.cues.region_cues``, landmark-derived; at run time only the classifier
+   decides Q): brow raise, brows drawn together, eye closure, gaze (frames with the lid
+   open only: aspect ratio over 0.8 of the median), mouth opening.
 
 3. States. A region of k states spans its cue from a *rest* level to an *extreme* level, at
    k evenly spaced cue levels: eyelids from the 10th percentile (wide open: a typical open
@@ -53,7 +42,8 @@ the sender's pose and lift.
    prompts' frames with a cue run out; the report's ``prompted`` says whether they did).
 4. Layers. Each state's frame is projected onto the region's UV rectangle (and onto each
    of its further areas, the eyelids' lid skin, the same way): every texel's
-   surface point (its triangle and barycentric weights, from ``sender.enroll.texture.uv_surface``
+   surface point (``sender.texels``: its triangle and barycentric weights, from
+   ``sender.enroll.texture.uv_surface``
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there; step 7 puts the interior
@@ -105,7 +95,7 @@ from facewire.models.geometry import Intrinsics
 from facewire.models.head.uvlayout import MOUTH_UV, MOUTH_UV_RADIUS
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import frames_in_range, range_text, read_frames, video_info
-from facewire.models.landmarks import eye_aspect_ratio, outer_eye_distance
+from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.manifest import RegionFrames
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import Area, PersonModel, Region
@@ -113,7 +103,9 @@ from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ra
 from facewire.models.rig import Rig
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.rate import stream_rate
-from facewire.sender.appearance import AppearanceSampler, SurfacePoints, bilinear, project
+from facewire.sender.appearance import AppearanceSampler
+from facewire.sender.clean import REGION_PARTS, ring_mask, ring_occluded
+from facewire.sender.cues import EYEBALL_LEFT, EYEBALL_RIGHT, region_cues
 from facewire.sender.enroll.coverage import (
     OPEN_GAP,
     Coverage,
@@ -121,7 +113,6 @@ from facewire.sender.enroll.coverage import (
     reference,
     state_measures,
 )
-from facewire.sender.enroll.evidence import REGION_PARTS, ring_mask, ring_occluded
 from facewire.sender.enroll.interior import (
     continued,
     disc_polar,
@@ -135,18 +126,14 @@ from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, uv_surface
 from facewire.sender.enroll.usage import region_frames
 from facewire.sender.pipeline import SenderPipeline
+from facewire.sender.texels import AreaTexels, state_layers
 
 OPEN_EYE = 0.8  # aspect ratio over this fraction of the median: the lid is open
-SHADED = ("forehead", "brow_furrow")  # skin regions whose layers take the base's shading
-SHADING_SIGMA = 0.15  # the shading field's Gaussian, times the area's shorter side
-SHADING_LIMITS = (0.8, 1.25)  # the shading field's bounds
 GAZE_COST = 150.0  # an eyelid state's cost, degrees of yaw, per gaze span off the middle
 MIN_SPAN = {"forehead": 1.5, "brow_furrow": 1.0, "eyelid": 0.08, "eyeball": 0.1,
             "mouth": 0.08}  # cue units (module docstring)
 _LEVELS = {"forehead": (50, 98), "brow_furrow": (50, 98), "eyelid": (10, 99),
            "eyeball": (5, 95), "mouth": (5, 98)}  # percentiles: rest, extreme
-_EYEBALL_LEFT = REGION_NAMES.index("eyeball_left")
-_EYEBALL_RIGHT = REGION_NAMES.index("eyeball_right")
 _MOUTH = REGION_NAMES.index("mouth")
 
 
@@ -168,8 +155,8 @@ class Observation:
         yaw_deg: the head's yaw, degrees.
         measures: (M,) float64 the frame's ``sender.enroll.coverage.state_measures``.
         lips: (8, 2) float32 the inner-lip landmarks 60..67, px.
-        occluded: the parts of the face (``sender.enroll.evidence.PARTS``) occluded in the
-            frame (``sender.enroll.evidence.ring_occluded``).
+        occluded: the parts of the face (``sender.clean.PARTS``) occluded in the
+            frame (``sender.clean.ring_occluded``).
     """
 
     index: int
@@ -321,31 +308,6 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
     return out, read
 
 
-def region_cues(samples: np.ndarray, points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """The cue of every region of ``REGIONS`` on one frame (module docstring).
-
-    Args:
-        samples: (R, 16, 16) the regions' centre samples, ``REGIONS`` order.
-        points: (68, 2) the tracked points, px.
-        residuals: (9, 3) the sent residuals, mm.
-
-    Returns:
-        (R,) float64 cues, ``REGIONS`` order (NaN: not defined on this frame).
-    """
-    ear_right, ear_left = eye_aspect_ratio(points)
-    mouth = float(np.linalg.norm(points[66] - points[62]) / max(
-        float(outer_eye_distance(points)), 1e-6))
-    values = {
-        "forehead": float(residuals[:4, 1].mean()),
-        "brow_furrow": float(residuals[1, 0] - residuals[2, 0]),
-        "eyelid_left": -float(ear_left), "eyelid_right": -float(ear_right),
-        "eyeball_left": _iris_position(samples[_EYEBALL_LEFT]),
-        "eyeball_right": _iris_position(samples[_EYEBALL_RIGHT]),
-        "mouth": mouth,
-    }
-    return np.array([values[r.name] for r in REGIONS])
-
-
 def without_closed_eyes(cues: np.ndarray, ratios: np.ndarray) -> np.ndarray:
     """The gaze cues blanked (NaN) on frames where that eye's lid is not open.
 
@@ -359,20 +321,9 @@ def without_closed_eyes(cues: np.ndarray, ratios: np.ndarray) -> np.ndarray:
     """
     cues = cues.copy()
     closed = ratios < OPEN_EYE * np.median(ratios, axis=0)
-    cues[closed[:, 0], _EYEBALL_RIGHT] = np.nan
-    cues[closed[:, 1], _EYEBALL_LEFT] = np.nan
+    cues[closed[:, 0], EYEBALL_RIGHT] = np.nan
+    cues[closed[:, 1], EYEBALL_LEFT] = np.nan
     return cues
-
-
-def _iris_position(sample: np.ndarray) -> float:
-    """Where the iris lies across an eyeball sample (16 x 16, columns along model +x),
-    0 .. 1: the centroid of the middle rows' column darkness below their median."""
-    middle = sample[4:12].mean(axis=0)
-    darkness = np.maximum(np.median(middle) - middle, 0.0)
-    if darkness.sum() <= 1e-6:
-        return float("nan")
-    columns = (np.arange(len(middle)) + 0.5) / len(middle)
-    return float((darkness * columns).sum() / darkness.sum())
 
 
 def _gaze_cost(region: RegionSpec, cues: np.ndarray) -> np.ndarray:
@@ -458,23 +409,23 @@ class _RegionTexels:
         surface = uv_surface(model.mesh, shape)
         rig = Rig(model.mesh)
         self.placements = {r.name: place(r, shape) for r in REGIONS}
-        self.areas: dict[str, list[_AreaTexels]] = {}
+        self.areas: dict[str, list[AreaTexels]] = {}
         for r in REGIONS:
             placement = self.placements[r.name]
-            self.areas[r.name] = [_AreaTexels(model.mesh, rig, surface, rect, shape)
+            self.areas[r.name] = [_area(model.mesh, rig, surface, rect, shape)
                                   for rect in (placement.uv_rect, *placement.areas)]
         self.cavity = _Cavity(model, camera, surface, rig)
-        self.rings: dict[str, tuple[_AreaTexels, np.ndarray]] = {}
+        self.rings: dict[str, tuple[AreaTexels, np.ndarray]] = {}
         for part in sorted(set(REGION_PARTS.values())):
             rect, ring = ring_mask(model.mesh, part, shape)
-            self.rings[part] = (_AreaTexels(model.mesh, rig, surface, rect, shape), ring)
+            self.rings[part] = (_area(model.mesh, rig, surface, rect, shape), ring)
 
     def occluded(self, image: np.ndarray, seen: Observation) -> frozenset[str]:
         """The parts whose ring departs from the base texture in ``image``
         (``sender.enroll.evidence``, 4)."""
         out = set()
         for part, (area, ring) in self.rings.items():
-            colour, ok = area.read(self.camera, image, seen)
+            colour, ok = _read(area, self.camera, image, seen)[:2]
             if ring_occluded(colour, ok, self.model.texture[area.slices], ring):
                 out.add(part)
         return frozenset(out)
@@ -482,78 +433,9 @@ class _RegionTexels:
     def layers(self, name: str, image: np.ndarray, seen: Observation) -> list[np.ndarray]:
         """(h, w, 3) uint8 RGB per area of the region: its texels read from ``image``, with
         the exposure gain of its last area (module docstring, step 4)."""
-        reads = [area.read(self.camera, image, seen) for area in self.areas[name]]
-        base = [self.model.texture[area.slices].astype(np.float32) for area in self.areas[name]]
-        colour, ok = reads[-1]
-        border = ok & (ramp_mask(ok.shape) < 1.0)
-        gain = np.ones(3, np.float32)
-        if border.sum() >= 50:
-            gain = base[-1][border].sum(axis=0) / np.maximum(colour[border].sum(axis=0), 1.0)
-        gain = np.clip(gain, 0.5, 2.0)
-        out = []
-        for (colour, ok), b in zip(reads, base):
-            colour = colour * gain
-            if name in SHADED:
-                colour = colour * _shading(colour, ok, b)
-            out.append(np.clip(np.rint(np.where(ok[..., None], colour, b)), 0, 255)
-                       .astype(np.uint8))
-        return out
-
-
-def _shading(layer: np.ndarray, seen: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """(h, w, 3) float32 the field f that matches a layer's broad shading to the base
-    texture's (module docstring, step 4).
-
-    Args:
-        layer: (h, w, 3) float32 the layer's colours, exposure-scaled.
-        seen: (h, w) bool the texels read from the frame.
-        base: (h, w, 3) float32 the base texture there.
-    """
-    sigma = SHADING_SIGMA * min(seen.shape)
-    weight = seen.astype(np.float32)
-    total = np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-3)[..., None]
-
-    def local(x: np.ndarray) -> np.ndarray:
-        return cv2.GaussianBlur(x * weight[..., None], (0, 0), sigma) / total + 1.0
-
-    return np.clip(local(base) / local(layer), *SHADING_LIMITS).astype(np.float32)
-
-
-class _AreaTexels:
-    """One area's texels as surface points (module docstring, step 4)."""
-
-    def __init__(self, mesh: Mesh, rig: Rig, surface: UVSurface,
-                 rect: tuple[float, float, float, float], shape: tuple[int, int]) -> None:
-        rows, cols = texel_rect(rect, shape)[1]
-        tri = surface.triangles[rows, cols]
-        self.valid = tri >= 0
-        tri = np.where(self.valid, tri, 0)
-        v = 1.0 - (np.arange(rows.start, rows.stop) + 0.5) / shape[0]
-        u = (np.arange(cols.start, cols.stop) + 0.5) / shape[1]
-        uv = np.stack(np.meshgrid(u, v, indexing="xy"), axis=-1)
-        self.slices = (rows, cols)
-        self.points = SurfacePoints(mesh, rig, tri, _uv_barycentric(mesh, tri, uv))
-        self.normals = surface.normals[rows, cols]
-
-    def read(self, camera: Intrinsics, image: np.ndarray, seen: Observation
-             ) -> tuple[np.ndarray, np.ndarray]:
-        """The area's texels read from ``image``: (h, w, 3) float32 RGB, and (h, w) bool,
-        where they are seen (on the image, facing the camera)."""
-        colour, ok, _, _ = self.read_at(camera, image, seen)
-        return colour, ok
-
-    def read_at(self, camera: Intrinsics, image: np.ndarray, seen: Observation
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``read``, and the texels' projections x, y: (h, w) float32 px each."""
-        h, w = self.valid.shape
-        x, y = project(self.points.positions(seen.residuals), seen.rotation, seen.translation,
-                       camera)
-        x, y = x.reshape(h, w), y.reshape(h, w)
-        colour = bilinear(image, x, y)[..., ::-1]  # BGR read, RGB out
-        normals = self.normals @ seen.rotation.T.astype(np.float32)  # camera frame
-        facing = normals[..., 2] > 0.05
-        on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
-        return colour, self.valid & facing & on_image, x, y
+        areas = self.areas[name]
+        return state_layers(name, [_read(a, self.camera, image, seen)[:2] for a in areas],
+                            [self.model.texture[a.slices] for a in areas])
 
 
 class _Cavity:
@@ -566,7 +448,7 @@ class _Cavity:
         u, v = MOUTH_UV
         disc = (u - MOUTH_UV_RADIUS, v - 2 * MOUTH_UV_RADIUS, u + MOUTH_UV_RADIUS,
                 v + 2 * MOUTH_UV_RADIUS)
-        self.area = _AreaTexels(model.mesh, rig, surface, texel_rect(disc, shape)[0], shape)
+        self.area = _area(model.mesh, rig, surface, texel_rect(disc, shape)[0], shape)
         rows, cols = self.area.slices
         tri = surface.triangles[rows, cols]
         tags = np.asarray(model.mesh.tags)
@@ -583,7 +465,7 @@ class _Cavity:
         saw (0 for a frame whose mouth is not open)."""
         colours, weights = [], []
         for image, seen in frames:
-            colour, ok, x, y = self.area.read_at(self.camera, image, seen)
+            colour, ok, x, y = _read(self.area, self.camera, image, seen)
             weight = np.zeros(ok.shape, np.float32)
             if seen.cues[_MOUTH] >= OPEN_GAP and REGION_PARTS["mouth"] not in seen.occluded:
                 weight = np.where(ok & self.inside, seen_weight(seen.lips, x, y), 0.0)
@@ -623,15 +505,14 @@ class _Cavity:
                                                               cols.stop - left)
 
 
-def _uv_barycentric(mesh: Mesh, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(..., 3) barycentric weights of UV points ``uv`` (..., 2) in triangles ``tri`` (...)."""
-    corners = mesh.uv[mesh.triangles[tri]].astype(np.float64)  # (..., 3, 2)
-    a, b, c = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
-    v0, v1, v2 = b - a, c - a, uv - a
-    det = v0[..., 0] * v1[..., 1] - v0[..., 1] * v1[..., 0]
-    det = np.where(np.abs(det) > 1e-15, det, 1.0)
-    s = (v2[..., 0] * v1[..., 1] - v2[..., 1] * v1[..., 0]) / det
-    t = (v0[..., 0] * v2[..., 1] - v0[..., 1] * v2[..., 0]) / det
-    bary = np.clip(np.stack([1.0 - s - t, s, t], axis=-1), 0.0, 1.0)
-    return (bary / np.maximum(bary.sum(axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+def _area(mesh: Mesh, rig: Rig, surface: UVSurface, rect: tuple[float, float, float, float],
+          shape: tuple[int, int]) -> AreaTexels:
+    """An area's texels on the model's UV surface (``sender.texels``)."""
+    slices = texel_rect(rect, shape)[1]
+    return AreaTexels(mesh, rig, rect, shape, surface.triangles[slices], surface.normals[slices])
 
+
+def _read(area: AreaTexels, camera: Intrinsics, image: np.ndarray, seen: Observation
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``AreaTexels.read`` at an observation's pose and residuals."""
+    return area.read(camera, image, seen.rotation, seen.translation, seen.residuals)

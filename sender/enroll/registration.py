@@ -4,7 +4,7 @@ correlation with the consensus, and the doubled-feature measure.
 Issue 16's third reproduction (``bench.reproductions``: openface_multi_face, the man with
 glasses talking and laughing, his head moving at some 220 mm/s, enrolled from 2.4 s) built
 a texture with a doubled glasses rim and smeared lips: the neutral frame the fit chose
-(frame 211) was motion-blurred (its sharpness b, ``sender.enroll.evidence.sharpness``,
+(frame 211) was motion-blurred (its sharpness b, ``sender.clean.sharpness``,
 72 against the range's median of 138), and the base texture is that frame wherever it is
 not an outlier. A blurred or slipped view is no outlier in colour: its skin is the skin
 every view sees, only its edges are elsewhere. So two tests, both on structure:
@@ -59,7 +59,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-SHARP_RATIO = 0.6  # a frame is sharp when its sharpness is at least this times the median
+from facewire.sender.clean import SHARP_RATIO
+
 WINDOW = 31  # texels: the square of the local correlation
 MIN_NCC = 0.7  # a view (or a texture) correlating less with the consensus does not line up
 STRUCTURE_STD = 8.0  # grey levels: the consensus's local deviation for a window to be judged

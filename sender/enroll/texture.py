@@ -74,11 +74,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.models.geometry import vertex_normals
 from facewire.models.infra.egl import create_context, in_context
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
 from facewire.protocol.errors import FacewireError
+from facewire.sender.texels import welded_normals
 
 DEFAULT_SIZE = (512, 1024)
 MAX_SIZE = 8192
@@ -139,7 +139,7 @@ def uv_surface(mesh: Mesh, size: tuple[int, int] = DEFAULT_SIZE) -> UVSurface:
     if mesh.uv.size and (mesh.uv.min() < 0 or mesh.uv.max() > 1):
         raise TextureError(f"mesh.uv: outside [0, 1] (range {mesh.uv.min():.4g} .. "
                            f"{mesh.uv.max():.4g}); the layout must lie in the texture")
-    normals = _welded_normals(mesh)
+    normals = welded_normals(mesh)
     with _Gl() as gl:
         positions, normal_id, layers = gl.uv_pass(mesh, normals, width, height)
     triangles = np.rint(normal_id[..., 3]).astype(np.int32) - 1
@@ -347,12 +347,6 @@ def _edges(depth: np.ndarray, cos_pixel: np.ndarray, focal: float, cos_min: floa
     return edge
 
 
-def _welded_normals(mesh: Mesh) -> np.ndarray:
-    """(N, 3) float32 area-weighted normals, shared by vertices at the same position."""
-    _, group = np.unique(mesh.vertices, axis=0, return_inverse=True)
-    return vertex_normals(mesh.vertices.astype(np.float64), mesh.triangles, group.ravel())
-
-
 def _check_size(size: object) -> tuple[int, int]:
     if not (isinstance(size, tuple) and len(size) == 2
             and all(isinstance(s, (int, np.integer)) and 1 <= s <= MAX_SIZE for s in size)):
@@ -543,7 +537,7 @@ class _Gl:
             self._mesh = mesh
             self._depth_vao = ctx.vertex_array(self._depth, [
                 (ctx.buffer(np.ascontiguousarray(mesh.vertices)), "3f", "in_position"),
-                (ctx.buffer(_welded_normals(mesh)), "3f", "in_normal")],
+                (ctx.buffer(welded_normals(mesh)), "3f", "in_normal")],
                 index_buffer=ctx.buffer(np.ascontiguousarray(mesh.triangles)),
                 index_element_size=4)
         w, h = camera.intrinsics.width, camera.intrinsics.height

@@ -1,0 +1,406 @@
+"""The sender's learning: an appearance the model does not hold, noticed and captured as a
+model update (``models.update.ModelUpdate``) during the session.
+
+Noticing. Each frame the classifier gives every region its best score phi, the weighted L1
+distance of the winning sample from the nearest template (``sender.classify``). How far a
+face the templates describe lies from them depends on the region (a flat forehead scores
+lower than an eye); the templates themselves say how far apart the region's states are.
+So each region's bound is taken at session start from the model it holds:
+
+    s_r = median over templates j of min over b != j of phi_b(T_j)    (the states' spacing)
+    novel when phi > max(``MIN_NOVEL_PHI``, ``NOVEL_FACTOR`` s_r)
+
+(with one template, the bound is ``MIN_NOVEL_PHI``). Derived, not stored: the model file
+holds what it needs (the templates), older models work as they are, and ``model info``
+has nothing new to show. Measured on lp_d18 (a tuning clip) with a model built on its frames
+0:60, where the mouth never opens: on the enrolled frames phi was at most 47 (mouth),
+61 (eyeballs), 36 (eyelids), 17 (forehead) and 16 (brow furrow), on the later closed-mouth
+frames at most 90 (mouth), 74 (eyeballs); on the open mouth 100-174; a blink gives the eye
+regions 100-170 for its few frames. The spacings: 15-24 (forehead), 8-13 (brow furrow),
+29-61 (eyelids, eyeballs, mouth).
+
+Candidates. A region is held as a candidate while its phi stays over the bound on
+consecutive frames; a frame counts toward the capture only when it is clean evidence:
+a pose was fitted and the face was not just lost or re-acquired (flags), the head within
+``MAX_YAW_DEG`` of frontal, the face box sharp (``sender.clean.sharpness`` at least
+``SHARP_RATIO`` times the median over the session's reference frames, one every
+``SHARPNESS_EVERY`` frames) and, for the mouth and the eye regions, its part not occluded
+(``sender.clean.ring_occluded`` against the base texture). A frame under the bound ends the
+run. ``HOLD_FRAMES`` consecutive novel frames with ``CAPTURE_FRAMES`` clean ones among them
+(a blink lasts 3-6 frames at 30 Hz: it never gets there) make a capture, unless the region
+learned within ``COOLDOWN_S``, or the session's last update is too recent for the traffic's
+budget: after an update of B bytes (``models.update.encode_update``) the next comes no
+sooner than 8 B / ``UPDATE_BPS`` seconds (8 kbit/s, the budget over any minute; nothing is
+held meanwhile), so the learning never makes updates faster, on average, than the wire may
+carry them (the transport paces each one within the budget over any second).
+
+Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
+images, one per area of the region, read the way enrollment reads them (``sender.texels``:
+the texels' surface points on the morphed, posed mesh, projected and read bilinearly;
+exposure matched to the base texture at the border, the skin regions' broad shading
+matched), fused texel by texel by the median; the template is the median of their centre
+samples. The mouth's layer keeps what the camera saw in the cavity (enrollment paints the
+interior of frames that do not see into it; a mouth wide enough to be novel does). Then,
+per area, only what changed is kept: a texel whose difference from the update's reference
+(the state the new one sits just before, ``models.update.references``: the bytes carry the
+difference from it), the largest over the colour channels, smoothed by a Gaussian of
+``CHANGE_SIGMA`` texels, exceeds ``CHANGE_LEVELS`` grey levels is changed, the changed
+area is grown by ``CHANGE_GROW`` texels, and every other texel takes the reference's
+value: the skin around an opened mouth stays as it was, and its texels cost nothing on the
+wire. The changed texels' difference from the reference is then kept at the frame's own
+resolution, not the texture's: averaged over blocks of b x b texels, b the texels one frame
+pixel spans (1 .. ``MAX_BLOCK``; the median distance in pixels between neighbouring texels'
+projections, inverted and floored), and rounded to ``DIFF_STEP`` (4) grey levels, at most
+2 levels off. The texture is finer than a face in a camera frame (lp_d18's 480 x 480
+frames: 0.43-0.48 px between neighbouring mouth texels, so blocks of 2), so the blocks show
+nothing the camera saw, and the bytes (the difference, zlib-compressed) stop paying for
+interpolated noise; a coarser rounding instead (steps of 8 levels, no blocks) showed contour
+bands in the smooth inside of the mouth. lp_d18's open mouth, learned on a model of its
+closed mouth, changes 93 % of the mouth's texels (the whole cavity): its difference took
+36.0 kB exact, 21.7 kB rounded to 2 levels, 10.5 kB in blocks of 2 rounded to 2, 6.8-7.0
+kB in blocks of 2 rounded to 4; the whole update 37.3 kB exact, 8.2 kB as made. At the
+wire's 32 kbit/s over a second, 8.2 kB take 2.1 s, so the first update can
+reach the receivers within 3 s of the expression (37 kB took 9.3 s).
+
+Placing it. Q must stay a scalar along the region's axis, so the new state goes where its
+landmark cue (``sender.cues.region_cues``: mouth opening, eye closure, brow raise, ...)
+belongs among the existing states': the session keeps, per state, the mean cue of the frames
+that state matched (rounded Q, phi under the bound, one frame in ``CUE_EVERY``), the rest
+state starting from the neutral face's own cue (the model's landmark vertices seen from the
+front, zero residuals: the neutral; the gaze has no such cue). The new state is inserted
+before the first state whose mean cue is larger, or after all of them; states never matched
+do not count. A region holds at most ``models.update.MAX_LEARNED_LAYERS`` states; a full one
+replaces its least used state (the fewest frames with that rounded Q this session), never the
+rest state. An eyelid's state placed at or before its rest state (an eye open wider) is
+transparent, as enrollment makes the open states (``models.regions``).
+
+The update is applied to the learner's own model at once (``models.update.apply_update``),
+and the sender's classifier takes the new templates (``sender.pipeline``): the next frame
+is classified with them, and the next packets' Q refer to the new model version.
+
+Cost (CPU time, lp_d18's 216 frames of 480 x 480, a model of its closed mouth, one update):
+noticing is a comparison per region and the states' statistics, the cues on one frame in
+``CUE_EVERY`` and the sharpness on one in ``SHARPNESS_EVERY``: 0.05 ms median per frame,
+0.16-0.19 ms mean over the frames without a capture (novel frames hold a copy of the frame,
+its sharpness and its cues). A capture took 170-220 ms, two thirds of it building the
+region's texels on the mesh once per session (the mouth's area and the ring around it,
+``sender.texels.area_surface`` and the surface points, some 70 ms each); the rest (reading
+five frames' layers and rings, the medians, the update's bytes) some 70 ms. Over those 216
+frames that is 0.9-1.1 ms a frame on average, over the 0.5 ms target; the traffic budget
+spaces updates at least 8 s apart (8 kB), so over a minute with one or two captures it is
+0.3-0.4 ms. ``facewire bench speed`` reports ``learn_ms`` (median) and
+``learn_ms_per_frame`` (mean, captures included).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from facewire.models.fields import TEMPLATE_SIZE
+from facewire.models.geometry import Intrinsics
+from facewire.models.modelfile import PersonModel
+from facewire.models.regions import REGION_NAMES, spec
+from facewire.models.rig import Rig
+from facewire.models.update import (
+    MAX_LEARNED_LAYERS,
+    ModelUpdate,
+    apply_update,
+    encode_update,
+    references,
+)
+from facewire.protocol.packet import Flag
+from facewire.sender.classify import FrameClassification, RegionClassifiers
+from facewire.sender.clean import (
+    REGION_PARTS,
+    SHARP_RATIO,
+    ring_mask,
+    ring_occluded,
+    sharpness,
+)
+from facewire.sender.cues import region_cues
+from facewire.sender.texels import AreaTexels, area_surface, state_layers, welded_normals
+
+NOVEL_FACTOR = 2.5  # phi over this many times the region's template spacing is unseen ...
+MIN_NOVEL_PHI = 60.0  # ... and over this (normalised coefficient units)
+HOLD_FRAMES = 8  # consecutive novel frames before a capture
+CAPTURE_FRAMES = 5  # clean frames fused into the new state
+MAX_YAW_DEG = 25.0  # a candidate frame's head within this of frontal
+SHARPNESS_EVERY = 15  # frames between the session's sharpness reference samples
+CUE_EVERY = 5  # frames between the states' cue statistics samples
+SHARPNESS_WINDOW = 40  # reference samples kept
+COOLDOWN_S = 3.0  # a region learns again at the earliest this long after its last update
+UPDATE_BPS = 8000.0  # the update traffic's budget over a minute, bit/s
+CHANGE_LEVELS = 12.0  # grey levels a texel must change by (smoothed) to be part of a state ...
+CHANGE_SIGMA = 1.5  # ... the difference's Gaussian, texels ...
+CHANGE_GROW = 2  # ... and the changed area grown by this many texels
+DIFF_STEP = 4  # a changed texel's difference from the reference, in steps of this (grey levels)
+MAX_BLOCK = 4  # texels a side of the blocks a changed difference is averaged over, at most
+_BAD_FLAGS = Flag.TRACKING_LOST | Flag.REACQUIRED
+
+
+@dataclass(eq=False)
+class _Held:
+    """One candidate frame of a region (clean but for occlusion, judged when needed)."""
+
+    image: np.ndarray  # (H, W, 3) uint8 BGR
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    residuals: np.ndarray  # (9, 3)
+    sample: np.ndarray  # (16, 16) float32 the region's centre sample
+    cue: float
+    occluded: bool | None = None
+
+
+class Learner:
+    """Notices unseen appearance and captures it as model updates (module docstring).
+
+    Args:
+        model: the person model the session starts from (loaded from its file: its
+            ``sha256`` names the base of every update).
+        camera: the sender camera's intrinsics.
+        rig: the model's rig.
+        classifiers: the sender's classifier of the model's regions (packet order).
+
+    Attributes:
+        model: the model as learned so far (version ``serial``).
+        serial: the last update's serial, 0 before any.
+        updates: the updates issued, in order.
+    """
+
+    def __init__(self, model: PersonModel, camera: Intrinsics, rig: Rig,
+                 classifiers: RegionClassifiers) -> None:
+        if not can_learn(model):
+            raise ValueError("model: learning needs the model's file identity (sha256) and "
+                             "the regions of models.regions.REGIONS, in that order")
+        self.model = model
+        self.camera = camera
+        self.rig = rig
+        self.serial = 0
+        self.updates: list[ModelUpdate] = []
+        self.base_sha256 = model.sha256
+        self.names = REGION_NAMES
+        self.bound = np.array([_bound(c.cross) for c in classifiers.regions])
+        count = len(self.names)
+        self._run = np.zeros(count, np.int64)
+        self._held: list[deque[_Held]] = [deque(maxlen=HOLD_FRAMES) for _ in range(count)]
+        k = [r.templates.shape[0] for r in model.regions[:count]]
+        self._cue_sum = [np.zeros(n) for n in k]
+        self._cue_count = [np.zeros(n, np.int64) for n in k]
+        self._used = [np.zeros(n, np.int64) for n in k]
+        neutral = region_cues(np.zeros((count, TEMPLATE_SIZE, TEMPLATE_SIZE), np.float32),
+                              model.mesh.vertices[model.mesh.landmarks][:, :2],
+                              np.zeros((9, 3)))
+        for r, region in enumerate(model.regions[:count]):  # the rest state: the neutral face
+            if np.isfinite(neutral[r]):
+                self._cue_sum[r][round(region.rest)] += neutral[r]
+                self._cue_count[r][round(region.rest)] += 1
+        self._learned_at = np.full(count, -np.inf)
+        self._quiet_until = -np.inf  # no update before this time (the traffic budget)
+        self._frames = 0
+        self._sharp: deque[float] = deque(maxlen=SHARPNESS_WINDOW)
+        self._normals: np.ndarray | None = None
+        self._areas: dict[str, list[AreaTexels]] = {}
+        self._rings: dict[str, tuple[AreaTexels, np.ndarray]] = {}
+
+    def observe(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
+                translation: np.ndarray, residuals: np.ndarray, samples: np.ndarray,
+                result: FrameClassification, flags: Flag, time_s: float) -> ModelUpdate | None:
+        """One classified frame: notice, hold, and when a capture is due, capture.
+
+        Args:
+            image: (H, W, 3) uint8 BGR frame.
+            points: (68, 2) its tracked points, px.
+            rotation: (3, 3) the sent pose's rotation; translation: (3,) mm.
+            residuals: (9, 3) the sent residuals, mm.
+            samples: (R, 5, 16, 16) float32 the regions' samples that were classified.
+            result: their classification (Q before the eye gate, and the scores).
+            flags: the frame's packet flags.
+            time_s: the frame's time, s.
+
+        Returns:
+            The update issued on this frame (already applied to ``model``), or None.
+        """
+        self._frames += 1
+        if self._frames % SHARPNESS_EVERY == 1:
+            self._sharp.append(sharpness(image, points))
+        novel = result.score > self.bound
+        state = np.rint(result.q).astype(np.int64)
+        for i in np.flatnonzero(~novel):
+            self._run[i] = 0
+            self._held[i].clear()
+        for j in range(len(self.names)):
+            self._used[j][state[j]] += 1
+        cues = None
+        if novel.any() or self._frames % CUE_EVERY == 1:
+            cues = region_cues(samples[:, 0], points, residuals)
+        if cues is not None and self._frames % CUE_EVERY == 1:
+            for i in np.flatnonzero(~novel & np.isfinite(cues)):
+                self._cue_sum[i][state[i]] += cues[i]
+                self._cue_count[i][state[i]] += 1
+        if not novel.any() or time_s < self._quiet_until:  # nothing new, or no budget yet
+            return None
+        assert cues is not None
+        clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
+        if clean and self._sharp:
+            clean = sharpness(image, points) >= SHARP_RATIO * float(np.median(self._sharp))
+        copy = None
+        for i in np.flatnonzero(novel):
+            self._run[i] += 1
+            if clean and np.isfinite(cues[i]):
+                copy = image.copy() if copy is None else copy
+                self._held[i].append(_Held(copy, rotation.copy(), translation.copy(),
+                                           residuals.copy(), samples[i, 0].copy(),
+                                           float(cues[i])))
+        due = [int(i) for i in np.flatnonzero(novel) if self._run[i] >= HOLD_FRAMES
+               and len(self._held[i]) >= CAPTURE_FRAMES
+               and time_s - self._learned_at[i] >= COOLDOWN_S]
+        if not due:
+            return None
+        r = max(due, key=lambda i: result.score[i] / self.bound[i])  # the most unlike
+        chosen = self._unoccluded(r)
+        if len(chosen) < CAPTURE_FRAMES:
+            return None
+        before = self.model
+        update = self._capture(r, chosen)
+        self._learned_at[r] = time_s
+        self._quiet_until = time_s + 8 * len(encode_update(update, before)) / UPDATE_BPS
+        self._run[r] = 0
+        self._held[r].clear()
+        return update
+
+    def _unoccluded(self, r: int) -> list[_Held]:
+        """The last ``CAPTURE_FRAMES`` held frames of region r whose part is not occluded
+        (each frame judged once), oldest first; fewer when there are not that many."""
+        chosen = []
+        for held in reversed(self._held[r]):
+            if held.occluded is None:
+                held.occluded = self._occluded(r, held)
+            if not held.occluded:
+                chosen.append(held)
+            if len(chosen) == CAPTURE_FRAMES:
+                break
+        return chosen[::-1]
+
+    def _occluded(self, r: int, held: _Held) -> bool:
+        """Whether region r's part of the face is occluded (``sender.clean``)."""
+        part = REGION_PARTS.get(self.names[r])
+        if part is None:
+            return False
+        if part not in self._rings:
+            shape = self.model.texture.shape[:2]
+            rect, ring = ring_mask(self.model.mesh, part, shape)
+            self._rings[part] = (self._area(rect), ring)
+        area, ring = self._rings[part]
+        colour, seen, _, _ = area.read(self.camera, held.image, held.rotation, held.translation,
+                                       held.residuals)
+        return ring_occluded(colour, seen, self.model.texture[area.slices], ring)
+
+    def _area(self, rect: tuple[float, float, float, float]) -> AreaTexels:
+        """An area's texels on the model's surface, found on the CPU (``sender.texels``)."""
+        if self._normals is None:
+            self._normals = welded_normals(self.model.mesh)
+        shape = self.model.texture.shape[:2]
+        triangles, normals = area_surface(self.model.mesh, rect, shape, self._normals)
+        return AreaTexels(self.model.mesh, self.rig, rect, shape, triangles, normals)
+
+    def _capture(self, r: int, held: list[_Held]) -> ModelUpdate:
+        """Region r's new state from its held frames, placed, made an update and applied
+        (module docstring)."""
+        name = self.names[r]
+        if name not in self._areas:  # the rectangles the model's layers cover
+            region = self.model.regions[r]
+            self._areas[name] = [self._area(rect) for rect in
+                                 (region.uv_rect, *(a.uv_rect for a in region.areas))]
+        areas = self._areas[name]
+        base = [self.model.texture[a.slices] for a in areas]
+        reads = [[a.read(self.camera, h.image, h.rotation, h.translation, h.residuals)
+                  for a in areas] for h in held]
+        per_frame = [state_layers(name, [read[:2] for read in frame], base) for frame in reads]
+        block = _block(*reads[-1][0][1:])
+        layers = tuple(np.median(np.stack(stack), axis=0).round().astype(np.uint8)
+                       for stack in zip(*per_frame, strict=True))
+        template = np.median(np.stack([h.sample for h in held]), axis=0).astype(np.float32)
+        cue = float(np.median([h.cue for h in held]))
+        region = self.model.regions[r]
+        k = region.templates.shape[0]
+        rest = round(region.rest)
+        replaces = None
+        if k >= MAX_LEARNED_LAYERS:
+            used = self._used[r].astype(np.float64)
+            used[rest] = np.inf
+            replaces = int(np.argmin(used))
+        kept = [j for j in range(k) if j != replaces]
+        position = len(kept)
+        for n, j in enumerate(kept):
+            if self._cue_count[r][j] and self._cue_sum[r][j] / self._cue_count[r][j] > cue:
+                position = n
+                break
+        rest_kept = rest - (replaces is not None and replaces < rest)
+        opacity = 0.0 if spec(name).transparent_open and position <= rest_kept else 1.0
+        update = ModelUpdate(base_sha256=self.base_sha256, serial=self.serial + 1,
+                             region=name, position=position, replaces=replaces,
+                             layers=layers, template=template, opacity=opacity)
+        update = dataclasses.replace(update, layers=tuple(
+            _changed_only(layer, reference, block)
+            for layer, reference in zip(layers, references(self.model, update), strict=True)))
+        self.model = apply_update(self.model, update)
+        self.serial = update.serial
+        self.updates.append(update)
+        for stats, value in ((self._cue_sum, cue), (self._cue_count, 1), (self._used, 0)):
+            stats[r] = np.insert(stats[r][kept], position, value)
+        return update
+
+
+def _block(seen: np.ndarray, x: np.ndarray, y: np.ndarray) -> int:
+    """The texels per frame pixel of an area's read (``AreaTexels.read``'s seen, x, y), as
+    the side of a block of texels that one pixel spans: 1 .. ``MAX_BLOCK``."""
+    step = np.hypot(np.diff(x, axis=1), np.diff(y, axis=1))[seen[:, 1:] & seen[:, :-1]]
+    if step.size == 0:
+        return 1
+    return int(np.clip(np.floor(1.0 / max(float(np.median(step)), 1e-6)), 1, MAX_BLOCK))
+
+
+def _changed_only(layer: np.ndarray, reference: np.ndarray, block: int) -> np.ndarray:
+    """(h, w, 3) uint8: where ``layer`` changed from ``reference``, the reference plus their
+    difference averaged over ``block`` x ``block`` texels and rounded to ``DIFF_STEP``; the
+    reference's texels elsewhere (the module docstring, capture)."""
+    ref = reference.astype(np.float32)
+    diff = layer.astype(np.float32) - ref
+    changed = cv2.GaussianBlur(np.abs(diff).max(axis=2), (0, 0), CHANGE_SIGMA) > CHANGE_LEVELS
+    grow = 2 * CHANGE_GROW + 1
+    changed = cv2.dilate(changed.astype(np.uint8), np.ones((grow, grow), np.uint8)) > 0
+    h, w = changed.shape
+    padded = np.pad(diff, ((0, -h % block), (0, -w % block), (0, 0)), mode="edge")
+    coarse = padded.reshape(padded.shape[0] // block, block, padded.shape[1] // block, block,
+                            3).mean(axis=(1, 3))
+    coarse = np.rint(coarse / DIFF_STEP) * DIFF_STEP
+    coarse = np.repeat(np.repeat(coarse, block, axis=0), block, axis=1)[:h, :w]
+    stepped = np.clip(np.rint(ref + coarse), 0, 255).astype(np.uint8)
+    return np.where(changed[..., None], stepped, reference)
+
+
+def can_learn(model: PersonModel) -> bool:
+    """Whether a model can learn: it was loaded from its file (its sha256 names the base of
+    the updates) and holds the regions of ``models.regions.REGIONS`` in that order (the
+    cues are computed in that order)."""
+    return len(model.sha256) == 64 and tuple(r.name for r in model.regions) == REGION_NAMES
+
+
+def _bound(cross: np.ndarray) -> float:
+    """A region's novelty bound from its templates' cross scores (k, k) (module docstring)."""
+    k = len(cross)
+    if k < 2:
+        return MIN_NOVEL_PHI
+    others = np.asarray(cross, np.float64) + np.diag(np.full(k, np.inf))
+    return max(MIN_NOVEL_PHI, NOVEL_FACTOR * float(np.median(others.min(axis=1))))
+
+
+def _yaw_deg(rotation: np.ndarray) -> float:
+    """|yaw| of a pose, degrees: the model's +z (forward) turned about the camera's y."""
+    forward = np.asarray(rotation, np.float64)[:, 2]
+    return abs(float(np.degrees(np.arctan2(forward[0], forward[2]))))
