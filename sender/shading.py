@@ -140,8 +140,7 @@ class ShadingEstimator:
         v = mesh.vertices.astype(np.float64)
         normal = np.cross(v[corners[:, 1]] - v[corners[:, 0]], v[corners[:, 2]] - v[corners[:, 0]])
         self._normals = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-        self._neutral = self._points.neutral.astype(np.float64)
-        self._basis = basis(self._neutral)
+        self._basis = basis(self._points.neutral)
         self._log_reference = np.log(reference[bright])
         self.reset()
 
