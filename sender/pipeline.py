@@ -363,7 +363,7 @@ class SenderPipeline:
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
         packed = pack(self._seq, flags, self._sent, tangent, q, self._q_serial,
-                      self.shading.shade)
+                      self.shading.sent)
         self._seq = (self._seq + 1) % (1 << 16)
         return packed
 

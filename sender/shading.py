@@ -49,6 +49,16 @@ window; frames K: as ``bench.clips`` says): 0.1 s gained face SSIM 0.0006 / 0.00
 steady light (lp_d14 214:400: 10 a second against 5, 24 reversals within 3 frames against
 12); 1.0 s lost 0.0016 SSIM and 0.5 dB on openface_default.
 
+On the wire. The packet carries each value on its quantiser's grid (step 1/64); a smoothed
+value sitting near the middle between two codes would flip between them frame after frame
+(1.6 % of brightness, a shimmer a viewer may see on a steady light). So the value sent
+(``sent``) moves to the nearest code only when the smoothed value is more than
+``HYSTERESIS`` steps from it, and is the nearest code at a stream's first fit: at most
+``HYSTERESIS`` of a step (1.2 % of gain) behind the smoothed value, never flickering. On
+lp_d14 214:400 (a steady light) s0 changed 1.8 times a second instead of 5 and never went
+back within 3 frames (12 times without); on openface_gaze 336:600, 11.5 instead of 13.4
+changes a second, no reversal instead of 5.
+
 Cost: some 570 points, a pyramid of the face's crop, one remap and three 3 x 3 solves:
 ``SenderOutput.timings["shade"]``, 0.30 ms median in ``bench speed`` on openface_default
 (640 x 480; classification 0.23 ms there), 0.11 ms as the best of 15 runs per frame.
@@ -66,6 +76,7 @@ from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import PersonModel
 from facewire.models.rig import Rig
 from facewire.models.shading import basis
+from facewire.protocol.packet import QUANTISERS
 from facewire.sender.appearance import SurfacePoints, bilinear
 
 FACE_BOX = (-60.0, 60.0, -108.0, 68.0)  # x0, x1, y0, y1 on the neutral mesh, mm
@@ -83,6 +94,8 @@ MIN_POINTS = 40
 MIN_INLIERS = 0.5
 TAU_S = 0.3
 MAX_LEVELS = 4
+HYSTERESIS = 0.75
+STEP = next(q.step for q in QUANTISERS if q.name == "shade")
 
 
 def skin_points(mesh: Mesh) -> np.ndarray:
@@ -123,6 +136,8 @@ class ShadingEstimator:
     Attributes:
         triangles: (n,) the points' triangles (``skin_points``, dark references removed).
         shade: (3,) float32 the current smoothed field (s0, s1, s2).
+        sent: (3,) float32 the field the packet carries: ``shade`` on the quantiser's grid,
+            with hysteresis (module docstring).
     """
 
     def __init__(self, model: PersonModel, rig: Rig, camera: Intrinsics) -> None:
@@ -147,6 +162,7 @@ class ShadingEstimator:
     def reset(self) -> None:
         """Forget the stream: the next fit is taken as it is."""
         self.shade = np.zeros(3, np.float32)
+        self.sent = np.zeros(3, np.float32)
         self._fresh = True
 
     def restart(self) -> None:
@@ -165,17 +181,22 @@ class ShadingEstimator:
             dt: the time since the last frame, s.
 
         Returns:
-            (3,) float32 the smoothed field (s0, s1, s2); a copy.
+            (3,) float32 the field to send (``sent``); a copy.
         """
         fit = self.fit(gray, rotation, translation, residuals)
         if fit is not None:
+            nearest = np.rint(fit / STEP) * STEP
             if self._fresh:
                 self.shade = fit.astype(np.float32)
+                self.sent = nearest.astype(np.float32)
                 self._fresh = False
             else:
                 a = 1.0 - math.exp(-max(dt, 0.0) / TAU_S)
                 self.shade = (self.shade + a * (fit - self.shade)).astype(np.float32)
-        return self.shade.copy()
+                moved = np.abs(self.shade - self.sent) > HYSTERESIS * STEP
+                self.sent = np.where(moved, np.rint(self.shade / STEP) * STEP,
+                                     self.sent).astype(np.float32)
+        return self.sent.copy()
 
     def fit(self, gray: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
             residuals: np.ndarray) -> np.ndarray | None:

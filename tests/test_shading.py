@@ -16,7 +16,14 @@ from facewire.models.shading import LOG_GAIN_MAX, LOG_GAIN_MIN, basis, log_gain
 from facewire.protocol.packet import decode
 from facewire.sender.capture import estimate_intrinsics
 from facewire.sender.pipeline import SenderOutput, SenderPipeline
-from facewire.sender.shading import MIN_POINTS, TAU_S, ShadingEstimator, skin_points
+from facewire.sender.shading import (
+    HYSTERESIS,
+    MIN_POINTS,
+    STEP,
+    TAU_S,
+    ShadingEstimator,
+    skin_points,
+)
 
 
 @pytest.fixture(scope="module")
@@ -104,20 +111,43 @@ def test_a_hand_over_the_face_does_not_move_the_light(posed: tuple) -> None:
     covered = _fit(estimator, hand, out)
     assert np.abs(covered - own).max() < 0.06
     args = (out.rotation, out.translation, out.residuals)
-    first = estimator.estimate(gray, *args, dt=1 / 30)
+    sent = estimator.estimate(gray, *args, dt=1 / 30)
+    first = estimator.shade.copy()
     np.testing.assert_allclose(first, own, atol=1e-6)  # a stream's first fit is taken as it is
-    second = estimator.estimate(_image_gain(gray.astype(np.float64), 0.5), *args, dt=1 / 30)
+    np.testing.assert_allclose(sent, np.rint(own / STEP) * STEP, atol=1e-6)  # on the grid
+    estimator.estimate(_image_gain(gray.astype(np.float64), 0.5), *args, dt=1 / 30)
+    second = estimator.shade.copy()
     a = 1 - np.exp(-1 / 30 / TAU_S)
     assert second[0] - first[0] == pytest.approx(a * np.log(0.5), abs=0.02)
     # no face on the image: no fit, the light is held
     black = np.zeros_like(gray)
     assert estimator.fit(black, *args) is None
-    np.testing.assert_array_equal(estimator.estimate(black, *args, dt=1 / 30), second)
+    held = estimator.sent.copy()
+    np.testing.assert_array_equal(estimator.estimate(black, *args, dt=1 / 30), held)
+    np.testing.assert_array_equal(estimator.shade, second)
     assert MIN_POINTS < len(estimator.triangles)
 
 
+def test_the_sent_light_moves_a_code_only_past_the_hysteresis(posed: tuple) -> None:
+    """A light held 0.62 of a step above the code sent keeps that code (rounding would flip
+    it, and a value near the middle would flicker); 1.1 steps above moves it one code."""
+    pipeline, frames, outputs = posed
+    estimator = ShadingEstimator(pipeline.model, pipeline.rig, pipeline.camera)
+    out = outputs[-1]
+    gray = cv2.cvtColor(frames[-1].image, cv2.COLOR_BGR2GRAY).astype(np.float64)
+    args = (out.rotation, out.translation, out.residuals)
+    code = estimator.estimate(gray.astype(np.uint8), *args, dt=1 / 30)[0]
+    own = estimator.shade[0]
+    for above, expected in ((0.62, code), (1.1, code + STEP)):
+        image = _image_gain(gray, np.exp(code + above * STEP - own))
+        sent = [estimator.estimate(image, *args, dt=1 / 30)[0] for _ in range(40)]
+        assert estimator.shade[0] - code == pytest.approx(above * STEP, abs=0.1 * STEP)
+        assert sent[-1] == pytest.approx(expected, abs=1e-6)
+        assert len(set(sent[-20:])) == 1  # settled, no flicker
+
+
 def test_the_packets_carry_the_light(posed: tuple, shared_data: Path) -> None:
-    """The pipeline's packets carry its estimate, quantised; 0.7 times the light shows as
+    """The pipeline's packets carry its estimate as sent; 0.7 times the light shows as
     ln 0.7 within a second."""
     pipeline, frames, _ = posed
     pipeline.reset()
@@ -127,7 +157,8 @@ def test_the_packets_carry_the_light(posed: tuple, shared_data: Path) -> None:
             np.rint(f.image * 0.7), 0, 255).astype(np.uint8)
         out = pipeline.process(image, k / 30)
         sent = decode(out.packet).shade
-        np.testing.assert_allclose(sent, pipeline.shading.shade, atol=1 / 128 + 1e-6)
+        np.testing.assert_allclose(sent, pipeline.shading.sent, atol=1e-6)
+        np.testing.assert_allclose(sent, pipeline.shading.shade, atol=HYSTERESIS * STEP + 1e-6)
         shades.append(sent)
     before, after = shades[len(frames) - 1], shades[-1]
     assert abs(before[0]) < 0.08
