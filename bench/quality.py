@@ -19,7 +19,7 @@ the pose fit, the jaw contour without the chin and the inner lips: ``bench.geome
 
 Appearance fidelity. Every measured frame is rendered (``bench.rendering``) by the
 receiver's renderer (``receiver.render.FaceRenderer``) from the sender's camera with the
-decoded pose, residuals and Q (``receiver.views.sender_view``: the Hello's intrinsics, so
+decoded pose, residuals, Q and light (``receiver.views.sender_view``: the Hello's intrinsics, so
 the rendering lines up with the frame), and compared with the real frame on the face
 (``bench.fidelity.face_box`` and ``face_mask``: inside the landmarks' box grown 10 % and up
 to the forehead, the convex hull of the jaw line and the raised brows, so that the

@@ -2,7 +2,7 @@
 
 ``render_scores`` draws every measured frame (a pose of its own and tracked points) with the
 receiver's renderer (``receiver.render.FaceRenderer``) from the sender's camera
-(``receiver.views.sender_view``) with the decoded pose, residuals and Q, and scores it
+(``receiver.views.sender_view``) with the decoded pose, residuals, Q and light, and scores it
 against the real frame inside the face box and its mask (``bench.fidelity``): grayscale SSIM
 and PSNR, and the render NME of the project's tracker run afresh on both pictures
 (``bench.render_nme``; ``FreshTracker`` times it). Each frame is drawn with the model version
@@ -111,7 +111,7 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
             vertices = rig.morph(rig.from_tangent(record["residuals"]))
             view = sender_view(camera, record["rotation"], record["translation"],
                                camera.width, camera.height)
-            rendered = renderer.render(vertices, record["q"], view)[..., ::-1]
+            rendered = renderer.render(vertices, record["q"], view, record["shade"])[..., ::-1]
             boxes[k] = x0, y0, x1, y1 = face_box(points, camera.width, camera.height)
             masks[k] = mask = face_mask(points, boxes[k])
             real, ours = image[y0:y1, x0:x1], rendered[y0:y1, x0:x1]

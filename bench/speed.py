@@ -19,16 +19,17 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
 - ``pose_ms`` (pose fit alternated with the lift, and the One-Euro filter), ``lift_ms`` (the
   lift with the filtered pose), ``heuristics_ms`` (``ResidualFilter`` and the tangent
   projection), ``sample_ms`` (``AppearanceSampler``: every region's five offset samples,
-  grey conversion included) and ``classify_ms`` (``RegionClassifiers``: all regions, five
-  offsets each) and ``learn_ms`` (``sender.learn``: noticing, holding, capturing; the
-  pipeline learns by default): medians over the frames with a face (a model without
-  regions gives None for the last three); ``pack_ms``: median over all frames.
+  grey conversion included), ``classify_ms`` (``RegionClassifiers``: all regions, five
+  offsets each), ``learn_ms`` (``sender.learn``: noticing, holding, capturing; the
+  pipeline learns by default) and ``shade_ms`` (``sender.shading.ShadingEstimator``: the
+  light's fit and its smoothing): medians over the frames with a face (a model without
+  regions gives None for sample, classify and learn); ``pack_ms``: median over all frames.
 - ``learn_ms_per_frame``: the learning's mean per frame over the frames with a face, its
   rare captures (tens to hundreds of ms each, the first of a region building that region's
   texels) included, and ``learn_updates``, the model updates it made on the video; the
   target is <= 0.5 ms per frame on average.
 - ``sender_ms_median``: median over all frames of the sum of the stages (track, pose,
-  lift, heuristics, sample, classify, learn, pack); ``sender_fps`` = 1000 /
+  lift, heuristics, sample, classify, learn, shade, pack); ``sender_fps`` = 1000 /
   ``sender_ms_median``.
 - The receiver, on the packets the sender made (``_time_receiver``), BLAS pinned to one
   thread, after ``RECEIVER_WARMUP`` frames: ``decode_ms`` (``protocol.packet.decode``),
@@ -118,8 +119,9 @@ RECEIVER_WARMUP = 3  # frames rendered before timing (shader compilation, first 
 ENCODE_FRAMES = 60  # rendered frames kept for timing the encoder (55 MB at 640x480)
 LOOPBACK_S = 30.0
 TARGET_SIZE = (640, 480)
-SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "learn", "pack")
-_FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify", "learn")
+SENDER_STAGES = ("track", "pose", "lift", "heuristics", "sample", "classify", "learn", "shade",
+                 "pack")
+_FACE_STAGES = ("pose", "lift", "heuristics", "sample", "classify", "learn", "shade")
 TARGET_LEARN_MS = 0.5
 
 TARGETS = {"morph_ms_per_10k_vertices": TARGET_MORPH_MS_PER_10K, "track_ms": TARGET_TRACK_MS,
@@ -160,9 +162,9 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
         A dict: ``frames`` (frames tracked), ``tracked_frames``, ``detect_frames``,
         ``no_face_frames``, ``track_ms`` (None if no frame was tracked after acquisition),
         ``track_detect_ms``, ``pose_ms``, ``lift_ms``, ``heuristics_ms``, ``sample_ms``,
-        ``classify_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``, ``sender_fps``,
-        ``width``, ``height``, ``vertices``, ``morph_ms``, ``morph_ms_default_threads``,
-        ``morph_calls``, ``threads`` (what was pinned),
+        ``classify_ms``, ``shade_ms``, ``pack_ms``, ``regions``, ``sender_ms_median``,
+        ``sender_fps``, ``width``, ``height``, ``vertices``, ``morph_ms``,
+        ``morph_ms_default_threads``, ``morph_calls``, ``threads`` (what was pinned),
         ``encode_ms``, the keys of ``bench.loopback.measure_loopback`` (None when skipped),
         ``targets`` and ``met`` (per target), ``not_measured`` (the loopback keys when it was
         skipped); times in milliseconds.
@@ -382,7 +384,7 @@ def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
             vertices = rig.morph(rig.from_tangent(frame.residuals))
             view = sender_view(camera, frame.rotation, frame.translation, width, height)
             t2 = time.perf_counter()
-            image = renderer.render(vertices, frame.q, view)
+            image = renderer.render(vertices, frame.q, view, frame.shade)
             t3 = time.perf_counter()
             if len(images) < keep:
                 images.append(image)

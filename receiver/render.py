@@ -5,8 +5,12 @@ camera; ``FaceRenderer.render`` draws them offscreen through EGL (moderngl), wit
 conventions of ``models.infra.raster`` (GL camera, projection from pinhole intrinsics with pixel
 centres at integers, multisampled framebuffer resolved and flipped on readback, texture rows
 uploaded bottom first so OpenGL's t is facewire's v). Textured meshes are drawn unlit: the
-texture carries the captured light. The triangles and UVs are uploaded once; a frame writes
-the vertices into the same buffer (one buffer write) and sets a few uniforms.
+texture carries the captured light, and the frame's ``shade`` (the packet's) says how the
+live light differs from it: every fragment's colour, composited from the texture and the
+regions' layers alike, is multiplied at the end by the gain ``models.shading`` defines at
+the fragment's model-space (x, y) (interpolated from the morphed vertices; zeros: the
+texture's own light, exactly). The triangles and UVs are uploaded once; a frame writes the
+vertices into the same buffer (one buffer write) and sets a few uniforms.
 
 Regions (the paper's 3D-texture reconstruction). Region r of the model covers ``uv_rect``
 (u0, v0, u1, v1) with k layers L_j (h x w texels, row 0 at v = v1) and alpha
@@ -93,16 +97,20 @@ from facewire.models.infra.raster import (
     check_output,
 )
 from facewire.models.modelfile import Area, PersonModel
+from facewire.models.shading import GLSL as SHADING_GLSL
 from facewire.protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
+_NO_SHADE = np.zeros(3, np.float32)
 
 _FRAGMENT = """
 #version 330
 uniform sampler2D image;
 %(uniforms)s
 in vec2 v_uv;
+in vec2 v_model;
 out vec4 f_color;
+%(shading)s
 
 // Composite one region over the colour c (module docstring). rect: (u0, v0) of the padded
 // rectangle and 1 / its size; layer: (i, i + 1 clamped to k - 1, the weight of i + 1).
@@ -119,7 +127,7 @@ void main() {
     vec3 base = texture(image, v_uv).rgb;
     vec3 c = base;
 %(calls)s
-    f_color = vec4(c, 1.0);
+    f_color = vec4(c * shade_gain(v_model), 1.0);
 }
 """
 
@@ -169,6 +177,7 @@ class _Group:
     first: int
     count: int
     mvp: Any
+    shade: Any
     layers: list[tuple[Any, int]]
 
 
@@ -252,6 +261,7 @@ class FaceRenderer(ContextOwner):
         for mask, first, count in groups:
             met = [a for a in range(len(areas)) if mask >> a & 1]
             program = ctx.program(vertex_shader=VERTEX_TEXTURED, fragment_shader=_FRAGMENT % {
+                "shading": SHADING_GLSL,
                 "uniforms": "\n".join(f"uniform sampler2DArray volume{a};\n"
                                       f"uniform vec4 rect{a};\nuniform vec3 layer{a};"
                                       for a in met),
@@ -266,6 +276,7 @@ class FaceRenderer(ContextOwner):
                                              (self._uv, "2f", "in_uv")],
                                    index_buffer=self._indices, index_element_size=4)
             self._groups.append(_Group(vao, 3 * first, 3 * count, program["mvp"],
+                                       program["shade"],
                                        [(program[f"layer{a}"], areas[a][0]) for a in met]))
 
     def _upload(self, texture: np.ndarray, area: Area, opacity: tuple[float, ...]) -> Any:
@@ -320,7 +331,8 @@ class FaceRenderer(ContextOwner):
         return len(changed)
 
     @in_context
-    def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera) -> np.ndarray:
+    def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera,
+               shade: np.ndarray | None = None) -> np.ndarray:
         """Draw one frame.
 
         Args:
@@ -328,6 +340,8 @@ class FaceRenderer(ContextOwner):
             q: (R,) or (8,) float32 region values in layers, packet order (R = the model's
                 regions; of 8 values, the first R are used); each is clamped to [0, k - 1].
             camera: a ``models.infra.raster.Camera`` whose image size is this renderer's.
+            shade: (3,) the light's log-gain field (``models.shading``); None: zeros, the
+                texture's own light.
 
         Returns:
             (height, width, 3) uint8 RGB image, top row first.
@@ -351,6 +365,11 @@ class FaceRenderer(ContextOwner):
                               f"({N_REGIONS},), got {_describe(q)}")
         if not np.isfinite(q[:n_regions]).all():
             raise RenderError("q: contains NaN or infinity")
+        if shade is None:
+            shade = _NO_SHADE
+        if not isinstance(shade, np.ndarray) or shade.shape != (3,) \
+                or not np.isfinite(shade).all():
+            raise RenderError(f"shade: expected 3 finite values, got {_describe(shade)}")
         if not isinstance(camera, Camera):
             raise RenderError(f"camera: expected a models.infra.raster.Camera, got "
                               f"{type(camera).__name__}")
@@ -371,8 +390,10 @@ class FaceRenderer(ContextOwner):
         for i, volume in enumerate(self._volumes):
             volume.use(1 + i)
         self._frame.begin(self.background)
+        light = tuple(float(s) for s in shade)
         for group in self._groups:
             group.mvp.write(mvp_bytes)
+            group.shade.value = light
             for uniform, i in group.layers:
                 uniform.value = layers[i]
             group.vao.render(vertices=group.count, first=group.first)

@@ -4,7 +4,8 @@ Per slot: the playout's ``FrameState`` (pose, tangent residuals r, Q; held or ea
 concealed) gives ``vertices = rig.morph(rig.from_tangent(r))``; the camera is the sender's
 (``receiver.views.sender_view``: the Hello's intrinsics with the state's pose, scaled to the
 output size) or a virtual front or three-quarter one (``virtual_view``); the image is
-``receiver.render.FaceRenderer.render(vertices, Q, camera)``. ``rest_q`` is what a playout
+``receiver.render.FaceRenderer.render(vertices, Q, camera, shade)``, the state's light
+(``models.shading``) applied in every view alike. ``rest_q`` is what a playout
 eases to when the face is lost: each region's rest state.
 """
 
@@ -43,7 +44,7 @@ class StateRenderer:
     ``vertices = rig.morph(rig.from_tangent(state.residuals))``; the camera is the sender's
     (``view="camera"``: ``sender_view`` with ``hello_camera`` and the state's pose) or a
     virtual one (``virtual_view``, the head turning by the state's rotation); the image is
-    ``FaceRenderer.render(vertices, state.q, camera)``.
+    ``FaceRenderer.render(vertices, state.q, camera, state.shade)``.
 
     Args:
         model: the person model.
@@ -79,7 +80,7 @@ class StateRenderer:
         else:
             camera = virtual_view(self.view, self.model.mesh, state.rotation, self.width,
                                   self.height)
-        image = self._renderer.render(vertices, state.q, camera)
+        image = self._renderer.render(vertices, state.q, camera, state.shade)
         self.render_seconds.append(time.perf_counter() - tick)
         return image
 

@@ -8,6 +8,7 @@ What goes in (``protocol.packet.QUANTISERS`` fixes the ranges and steps):
 - residuals: the (9, 2) tangent-frame residuals (u, v), mm (``Rig.to_tangent`` of the
   model-space displacements, which the pipeline computes once);
 - q: the 8 region values (neutral 0 until the appearance work lands);
+- shade: the light's log-gain field (``sender.shading``; zeros: the model's own light);
 - flags and the 16-bit sequence number.
 
 Clamping: a value outside its quantiser's range is clamped and the packet carries
@@ -29,6 +30,7 @@ from facewire.models.rig import Rig
 from facewire.protocol.packet import (
     N_REGIONS,
     N_RESIDUAL_POINTS,
+    N_SHADE,
     SEQ_MODULO,
     Flag,
     Frame,
@@ -47,7 +49,8 @@ class Packed:
 
 
 def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
-         q: np.ndarray | None = None, serial: int = 0) -> Packed:
+         q: np.ndarray | None = None, serial: int = 0,
+         shade: np.ndarray | None = None) -> Packed:
     """Quantise and encode one frame.
 
     Args:
@@ -58,6 +61,7 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
             (``Rig.to_tangent``).
         q: (8,) region values, layers; None for neutral (all 0).
         serial: the model version ``q`` refers to (0: the model file; ``sender.learn``).
+        shade: (3,) the light's log-gain field (s0, s1, s2); None for the model's own light.
 
     Returns:
         The frame (its ``flags`` include CLAMPED when set), the 43-byte packet and the
@@ -73,7 +77,9 @@ def pack(seq: int, flags: Flag, pose: Pose, residuals: np.ndarray,
     frame = Frame(seq=int(seq) % SEQ_MODULO, flags=Flag(int(flags)),
                   rotation=rotation_vector(pose.rotation).astype(np.float32),
                   translation=np.asarray(pose.translation, np.float32).copy(),
-                  residuals=uv.copy(), q=q, serial=int(serial))
+                  residuals=uv.copy(), q=q, serial=int(serial),
+                  shade=np.zeros(N_SHADE, np.float32) if shade is None
+                  else np.asarray(shade, np.float32).reshape(N_SHADE).copy())
     packets, clamped = encode_frames(frame.to_record().reshape(1))
     if clamped[0]:
         frame.flags |= Flag.CLAMPED

@@ -27,17 +27,21 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    a model update (a new state of that region), applied at once to the pipeline's model,
    classifier and eye gate, kept in ``updates`` for the transport and the log; ``serial``
    is the model version the packets' Q refer to.
-8. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes, its ``serial`` the
+8. ``shade``: ``sender.shading.ShadingEstimator`` -> the light's log-gain field relative to
+   the model's texture, fitted on plain skin of the grey frame at the sent pose and
+   residuals, smoothed over time.
+9. ``pack``: ``sender.pack.pack`` -> the ``Frame`` and its 43 bytes, its ``serial`` the
    pipeline's.
 
 No face, or no acceptable pose for the face the tracker saw: the residual filter runs its
 face-loss branch (decay, ``TRACKING_LOST``), the pose filter restarts, and the packet carries
-the last sent pose (the protocol's default frontal pose at 600 mm before any) and the last
-Q values (0 before any). When the tracker saw a face but the pose was rejected,
-``FACE_PRESENT`` is still set (the flag follows the tracker) together with ``TRACKING_LOST``.
-A face the tracker acquired on a frame that followed another one (a switch to a larger face,
-or the tracked face lost and another found in the same frame: ``TrackResult.acquired``) is a
-new face: the pose is fitted from scratch, the pose filter restarts and the packet is
+the last sent pose (the protocol's default frontal pose at 600 mm before any), the last
+Q values (0 before any) and the last light (zeros before any). When the tracker saw a face
+but the pose was rejected, ``FACE_PRESENT`` is still set (the flag follows the tracker)
+together with ``TRACKING_LOST``. A face the tracker acquired on a frame that followed another
+one (a switch to a larger face, or the tracked face lost and another found in the same frame:
+``TrackResult.acquired``) is a new face: the pose is fitted from scratch, the pose filter
+restarts, the light's smoothing starts again from that face's first fit, and the packet is
 ``REACQUIRED`` (``ResidualFilter.restart``), as after a loss.
 
 Hello: the model's sha256 and size, the rate, the camera (the ``models.geometry.Intrinsics``
@@ -88,6 +92,7 @@ from facewire.sender.learn import Learner, can_learn
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
 from facewire.sender.pose import PoseFilter, PoseSolver
+from facewire.sender.shading import ShadingEstimator
 from facewire.sender.tracker import LandmarkTracker
 
 
@@ -111,7 +116,7 @@ class SenderOutput:
         samples: (R, 5, 16, 16) float32 the regions' samples that were classified, or None
             with ``offsets``.
         timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
-            ``classify``, ``learn``, ``pack``.
+            ``classify``, ``learn``, ``shade``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
         clamped: values clamped by the quantisers on this frame.
         grazing: non-rigid points whose lift was capped at a grazing angle.
@@ -181,6 +186,7 @@ class SenderPipeline:
         self.eye_gate = EyeGate(regions, landmarks)
         self.learner = Learner(model, camera, self.rig, self.classifiers) \
             if learn and self.classifiers is not None and can_learn(model) else None
+        self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()
 
     @property
@@ -207,6 +213,7 @@ class SenderPipeline:
         self.tracker.reset()
         self.pose_filter.reset()
         self.residual_filter.reset()
+        self.shading.reset()
         self._raw: Pose | None = None
         self._expression: np.ndarray | None = None  # the last raw lift's residuals
         default = Frame()
@@ -217,7 +224,7 @@ class SenderPipeline:
         self._q_serial = self.serial  # the model version self._q refers to
 
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
-        """Process one frame: the module docstring's eight stages, each timed.
+        """Process one frame: the module docstring's nine stages, each timed.
 
         Args:
             image: (H, W, 3) uint8 BGR frame.
@@ -263,8 +270,11 @@ class SenderPipeline:
             if update is not None:
                 self._learned(update)
         t7 = clock()
-        packed = self._pack(flags, tangent)
+        if pose is not None:
+            self.shading.estimate(gray, pose.rotation, pose.translation, residuals, dt)
         t8 = clock()
+        packed = self._pack(flags, tangent)
+        t9 = clock()
         return SenderOutput(
             frame=packed.frame, packet=packed.packet,
             points=None if points is None else np.asarray(points, np.float64).reshape(
@@ -274,7 +284,7 @@ class SenderPipeline:
             residuals=residuals, q=self._q.copy(), offsets=offsets, samples=samples,
             timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
                      "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
-                     "learn": t7 - t6, "pack": t8 - t7},
+                     "learn": t7 - t6, "shade": t8 - t7, "pack": t9 - t8},
             detected=bool(tracked.detected), clamped=packed.clamped,
             grazing=0 if lifted is None else int(lifted.grazing.sum()), update=update)
 
@@ -311,6 +321,7 @@ class SenderPipeline:
             self._raw = self._expression = None
             self.pose_filter.reset()
             self.residual_filter.restart()
+            self.shading.restart()
         if points is not None:
             raw, lifted = pose_and_lift(self.solver, self.lifter, self.rig, points, self._raw,
                                         self._expression)
@@ -346,12 +357,13 @@ class SenderPipeline:
         return tangent, residuals, flags
 
     def _pack(self, flags: Flag, tangent: np.ndarray) -> Packed:
-        """Stage 8: the packet of the last sent pose and Q (with the model version that Q
-        refers to: a frame that issued an update was classified before it), and the next
+        """Stage 9: the packet of the last sent pose, Q (with the model version that Q refers
+        to: a frame that issued an update was classified before it) and light, and the next
         sequence number."""
         q = np.zeros(N_REGIONS, np.float32)
         q[:len(self._q)] = self._q
-        packed = pack(self._seq, flags, self._sent, tangent, q, self._q_serial)
+        packed = pack(self._seq, flags, self._sent, tangent, q, self._q_serial,
+                      self.shading.sent)
         self._seq = (self._seq + 1) % (1 << 16)
         return packed
 

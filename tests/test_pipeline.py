@@ -71,7 +71,7 @@ def test_decoded_geometry_matches_the_senders(generic_model: Path, video: Path) 
     for f in read_frames(video, frame_range("0:40")):
         out = pipeline.process(f.image, f.time)
         assert set(out.timings) == {"track", "pose", "lift", "heuristics", "sample",
-                                    "classify", "learn", "pack"}
+                                    "classify", "learn", "shade", "pack"}
         frame, pose, residuals = unpack_geometry(pipeline.rig, out.packet)
         assert out.q.shape == (0,) and not frame.q.any()  # no regions: Q slots stay 0
         assert frame.seq == f.index

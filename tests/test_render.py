@@ -21,6 +21,7 @@ from facewire.models.manifest import ModelInfo
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
+from facewire.models.shading import log_gain
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.receiver.render import FaceRenderer
 from facewire.receiver.views import head_centre, sender_view, virtual_view
@@ -311,6 +312,44 @@ def test_a_closed_eyelid_covers_the_lid_skin_too(textured: np.ndarray) -> None:
     assert (np.abs(opened[y, x].astype(int) - closed) > 10).any(axis=1).all()
 
 
+def test_the_light_multiplies_texture_and_layers_alike() -> None:
+    """A shade makes one half of the plane darker and the other brighter, by exactly the gain
+    ``models.shading`` gives at each pixel's model (x, y), over the texture and a region's
+    layer alike; zeros render exactly what no shade renders; the gain is clipped far away."""
+    model = _plane_model([_plane_region("patch", [(150, 60, 30)], (1.0,))])
+    camera = _plane_camera()
+    q = np.zeros(1, np.float32)
+    shade = np.array([0.1, 0.6, -0.3], np.float32)
+    with FaceRenderer(model, 480, 480, samples=0) as renderer:
+        plain = renderer.render(model.mesh.vertices, q, camera)
+        assert np.array_equal(renderer.render(model.mesh.vertices, q, camera,
+                                              np.zeros(3, np.float32)), plain)
+        lit = renderer.render(model.mesh.vertices, q, camera, shade)
+        steep = renderer.render(model.mesh.vertices, q, camera,
+                                np.array([-0.9, 0.0, -0.98], np.float32))
+    # The plane's pixels (40 px margin) and their model (x, y): 4 px per mm, centred.
+    rows, cols = np.mgrid[40:440, 40:440]
+    xy = np.column_stack([(cols.ravel() - 239.5) / PLANE_PX_PER_MM,
+                          -(rows.ravel() - 239.5) / PLANE_PX_PER_MM])
+    gain = np.exp(log_gain(shade, xy)).reshape(400, 400, 1)
+    before = plain[40:440, 40:440].astype(np.float64)
+    after = lit[40:440, 40:440].astype(np.float64)
+    error = np.abs(after - before * gain)
+    assert error.max() <= 1.5 and error.mean() < 0.3  # rounding to 8 bits, half-float layers
+    left, right = after[:, :200].mean() / before[:, :200].mean(), \
+        after[:, 200:].mean() / before[:, 200:].mean()
+    assert left < 0.97 < 1.2 < right  # s1 > 0: the person's left (+x, image right) brighter
+    patch = (slice(215, 265), slice(215, 265))  # inside the layer, past its ramp
+    assert (plain[patch] == [150, 60, 30]).all()
+    assert np.abs(lit[patch] - plain[patch] * gain[175:225, 175:225]).max() <= 1.5
+    # -0.9 - 0.98 y / 100 mm: clipped at e^-1 above y = 10.2 mm (the top edge would be at
+    # e^-1.38), e^-0.42 at the bottom edge (y = -48.9 mm)
+    top, bottom = steep[45, 100:380].mean() / BASE_GREY, steep[435, 100:380].mean() / BASE_GREY
+    assert top == pytest.approx(np.exp(-1.0), abs=0.01)
+    assert (steep[45:130, 100:380] == steep[45, 100]).all()  # flat where clipped
+    assert bottom == pytest.approx(np.exp(-0.9 + 0.98 * 48.9 / 100), abs=0.01)
+
+
 def test_bad_inputs_raise_value_errors() -> None:
     model = _plane_model([_plane_region("patch", [(200, 200, 200)] * 3, (1.0,) * 3)])
     vertices = model.mesh.vertices
@@ -329,6 +368,10 @@ def test_bad_inputs_raise_value_errors() -> None:
             renderer.render(vertices, np.zeros(5, np.float32), camera)
         with pytest.raises(RenderError, match="q"):
             renderer.render(vertices, np.array([np.inf], np.float32), camera)
+        with pytest.raises(RenderError, match="shade"):
+            renderer.render(vertices, q, camera, np.array([0.0, np.nan, 0.0], np.float32))
+        with pytest.raises(RenderError, match="shade"):
+            renderer.render(vertices, q, camera, np.zeros(2, np.float32))
         small = Camera(Intrinsics(400.0, 400.0, 159.5, 119.5, 320, 240),
                        Pose(np.eye(3), np.array([0.0, 0.0, -200.0])))
         with pytest.raises(RenderError, match="camera"):

@@ -149,15 +149,19 @@ def orbit_pose(yaw_deg: float, pitch_deg: float, distance_mm: float,
     return Pose(rotation, -rotation @ centre)
 
 
+# v_model: the fragment's model-space (x, y), mm, for a light field over model space
+# (``receiver.render``; a fragment shader that does not read it ignores it).
 VERTEX_TEXTURED = """
 #version 330
 uniform mat4 mvp;
 in vec3 in_position;
 in vec2 in_uv;
 out vec2 v_uv;
+out vec2 v_model;
 void main() {
     gl_Position = mvp * vec4(in_position, 1.0);
     v_uv = in_uv;
+    v_model = in_position.xy;
 }
 """
 
