@@ -68,11 +68,11 @@ from facewire.models.fields import (
     check_region_name,
 )
 from facewire.models.modelfile import Area, ModelError, PersonModel, Region
+from facewire.protocol.control import MAX_UPDATE_BYTES
+from facewire.protocol.packet import MAX_SERIAL
 
 MAX_LEARNED_LAYERS = 8
-MAX_SERIAL = 2047
 FORMAT = 1
-MAX_UPDATE_BYTES = 1024 * 1024
 _KEYS = {"format", "base_sha256", "serial", "region", "position", "replaces", "opacity",
          "template", "areas"}
 

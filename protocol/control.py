@@ -63,7 +63,7 @@ CHUNK_BYTES = 256 * 1024
 MAX_MESSAGE_BYTES = CHUNK_BYTES + 4096
 MAX_MODEL_BYTES = 256 * 1024 * 1024
 UPDATE_CHUNK_BYTES = 1024
-MAX_UPDATE_BYTES = 1024 * 1024  # models.update.MAX_UPDATE_BYTES: an update's bytes
+MAX_UPDATE_BYTES = 1024 * 1024  # an update's bytes, on the wire, in a log, in a model
 MAX_TEXT_CHARS = 1000
 # The camera's bounds, the one set (models.geometry.Intrinsics takes them from here).
 MAX_FOCAL_PX = 1e6

@@ -63,7 +63,13 @@ from types import TracebackType
 
 import numpy as np
 
-from facewire.protocol.control import ControlError, Hello, decode_message, encode_message
+from facewire.protocol.control import (
+    MAX_UPDATE_BYTES,
+    ControlError,
+    Hello,
+    decode_message,
+    encode_message,
+)
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import (
     MAX_SERIAL,
@@ -78,7 +84,6 @@ FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)
 MAX_HELLO_BYTES = 64 * 1024
 MAX_LOG_BYTES = 2 * 1024**3
-MAX_UPDATE_BYTES = 1024 * 1024  # models.update.MAX_UPDATE_BYTES
 UPDATE_TAG = ord("U")
 _HEAD = struct.Struct(">8sHHI")
 _TIME = struct.Struct(">d")

@@ -182,6 +182,7 @@ class Learner:
         self.rig = rig
         self.serial = 0
         self.updates: list[ModelUpdate] = []
+        self.update_bytes: dict[int, bytes] = {}  # serial -> the update's bytes
         self.base_sha256 = model.sha256
         self.names = REGION_NAMES
         self.bound = np.array([_bound(c.cross) for c in classifiers.regions])
@@ -267,8 +268,9 @@ class Learner:
             return None
         before = self.model
         update = self._capture(r, chosen)
+        data = self.update_bytes[update.serial] = encode_update(update, before)
         self._learned_at[r] = time_s
-        self._quiet_until = time_s + 8 * len(encode_update(update, before)) / UPDATE_BPS
+        self._quiet_until = time_s + 8 * len(data) / UPDATE_BPS
         self._run[r] = 0
         self._held[r].clear()
         return update

@@ -122,6 +122,8 @@ class SenderOutput:
         grazing: non-rigid points whose lift was capped at a grazing angle.
         update: the model update learned on this frame (``sender.learn``), or None; the
             frame's own Q came from the model before it.
+        update_bytes: that update's bytes, encoded against the model version before it
+            (``models.update.encode_update``), or None.
     """
 
     frame: Frame
@@ -138,6 +140,7 @@ class SenderOutput:
     clamped: int = 0
     grazing: int = 0
     update: ModelUpdate | None = None
+    update_bytes: bytes | None = None
 
 
 class SenderPipeline:
@@ -286,7 +289,9 @@ class SenderPipeline:
                      "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
                      "learn": t7 - t6, "shade": t8 - t7, "pack": t9 - t8},
             detected=bool(tracked.detected), clamped=packed.clamped,
-            grazing=0 if lifted is None else int(lifted.grazing.sum()), update=update)
+            grazing=0 if lifted is None else int(lifted.grazing.sum()), update=update,
+            update_bytes=None if update is None or self.learner is None
+            else self.learner.update_bytes[update.serial])
 
     def _learned(self, update: ModelUpdate) -> None:
         """Take the learner's new model: its region's templates into the classifier, its
@@ -396,7 +401,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
                  progress: Progress = no_progress, learn: bool = True) -> dict[str, Any]:
-    """Run the sender pipeline over a video (or folder of images) into a packet log.
+    """Run the sender pipeline over a video (or folder of images) into a packet log, with
+    each model update it learns after the packet of the frame that learned it.
 
     Args:
         model_path: the person model (``.fwm``).
@@ -461,6 +467,8 @@ def _encode_frames(src: Any, pipeline: SenderPipeline, log: LogWriter, counts: d
     for frame in progress(iter(src), "encoding", src.frames or None):
         out = pipeline.process(frame.image, frame.time)
         log.write(out.packet, frame.time)
+        if out.update is not None and out.update_bytes is not None:  # after the frame's packet
+            log.write_update(frame.time, out.update.serial, out.update_bytes)
         flags = out.frame.flags
         counts["frames"] += 1
         counts["packets"] += 1

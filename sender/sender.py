@@ -12,8 +12,8 @@ Threads. Capture, processing and output do not stall each other:
   it to a packet log (``protocol.log``; each record stamped with the time it was published:
   the Unix time at the start plus the monotonic clock since, so that a wall-clock change
   during a recording cannot make the log's times step back or jump); a model update the
-  pipeline learned on the frame (``sender.learn``) is encoded against the version it applies
-  to (``models.update.encode_update``), handed to the control thread
+  pipeline learned on the frame (``sender.learn``), in its bytes (encoded by the learner
+  against the version it applies to), is handed to the control thread
   (``UpdateStore.publish_update``) and logged, after the frame's packet, which still names
   the version before it;
 - the control thread answers receivers' requests (below).
@@ -76,7 +76,6 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import ModelFileError, load_model
-from facewire.models.update import encode_update
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
@@ -305,9 +304,8 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             store: UpdateStore) -> tuple[dict[str, Any], str]:
     """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
     the first frame waits until it is set (or ``stop`` is). An update the pipeline learns on
-    a frame is encoded against the version it applies to, published to the receivers
-    (``store``) and logged, after that frame's packet (which still names the version
-    before it)."""
+    a frame is published to the receivers (``store``) in its bytes and logged, after that
+    frame's packet (which still names the version before it)."""
     counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0,
                               "updates": 0}
     start = cpu = None
@@ -323,16 +321,15 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             if stop.is_set():
                 stopped = "stop"
                 break
-            before = pipeline.model
             out = pipeline.process(image, t)
             publisher.send(out.packet)
             if log is not None:
                 log.write(out.packet, epoch + time.monotonic())
-            if out.update is not None:
-                data = encode_update(out.update, before)
-                store.publish_update(out.update.serial, data)
+            if out.update is not None and out.update_bytes is not None:
+                store.publish_update(out.update.serial, out.update_bytes)
                 if log is not None:
-                    log.write_update(epoch + time.monotonic(), out.update.serial, data)
+                    log.write_update(epoch + time.monotonic(), out.update.serial,
+                                     out.update_bytes)
             now = time.monotonic()
             if start is None:
                 start, cpu, window = now, time.process_time(), (now, 1)

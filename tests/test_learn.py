@@ -18,6 +18,7 @@ from facewire.cli import build_parser
 from facewire.models.infra.video import read_frames, video_info
 from facewire.models.modelfile import PersonModel, load_model, save_model
 from facewire.models.update import MAX_LEARNED_LAYERS, decode_update, encode_update
+from facewire.protocol.log import read_log
 from facewire.protocol.packet import decode
 from facewire.sender.learn import HOLD_FRAMES
 from facewire.sender.pipeline import SenderPipeline, encode_video, sender_camera
@@ -125,3 +126,18 @@ def test_no_learn_issues_nothing(closed_mouth: Path, shared_data: Path, tmp_path
                     ["encode", "--model", "m.fwm", "--source", "v.mp4", "-o", "l.fwlog"]):
         assert parser.parse_args(command).no_learn is False  # learning is the default
         assert parser.parse_args([*command, "--no-learn"]).no_learn is True
+
+
+def test_encode_logs_each_update_after_the_packet_of_its_frame(
+        closed_mouth: Path, shared_data: Path, tmp_path: Path) -> None:
+    video = shared_data / "video" / "lp_d0.mp4"
+    summary = encode_video(closed_mouth, video, tmp_path / "on.fwlog", slice(0, 40))
+    assert summary["updates"] == 1 and summary["update_regions"] == ["mouth"]
+    log = read_log(tmp_path / "on.fwlog")
+    assert [u.serial for u in log.updates] == [1] and not log.missing_serials
+    record = log.updates[0]
+    serials = log.frames["serial"]
+    assert set(serials[:record.before]) == {0} and set(serials[record.before:]) == {1}
+    base = load_model(closed_mouth)
+    update = decode_update(record.data, base, base.sha256)
+    assert update.region == "mouth" and update.serial == 1

@@ -16,7 +16,6 @@ from facewire.cli import main
 from facewire.models import update as model_update
 from facewire.models.modelfile import load_model
 from facewire.models.update import apply_update, encode_update
-from facewire.protocol import log as fwlog
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
@@ -173,11 +172,6 @@ def test_writer_refuses_a_bad_update(tmp_path: Path, session) -> None:
         data[8:10] = struct.pack(">H", 3)
         (tmp_path / "w.fwlog").write_bytes(bytes(data))
         read_log(tmp_path / "w.fwlog")
-
-
-def test_the_logs_bounds_are_the_updates() -> None:
-    assert fwlog.MAX_SERIAL == model_update.MAX_SERIAL
-    assert fwlog.MAX_UPDATE_BYTES == model_update.MAX_UPDATE_BYTES
 
 
 def test_inspect_lists_the_updates(tmp_path: Path, session,
