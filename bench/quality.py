@@ -34,7 +34,9 @@ decoded, and measured in the same boxes:
 ``h264_face_ssim_mean``, ``h264_face_psnr_mean``. ``met.face_ssim_above_h264`` says whether
 our face SSIM beats x264's (issue 6's target).
 
-Model updates. A sender that learns during the session (``sender.learn``) classifies later
+Model updates. The sender scores the model file as built unless ``learn`` (``--learn``) is
+given: the fidelity of an enrollment is the model's, and the tables of §8 compare models.
+A sender that learns during the session (``sender.learn``) classifies later
 frames against newer model versions and says which in each packet (``serial``). Every
 frame is rendered with the version its packet names, the one the sender classified it with
 (``bench.encoding``'s ``Run.versions``), as a receiver that holds the session's updates
@@ -191,7 +193,7 @@ def check_overlap(model: PersonModel, source: str | os.PathLike[str], frames: sl
 def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                     frames: slice | None = None, progress: Progress = no_progress,
                     reference: str | os.PathLike[str] | None = None,
-                    allow_overlap: bool = False) -> dict[str, Any]:
+                    allow_overlap: bool = False, learn: bool = False) -> dict[str, Any]:
     """Encode a video with the sender pipeline, decode the packets, measure geometry NME.
 
     Args:
@@ -201,6 +203,8 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         reference: an OpenFace CSV of the same video, for ``q_reference``.
         allow_overlap: score frames the model was built from (``check_overlap``).
+        learn: let the sender learn during the session (``sender.learn``), as ``send`` and
+            ``encode`` do by default; off, the model file is scored as it was built.
 
     Returns:
         A dict: ``frames``, ``face_frames``, ``tracked_frames``, ``pose_lost_frames``,
@@ -226,21 +230,21 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
             ``allow_overlap`` is False.
     """
     return _measure(model_path, source, frames, progress, reference,
-                    allow_overlap=allow_overlap)[0]
+                    allow_overlap=allow_overlap, learn=learn)[0]
 
 
 def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
              frames: slice | None, progress: Progress,
              reference: str | os.PathLike[str] | None = None, keep_eyes: bool = False,
-             allow_overlap: bool = False) -> tuple[dict[str, Any], _Series]:
+             allow_overlap: bool = False, learn: bool = False
+             ) -> tuple[dict[str, Any], _Series]:
     frames = slice(0, None) if frames is None else frames
     openface = None if reference is None else read_openface(reference)
     model = load_model(model_path)
     overlap = check_overlap(model, source, frames, allow_overlap)
     src = open_source(str(source), pace=False, frames=frames)
-    # the model file's own packets: the rendering here does not yet follow learned updates
     pipeline = SenderPipeline(model, sender_camera(src.width, src.height),
-                              rate_hz=stream_rate(src.rate_hz), learn=False)
+                              rate_hz=stream_rate(src.rate_hz), learn=learn)
     camera = pipeline.hello().camera
     with src:
         run = encode_frames(pipeline, src, progress, src.frames or None, keep_eyes)
@@ -528,12 +532,13 @@ def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:
 def quality(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
             frames: slice | None = None, plot: str | os.PathLike[str] | None = None,
             progress: Progress = no_progress,
-            reference: str | os.PathLike[str] | None = None, allow_overlap: bool = False
-            ) -> tuple[dict[str, Any], list[str]]:
+            reference: str | os.PathLike[str] | None = None, allow_overlap: bool = False,
+            learn: bool = False) -> tuple[dict[str, Any], list[str]]:
     """Run ``measure_quality``, optionally plot: the result and the report's lines (targets
     inform; a miss is no failure: see the module docstring)."""
     result, series = _measure(model_path, source, frames, progress, reference,
-                              keep_eyes=plot is not None, allow_overlap=allow_overlap)
+                              keep_eyes=plot is not None, allow_overlap=allow_overlap,
+                              learn=learn)
     lines = format_quality(result).splitlines()
     if plot is not None:
         lines += _plots(series, result, Path(plot))

@@ -528,7 +528,7 @@ def _bench_quality(args: argparse.Namespace) -> int:
 
     report(*quality(args.model, args.source, frames=_frames(args.frames), plot=args.plot,
                     progress=_progress, reference=args.reference,
-                    allow_overlap=args.allow_overlap), args.json)
+                    allow_overlap=args.allow_overlap, learn=args.learn), args.json)
     return 0
 
 
@@ -731,6 +731,9 @@ def _add_bench(sub: Commands) -> None:
     bq.add_argument("--allow-overlap", action="store_true",
                     help="score frames the model was built from (refused by default; the "
                     "report then says how many)")
+    bq.add_argument("--learn", action="store_true",
+                    help="let the sender learn unseen appearance during the run, as send and "
+                    "encode do (off: the model file is scored as it was built)")
     _add_json(bq)
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
     bq.set_defaults(run=_bench_quality)

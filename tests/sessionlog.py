@@ -1,16 +1,23 @@
-"""Real model updates for the tests: a state made from a real model's own layers.
+"""Real model updates for the tests: states made from a real model's own layers.
 
 ``learned_update`` makes, for one region of a real model (the conftest's ``person_model``),
 a new last state whose layers are the region's rest state with its colours inverted (on
 every area), so that a rendering that shows it is plainly not one that does not; its
 template is the rest state's. ``write_session`` writes a log of a session on a real model
-that learns one such state. Shared by ``tests/test_log_updates.py``,
-``tests/test_replay_updates.py``, ``tests/test_learned.py`` and
-``tests/test_quality_updates.py``.
+that learns one such state.
+
+``blend_update`` is the state halfway between a region's last two states (each area's layers
+and the template averaged), inserted between them, with the opacity of the later one: an
+appearance the enrollment did not hold but that lies where the capture of an in-between
+expression would put it; ``session_updates`` chains such updates over several regions, each
+made against the version before it, and encodes them as a sender would issue them.
+``mouth_states`` cuts a model's mouth to copies of its least open state (a model that never
+saw the mouth open, for the learning to teach).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import NamedTuple
 
@@ -76,3 +83,47 @@ def write_session(model_file: Path, path: Path) -> Session:
                 log.write_update(100.0 + i / 30, 1, data)
             log.write(packet.tobytes(), 100.0 + i / 30)
     return Session(path, model_file, base, apply_update(base, update), data)
+
+
+REGIONS = ("mouth", "forehead", "brow_furrow", "eyeball_left")
+
+
+def blend_update(model: PersonModel, base_sha256: str, region: str, serial: int
+                 ) -> ModelUpdate:
+    """The halfway state between ``region``'s last two states, inserted between them."""
+    r = next(r for r in model.regions if r.name == region)
+    k = r.layers.shape[0]
+    layers = tuple(((p.layers[k - 2].astype(np.uint16) + p.layers[k - 1]) // 2).astype(np.uint8)
+                   for p in r.parts())
+    template = ((r.templates[k - 2] + r.templates[k - 1]) / 2).astype(np.float32)
+    return ModelUpdate(base_sha256=base_sha256, serial=serial, region=region,
+                       position=k - 1, replaces=None, layers=layers, template=template,
+                       opacity=r.opacity[k - 1])
+
+
+def session_updates(model: PersonModel, count: int, regions: tuple[str, ...] = REGIONS
+                    ) -> tuple[list[bytes], list[PersonModel]]:
+    """``count`` updates (serials 1 .. count, regions in turn) of the session of ``model``
+    (a model file: its ``sha256``): their bytes, and the versions 0 .. count."""
+    versions, data = [model], []
+    for serial in range(1, count + 1):
+        update = blend_update(versions[-1], model.sha256, regions[(serial - 1) % len(regions)],
+                              serial)
+        data.append(encode_update(update, versions[-1]))
+        versions.append(apply_update(versions[-1], update))
+    return data, versions
+
+
+def mouth_states(model: PersonModel, count: int) -> PersonModel:
+    """The model with its mouth region's least open state only (its first), repeated
+    ``count`` times, made the rest state."""
+    regions = list(model.regions)
+    m = [r.name for r in regions].index("mouth")
+    old = regions[m]
+    rest = 0
+    pick = [rest] * count
+    regions[m] = dataclasses.replace(
+        old, layers=old.layers[pick], templates=old.templates[pick],
+        opacity=tuple(old.opacity[rest] for _ in pick), rest=0.0,
+        areas=tuple(dataclasses.replace(a, layers=a.layers[pick]) for a in old.areas))
+    return dataclasses.replace(model, regions=tuple(regions))

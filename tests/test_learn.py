@@ -8,15 +8,15 @@ model has never seen. The full lp_d0 model on its own enrollment frames sees not
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
+from sessionlog import mouth_states
 
 from facewire.cli import build_parser
 from facewire.models.infra.video import read_frames, video_info
-from facewire.models.modelfile import PersonModel, load_model, save_model
+from facewire.models.modelfile import load_model, save_model
 from facewire.models.update import MAX_LEARNED_LAYERS, decode_update, encode_update
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import decode
@@ -26,25 +26,10 @@ from facewire.sender.pipeline import SenderPipeline, encode_video, sender_camera
 OPENS = 17  # lp_d0's first frame with the mouth open (inner-lip gap over 0.05)
 
 
-def _mouth_states(model: PersonModel, count: int) -> PersonModel:
-    """The model with its mouth region's least open state only (its first), repeated
-    ``count`` times, made the rest state."""
-    regions = list(model.regions)
-    m = [r.name for r in regions].index("mouth")
-    old = regions[m]
-    rest = 0
-    pick = [rest] * count
-    regions[m] = dataclasses.replace(
-        old, layers=old.layers[pick], templates=old.templates[pick],
-        opacity=tuple(old.opacity[rest] for _ in pick), rest=0.0,
-        areas=tuple(dataclasses.replace(a, layers=a.layers[pick]) for a in old.areas))
-    return dataclasses.replace(model, regions=tuple(regions))
-
-
 @pytest.fixture(scope="module")
 def closed_mouth(person_model: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("learn") / "closed_mouth.fwm"
-    save_model(_mouth_states(load_model(person_model), 1), path)
+    save_model(mouth_states(load_model(person_model), 1), path)
     return path
 
 
@@ -106,7 +91,7 @@ def test_frames_like_the_enrollment_teach_nothing(person_model: Path, shared_dat
 def test_a_full_region_replaces_its_least_used_state_never_the_rest(
         person_model: Path, shared_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "full_mouth.fwm"
-    save_model(_mouth_states(load_model(person_model), MAX_LEARNED_LAYERS), path)
+    save_model(mouth_states(load_model(person_model), MAX_LEARNED_LAYERS), path)
     pipeline, issued, _, _ = _run(path, shared_data / "video" / "lp_d0.mp4", slice(0, 40))
     assert len(issued) == 1
     update = issued[0][1]

@@ -6,13 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from sessionlog import learned_update
+from sessionlog import learned_update, mouth_states
 
 from facewire.bench.encoding import decode_run, encode_frames
+from facewire.bench.quality import measure_quality
 from facewire.bench.rendering import render_scores
+from facewire.cli import build_parser
 from facewire.models.infra.progress import no_progress
 from facewire.models.infra.video import read_frames
-from facewire.models.modelfile import load_model
+from facewire.models.modelfile import load_model, save_model
 from facewire.models.update import apply_update
 from facewire.protocol.packet import Flag
 from facewire.sender.pipeline import SenderPipeline, sender_camera, wire_camera
@@ -48,3 +50,17 @@ def test_each_frame_is_rendered_with_the_version_its_serial_names(person_model: 
     assert (np.abs(after[AT].astype(int) - before[AT]).max(axis=2) > 40).sum() > 50
     for k in range(len(frames)):
         assert np.array_equal(shown[k], before[k] if k < AT else after[k]), k
+
+
+def test_bench_quality_with_learn_scores_the_session_its_updates_made(
+        person_model: Path, shared_data: Path, tmp_path: Path) -> None:
+    closed = tmp_path / "closed_mouth.fwm"
+    save_model(mouth_states(load_model(person_model), 1), closed)
+    video = shared_data / "video" / "lp_d0.mp4"
+    kept = measure_quality(closed, video, slice(0, 40), allow_overlap=True)
+    learned = measure_quality(closed, video, slice(0, 40), allow_overlap=True, learn=True)
+    assert kept["model_updates"] == []
+    assert [u["serial"] for u in learned["model_updates"]] == [1]
+    assert 17 < learned["model_updates"][0]["first_frame"] < 40  # after the mouth opened
+    assert build_parser().parse_args(["bench", "quality", "--model", "m", "--source", "v",
+                                      "--learn"]).learn is True

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_endpoint
-from learned import session_updates
+from sessionlog import session_updates
 
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.protocol.control import (

@@ -37,10 +37,9 @@ import msgpack
 import numpy as np
 import pytest
 from conftest import free_endpoint, start
-from learned import session_updates
 from logsender import encoded_log, free_port_pair
 from lossy import Faults, LossyRelay
-from test_learn import _mouth_states
+from sessionlog import mouth_states, session_updates
 from updatesender import UpdateSender
 
 from facewire.models.modelfile import load_model, save_model
@@ -339,7 +338,7 @@ def test_the_real_sender_learns_and_its_receiver_reaches_the_same_version(
     (as tests/test_learn.py does), on lp_d0's first frames (the mouth opens): what it learns
     goes to the receiver and into its log."""
     path = tmp_path / "closed.fwm"
-    save_model(_mouth_states(load_model(person_model), 1), path)
+    save_model(mouth_states(load_model(person_model), 1), path)
     store = UpdateStore(load_model(path).sha256)
     endpoint, log = free_endpoint(), tmp_path / "session.fwlog"
     ready, lines = threading.Event(), []
