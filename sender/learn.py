@@ -74,6 +74,16 @@ replaces its least used state (the fewest frames with that rounded Q this sessio
 rest state. An eyelid's state placed at or before its rest state (an eye open wider) is
 transparent, as enrollment makes the open states (``models.regions``).
 
+In the background (``background``, the live ``send``): a capture costs 170-220 ms on
+lp_d18's mouth (against 12 ms for a frame), two thirds of it finding the region's texels on
+the mesh the first time. So a worker thread finds every region's texels and every part's
+ring at session start, and fuses each capture's held frames; the frame that finds a fusion
+done places it and issues the update, so the frames in between are sent on time, and no
+other capture starts meanwhile; the held frames' occlusion (a few ms each, once the rings
+are found) is judged on the worker too. Without it (an ``encode``, the tests) all
+of it runs on the frame that made the capture due, so that a log's updates do not depend on
+the machine's speed.
+
 The update is applied to the learner's own model at once (``models.update.apply_update``),
 and the sender's classifier takes the new templates (``sender.pipeline``): the next frame
 is classified with them, and the next packets' Q refer to the new model version.
@@ -96,6 +106,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -156,6 +167,17 @@ class _Held:
     occluded: bool | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class _Fused:
+    """A capture's fused state: one (h, w, 3) uint8 layer per area, the (16, 16) template,
+    the median cue and the texels a frame pixel spans (``_block``)."""
+
+    layers: tuple[np.ndarray, ...]
+    template: np.ndarray
+    cue: float
+    block: int
+
+
 class Learner:
     """Notices unseen appearance and captures it as model updates (module docstring).
 
@@ -173,7 +195,7 @@ class Learner:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rig: Rig,
-                 classifiers: RegionClassifiers) -> None:
+                 classifiers: RegionClassifiers, background: bool = False) -> None:
         if not can_learn(model):
             raise ValueError("model: learning needs the model's file identity (sha256) and "
                              "the regions of models.regions.REGIONS, in that order")
@@ -207,6 +229,10 @@ class Learner:
         self._normals: np.ndarray | None = None
         self._areas: dict[str, list[AreaTexels]] = {}
         self._rings: dict[str, tuple[AreaTexels, np.ndarray]] = {}
+        self._worker = ThreadPoolExecutor(1, "learn") if background else None
+        self._pending: tuple[int, Future[_Fused | None]] | None = None
+        # the worker's search for every region's texels, at session start (None: inline)
+        self.prepared = None if self._worker is None else self._worker.submit(self._prepare)
 
     def observe(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
                 translation: np.ndarray, residuals: np.ndarray, samples: np.ndarray,
@@ -224,9 +250,15 @@ class Learner:
             time_s: the frame's time, s.
 
         Returns:
-            The update issued on this frame (already applied to ``model``), or None.
+            The update issued on this frame (already applied to ``model``), or None. In the
+            background, the capture a frame makes due is issued by a later frame.
         """
         self._frames += 1
+        issued = None
+        if self._pending is not None and self._pending[1].done():
+            r, fused = self._pending[0], self._pending[1].result()
+            self._pending = None
+            issued = None if fused is None else self._issue(r, fused, time_s)
         if self._frames % SHARPNESS_EVERY == 1:
             self._sharp.append(sharpness(image, points))
         novel = result.score > self.bound
@@ -243,8 +275,9 @@ class Learner:
             for i in np.flatnonzero(~novel & np.isfinite(cues)):
                 self._cue_sum[i][state[i]] += cues[i]
                 self._cue_count[i][state[i]] += 1
-        if not novel.any() or time_s < self._quiet_until:  # nothing new, or no budget yet
-            return None
+        if issued is not None or self._pending is not None or not novel.any() \
+                or time_s < self._quiet_until:  # learning, nothing new, or no budget yet
+            return issued
         assert cues is not None
         clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
         if clean and self._sharp:
@@ -263,44 +296,63 @@ class Learner:
         if not due:
             return None
         r = max(due, key=lambda i: result.score[i] / self.bound[i])  # the most unlike
-        chosen = self._unoccluded(r)
-        if len(chosen) < CAPTURE_FRAMES:
+        if self.prepared is not None and not self.prepared.done():
+            return None  # the worker is still finding the texels on the mesh
+        held = list(self._held[r])
+        if self._worker is not None:  # judged and fused on the worker, issued on a later frame
+            self._pending = (r, self._worker.submit(self._capture, r, held))
             return None
-        before = self.model
-        update = self._capture(r, chosen)
-        data = self.update_bytes[update.serial] = encode_update(update, before)
-        self._learned_at[r] = time_s
-        self._quiet_until = time_s + 8 * len(data) / UPDATE_BPS
-        self._run[r] = 0
-        self._held[r].clear()
-        return update
+        fused = self._capture(r, held)
+        return None if fused is None else self._issue(r, fused, time_s)
 
-    def _unoccluded(self, r: int) -> list[_Held]:
-        """The last ``CAPTURE_FRAMES`` held frames of region r whose part is not occluded
-        (each frame judged once), oldest first; fewer when there are not that many."""
-        chosen = []
-        for held in reversed(self._held[r]):
-            if held.occluded is None:
-                held.occluded = self._occluded(r, held)
-            if not held.occluded:
-                chosen.append(held)
+    def _capture(self, r: int, held: list[_Held]) -> _Fused | None:
+        """Region r's new state from the last ``CAPTURE_FRAMES`` of its held frames whose
+        part is not occluded (each frame judged once), oldest first; None when there are not
+        that many (the region's run goes on)."""
+        chosen: list[_Held] = []
+        for frame in reversed(held):
+            if frame.occluded is None:
+                frame.occluded = self._occluded(r, frame)
+            if not frame.occluded:
+                chosen.append(frame)
             if len(chosen) == CAPTURE_FRAMES:
-                break
-        return chosen[::-1]
+                return self._fuse(r, chosen[::-1])
+        return None
+
+    def _prepare(self) -> None:
+        """Find every region's texels and every part's ring on the mesh (the first capture
+        of a region would otherwise do it)."""
+        for r, name in enumerate(self.names):
+            self._texels(r)
+            part = REGION_PARTS.get(name)
+            if part is not None:
+                self._ring(part)
 
     def _occluded(self, r: int, held: _Held) -> bool:
         """Whether region r's part of the face is occluded (``sender.clean``)."""
         part = REGION_PARTS.get(self.names[r])
         if part is None:
             return False
-        if part not in self._rings:
-            shape = self.model.texture.shape[:2]
-            rect, ring = ring_mask(self.model.mesh, part, shape)
-            self._rings[part] = (self._area(rect), ring)
-        area, ring = self._rings[part]
+        area, ring = self._ring(part)
         colour, seen, _, _ = area.read(self.camera, held.image, held.rotation, held.translation,
                                        held.residuals)
         return ring_occluded(colour, seen, self.model.texture[area.slices], ring)
+
+    def _ring(self, part: str) -> tuple[AreaTexels, np.ndarray]:
+        """A part's ring (``sender.clean.ring_mask``) as texels, found once."""
+        if part not in self._rings:
+            rect, ring = ring_mask(self.model.mesh, part, self.model.texture.shape[:2])
+            self._rings[part] = (self._area(rect), ring)
+        return self._rings[part]
+
+    def _texels(self, r: int) -> list[AreaTexels]:
+        """Region r's areas (the rectangles its layers cover) as texels, found once."""
+        name = self.names[r]
+        if name not in self._areas:
+            region = self.model.regions[r]
+            self._areas[name] = [self._area(rect) for rect in
+                                 (region.uv_rect, *(a.uv_rect for a in region.areas))]
+        return self._areas[name]
 
     def _area(self, rect: tuple[float, float, float, float]) -> AreaTexels:
         """An area's texels on the model's surface, found on the CPU (``sender.texels``)."""
@@ -310,15 +362,11 @@ class Learner:
         triangles, normals = area_surface(self.model.mesh, rect, shape, self._normals)
         return AreaTexels(self.model.mesh, self.rig, rect, shape, triangles, normals)
 
-    def _capture(self, r: int, held: list[_Held]) -> ModelUpdate:
-        """Region r's new state from its held frames, placed, made an update and applied
-        (module docstring)."""
+    def _fuse(self, r: int, held: list[_Held]) -> _Fused:
+        """Region r's new state from its held frames (module docstring, capture): the costly
+        part, which reads only what no update changes (the mesh, the base texture)."""
         name = self.names[r]
-        if name not in self._areas:  # the rectangles the model's layers cover
-            region = self.model.regions[r]
-            self._areas[name] = [self._area(rect) for rect in
-                                 (region.uv_rect, *(a.uv_rect for a in region.areas))]
-        areas = self._areas[name]
+        areas = self._texels(r)
         base = [self.model.texture[a.slices] for a in areas]
         reads = [[a.read(self.camera, h.image, h.rotation, h.translation, h.residuals)
                   for a in areas] for h in held]
@@ -327,7 +375,14 @@ class Learner:
         layers = tuple(np.median(np.stack(stack), axis=0).round().astype(np.uint8)
                        for stack in zip(*per_frame, strict=True))
         template = np.median(np.stack([h.sample for h in held]), axis=0).astype(np.float32)
-        cue = float(np.median([h.cue for h in held]))
+        return _Fused(layers, template, float(np.median([h.cue for h in held])), block)
+
+    def _issue(self, r: int, fused: _Fused, time_s: float) -> ModelUpdate:
+        """Region r's fused state placed, made the next update, applied and encoded (module
+        docstring, placing it)."""
+        self._run[r] = 0
+        self._held[r].clear()
+        name, layers, template, cue = self.names[r], fused.layers, fused.template, fused.cue
         region = self.model.regions[r]
         k = region.templates.shape[0]
         rest = round(region.rest)
@@ -348,8 +403,11 @@ class Learner:
                              region=name, position=position, replaces=replaces,
                              layers=layers, template=template, opacity=opacity)
         update = dataclasses.replace(update, layers=tuple(
-            _changed_only(layer, reference, block)
+            _changed_only(layer, reference, fused.block)
             for layer, reference in zip(layers, references(self.model, update), strict=True)))
+        data = self.update_bytes[update.serial] = encode_update(update, self.model)
+        self._learned_at[r] = time_s
+        self._quiet_until = time_s + 8 * len(data) / UPDATE_BPS
         self.model = apply_update(self.model, update)
         self.serial = update.serial
         self.updates.append(update)

@@ -154,6 +154,8 @@ class SenderPipeline:
             whose time does not advance).
         learn: learn unseen appearance during the session (``sender.learn``; only a model
             loaded from its file, with the regions of ``models.regions.REGIONS``, can).
+        background: capture learned states on a worker thread (a live stream: the frames
+            go on meanwhile), not on the frame that makes them due.
 
     Attributes:
         model: the model as learned so far (version ``serial``).
@@ -161,7 +163,7 @@ class SenderPipeline:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ,
-                 learn: bool = True) -> None:
+                 learn: bool = True, background: bool = False) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
@@ -187,7 +189,7 @@ class SenderPipeline:
             else None
         self._landmarks = landmarks
         self.eye_gate = EyeGate(regions, landmarks)
-        self.learner = Learner(model, camera, self.rig, self.classifiers) \
+        self.learner = Learner(model, camera, self.rig, self.classifiers, background) \
             if learn and self.classifiers is not None and can_learn(model) else None
         self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()

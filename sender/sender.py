@@ -252,7 +252,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         server = stack.enter_context(ControlServer(control_at, curve))
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
-                                  learn=learn)
+                                  learn=learn, background=True)
         hello = pipeline.hello()
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None

@@ -33,16 +33,21 @@ def closed_mouth(person_model: Path, tmp_path_factory: pytest.TempPathFactory) -
     return path
 
 
-def _run(model_path: Path, video: Path, frames: slice, learn: bool = True
+def _run(model_path: Path, video: Path, frames: slice, learn: bool = True,
+         background: bool = False, costs: list[float] | None = None
          ) -> tuple[SenderPipeline, list[tuple[int, object]], list[np.ndarray], list[int]]:
     """The pipeline over the frames: itself, the (frame, update) pairs it issued, its Q and
-    its packets' serials."""
+    its packets' serials; each frame's learning time appended to ``costs``."""
     info = video_info(video)
     pipeline = SenderPipeline(load_model(model_path), sender_camera(info.width, info.height),
-                              rate_hz=info.rate_hz, learn=learn)
+                              rate_hz=info.rate_hz, learn=learn, background=background)
+    if pipeline.learner is not None and pipeline.learner.prepared is not None:
+        pipeline.learner.prepared.result()  # a session whose start is over (seconds before)
     issued, qs, serials = [], [], []
     for frame in read_frames(video, frames):
         out = pipeline.process(frame.image, frame.time)
+        if costs is not None:
+            costs.append(out.timings["learn"])
         qs.append(out.q)
         serials.append(decode(out.packet).serial)
         if out.update is not None:
@@ -126,3 +131,18 @@ def test_encode_logs_each_update_after_the_packet_of_its_frame(
     base = load_model(closed_mouth)
     update = decode_update(record.data, base, base.sha256)
     assert update.region == "mouth" and update.serial == 1
+
+
+def test_in_the_background_the_frames_go_on_while_the_state_is_captured(
+        closed_mouth: Path, shared_data: Path) -> None:
+    video = shared_data / "video" / "lp_d0.mp4"
+    inline, background = [], []
+    _, [(at, update)], _, _ = _run(closed_mouth, video, slice(0, 40), costs=inline)
+    _, [(later, learned)], _, serials = _run(closed_mouth, video, slice(0, 60),
+                                             background=True, costs=background)
+    assert learned.region == "mouth" and later > at  # issued by a later frame
+    assert np.array_equal(learned.template, update.template)  # from the same held frames
+    assert set(serials[later + 1:]) == {1}
+    # no frame did it: the frames went on while the worker fused the held ones
+    assert max(background[at:later + 1]) < inline[at] / 5, (background[at:later + 1],
+                                                            inline[at])
