@@ -15,13 +15,15 @@ never queue behind it:
    ``control_errors`` and are asked again;
 2. the whole must hash to the sha256 its chunks name (``protocol.control.ChunkAssembler``),
    else it is refused (``updates_refused``) and fetched again;
-3. ``models.update.decode_update`` against the version it applies to (the receiver's model
+3. the session's versions (``models.update.ModelVersions``, the one holder of versions that
+   replay uses too) decode it against the version it applies to (the receiver's model
    n - 1; bounded sizes, shapes, finiteness, the region's layers, no decompression bomb),
    else refused with one line naming the field (``updates_refused``, ``stuck``). A refused
    update is fetched again after ``RETRY_S``, doubling with each refusal up to
    ``MAX_RETRY_S``; meanwhile the receiver stays at version n - 1 and says so (the renderer
    keeps rendering, its Q clamped to the layers it holds);
-4. ``models.update.apply_update`` makes version n, held until the render loop takes it.
+4. and apply it (``models.update.apply_update``): version n, held until the render loop
+   takes it.
 
 A sender that does not answer (a chunk timed out ``CHUNK_ATTEMPTS`` times) is asked again
 after ``RETRY_S``.
@@ -43,7 +45,7 @@ import threading
 from collections.abc import Callable
 
 from facewire.models.modelfile import PersonModel
-from facewire.models.update import UpdateError, apply_update, decode_update
+from facewire.models.update import ModelVersions, UpdateError
 from facewire.protocol.control import (
     MAX_UPDATE_BYTES,
     UPDATE_CHUNK_BYTES,
@@ -90,8 +92,8 @@ class UpdateFetcher:
         self.stuck = ""
         self.counts = dict.fromkeys(("updates", "update_bytes", "updates_refused",
                                      "update_chunks"), 0)
-        self._models: dict[int, PersonModel] = {0: model}  # versions not yet taken
-        self._latest = model
+        self._versions = ModelVersions(model)  # decodes, applies and holds them in order
+        self._taken = 0
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closing = threading.Event()
@@ -109,16 +111,13 @@ class UpdateFetcher:
 
     def take(self, serial: int) -> tuple[PersonModel, int] | None:
         """The newest version fetched that is at most ``serial``, and its serial, if it is
-        newer than the last one taken; None otherwise. Older versions are let go."""
+        newer than the last one taken; None otherwise."""
         with self._lock:
-            ready = [n for n in self._models if n <= serial]
-            if not ready:
+            best = min(serial, self._versions.held)
+            if best <= self._taken:
                 return None
-            best = max(ready)
-            model = self._models[best]
-            for n in ready:
-                del self._models[n]
-        return model, best
+            self._taken = best
+            return self._versions.model(best), best
 
     def close(self) -> None:
         self._closing.set()
@@ -152,12 +151,8 @@ class UpdateFetcher:
                 if not data:
                     raise UpdateError(f"update {serial}: its chunks do not hash to the "
                                       f"sha256 they name")
-                update = decode_update(data, self._latest, self.base_sha256,
-                                       where=f"update {serial}")
-                if update.serial != serial:
-                    raise UpdateError(f"update {serial}: serial: the bytes say "
-                                      f"{update.serial}")
-                model = apply_update(self._latest, update)
+                with self._lock:
+                    [update] = self._versions.add(serial, data, where=f"update {serial}")
             except UpdateError as exc:
                 self.counts["updates_refused"] += 1
                 failures += 1
@@ -168,10 +163,7 @@ class UpdateFetcher:
                 self._closing.wait(wait)
                 continue
             failures, self.stuck = 0, ""
-            with self._lock:
-                self._latest = model
-                self._models[serial] = model
-                self.fetched = serial
+            self.fetched = serial
             self.counts["updates"] += 1
             self.counts["update_bytes"] += len(data)
             self.say(f"model update {serial} fetched: {len(data)} bytes, region "
