@@ -178,15 +178,7 @@ class ModelChunk:
 
     def __post_init__(self) -> None:
         _require(bool(_HEX64.fullmatch(self.sha256)), "model_chunk.sha256: not 64 hex digits")
-        _require(0 < self.total <= MAX_MODEL_BYTES, "model_chunk.total: out of range")
-        _require(self.count == math.ceil(self.total / CHUNK_BYTES),
-                 "model_chunk.count: does not match total")
-        _require(0 <= self.index < self.count, "model_chunk.index: out of range")
-        want = min(CHUNK_BYTES, self.total - self.index * CHUNK_BYTES)
-        _require(len(self.data) == want, f"model_chunk.data: {len(self.data)} bytes, "
-                 f"expected {want}")
-        _require(hashlib.sha256(self.data).hexdigest() == self.data_sha256,
-                 "model_chunk.data_sha256: does not match the data")
+        _check_chunk(self, CHUNK_BYTES, MAX_MODEL_BYTES)
 
 
 @dataclass(frozen=True)
@@ -228,16 +220,20 @@ class UpdateChunk:
                      f"update_chunk.{name}: not 64 hex digits")
         _require(1 <= self.serial <= MAX_SERIAL,
                  f"update_chunk.serial: must be in [1, {MAX_SERIAL}]")
-        _require(0 < self.total <= MAX_UPDATE_BYTES,
-                 f"update_chunk.total: must be in [1, {MAX_UPDATE_BYTES}]")
-        _require(self.count == math.ceil(self.total / UPDATE_CHUNK_BYTES),
-                 "update_chunk.count: does not match total")
-        _require(0 <= self.index < self.count, "update_chunk.index: out of range")
-        want = min(UPDATE_CHUNK_BYTES, self.total - self.index * UPDATE_CHUNK_BYTES)
-        _require(len(self.data) == want, f"update_chunk.data: {len(self.data)} bytes, "
-                 f"expected {want}")
-        _require(hashlib.sha256(self.data).hexdigest() == self.data_sha256,
-                 "update_chunk.data_sha256: does not match the data")
+        _check_chunk(self, UPDATE_CHUNK_BYTES, MAX_UPDATE_BYTES)
+
+
+def _check_chunk(chunk: ModelChunk | UpdateChunk, size: int, most: int) -> None:
+    """A chunk's place and data: chunk ``index`` of ``count`` chunks of at most ``size``
+    bytes that hold ``total`` (at most ``most``) bytes, its data hashing to ``data_sha256``."""
+    kind = chunk.TYPE
+    _require(0 < chunk.total <= most, f"{kind}.total: must be in [1, {most}]")
+    _require(chunk.count == math.ceil(chunk.total / size), f"{kind}.count: does not match total")
+    _require(0 <= chunk.index < chunk.count, f"{kind}.index: out of range")
+    want = min(size, chunk.total - chunk.index * size)
+    _require(len(chunk.data) == want, f"{kind}.data: {len(chunk.data)} bytes, expected {want}")
+    _require(hashlib.sha256(chunk.data).hexdigest() == chunk.data_sha256,
+             f"{kind}.data_sha256: does not match the data")
 
 
 @dataclass(frozen=True)
