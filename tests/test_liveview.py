@@ -1,27 +1,16 @@
 """The live view: its HTTP endpoints from Python, and the page in real headless Chromium.
 
-The browser test drives Chromium through the DevTools protocol over ``--remote-debugging-pipe``
-(JSON messages ending in a NUL byte on the browser's file descriptors 3 and 4): no websocket
-client and no new dependency. It opens the page while a thread publishes frames that carry
-their own number as a row of black and white blocks (bit i of n is block i), and reads, from
-the page itself, the ``<img>`` of the MJPEG stream drawn into a canvas (block means, a pixel
-hash) and the statistics panel's text, several times.
-
-Chromium is found as ``chromium`` or ``chromium-browser`` on PATH (``install.sh`` installs it
-when apt has it, and says how to get one when not); without it the browser test skips with
-that reason, except under ``FACEWIRE_REQUIRE_REAL_DATA=1`` (CI), where it fails with it.
+The browser test (``tests/browser.py`` drives Chromium) opens the page while a thread
+publishes frames that carry their own number as a row of black and white blocks (bit i of n
+is block i), and reads, from the page itself, the ``<img>`` of the MJPEG stream drawn into a
+canvas (block means, a pixel hash) and the statistics panel's text, several times.
 """
 
 from __future__ import annotations
 
-import fcntl
 import http.client
 import itertools
 import json
-import os
-import select
-import shutil
-import signal
 import socket
 import threading
 import time
@@ -31,13 +20,13 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from browser import DevTools, find_chromium
 
 from facewire.receiver.liveview import BOUNDARY, LiveView, LiveViewError
 
 W, H = 640, 480
 BITS = 16  # frame-number blocks in the top row, BLOCK x BLOCK px each
 BLOCK = W // BITS
-CHROMIUM_NAMES = ("chromium", "chromium-browser")
 
 
 def numbered_frame(n: int) -> np.ndarray:
@@ -237,98 +226,6 @@ def test_publish_validates_its_arguments() -> None:
 # --- the page in real headless Chromium ---
 
 
-@pytest.fixture(scope="module")
-def chromium() -> str:
-    """The path of the Chromium binary; skip (or fail under CI) when there is none."""
-    for name in CHROMIUM_NAMES:
-        if path := shutil.which(name):
-            return path
-    message = (f"headless Chromium not found (looked for {' and '.join(CHROMIUM_NAMES)} on "
-               f"PATH): ./install.sh installs it where apt has it (Debian: apt-get install -y "
-               f"chromium); on Ubuntu chromium is a snap, which a container cannot run: put a "
-               f"Chromium or Chrome on PATH under one of those names")
-    if os.environ.get("FACEWIRE_REQUIRE_REAL_DATA") == "1":
-        pytest.fail(message + " (FACEWIRE_REQUIRE_REAL_DATA=1)")
-    pytest.skip(message)
-
-
-class DevTools:
-    """Headless Chromium driven over ``--remote-debugging-pipe``: the browser reads commands
-    on its fd 3 and writes replies and events on its fd 4, each a JSON text ending in NUL."""
-
-    def __init__(self, binary: str, profile: Path, log: Path) -> None:
-        commands_r, self._commands = os.pipe()
-        self._replies, replies_w = os.pipe()
-        # above 9, so that placing them at 3 and 4 cannot overwrite each other
-        child = [fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10) for fd in (commands_r, replies_w)]
-        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                 "--remote-debugging-pipe", f"--user-data-dir={profile}", "--no-first-run",
-                 "--no-default-browser-check", "--disable-extensions", "--mute-audio",
-                 "about:blank"]
-        self.pid = os.posix_spawn(binary, [binary, *flags], os.environ, setsid=True,
-                                  file_actions=[
-                                      (os.POSIX_SPAWN_DUP2, child[0], 3),
-                                      (os.POSIX_SPAWN_DUP2, child[1], 4),
-                                      (os.POSIX_SPAWN_OPEN, 1, os.devnull, os.O_WRONLY, 0),
-                                      (os.POSIX_SPAWN_OPEN, 2, str(log),
-                                       os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)])
-        for fd in (commands_r, replies_w, *child):
-            os.close(fd)
-        self._next_id = 0
-        self._pending = b""
-        self.log = log
-
-    def call(self, method: str, params: dict[str, Any] | None = None,
-             session: str | None = None, timeout: float = 10.0) -> dict[str, Any]:
-        """Send one command and wait for its reply (events in between are dropped)."""
-        self._next_id += 1
-        message = {"id": self._next_id, "method": method, "params": params or {}}
-        if session is not None:
-            message["sessionId"] = session
-        os.write(self._commands, json.dumps(message).encode() + b"\0")
-        deadline = time.monotonic() + timeout
-        while True:
-            while b"\0" not in self._pending:
-                left = deadline - time.monotonic()
-                if left <= 0 or not select.select([self._replies], [], [], left)[0]:
-                    raise TimeoutError(f"Chromium did not answer {method} within {timeout} s "
-                                       f"(its log: {self.log})")
-                chunk = os.read(self._replies, 1 << 20)
-                if not chunk:
-                    raise EOFError(f"Chromium exited (its log: {self.log})")
-                self._pending += chunk
-            text, self._pending = self._pending.split(b"\0", 1)
-            reply = json.loads(text)
-            if reply.get("id") == self._next_id:
-                if "error" in reply:
-                    raise RuntimeError(f"{method}: {reply['error']}")
-                return reply["result"]
-
-    def evaluate(self, session: str, expression: str) -> Any:
-        """The value of a JavaScript expression in the page (promises awaited)."""
-        result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True,
-                                                "awaitPromise": True}, session)
-        if "exceptionDetails" in result:
-            raise RuntimeError(f"page script failed: {result['exceptionDetails']}")
-        return result["result"].get("value")
-
-    def close(self) -> None:
-        try:
-            self.call("Browser.close", timeout=5)
-        except (OSError, TimeoutError, RuntimeError):
-            pass  # it is killed below
-        deadline = time.monotonic() + 5
-        while os.waitpid(self.pid, os.WNOHANG) == (0, 0) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        try:
-            os.killpg(self.pid, signal.SIGKILL)  # the group started for this browser only
-            os.waitpid(self.pid, 0)
-        except (ProcessLookupError, ChildProcessError):
-            pass  # it exited and was reaped
-        os.close(self._commands)
-        os.close(self._replies)
-
-
 # What the page shows now: the <img> (the MJPEG stream) drawn into a canvas, as the grey
 # means of the frame-number blocks and a hash of all pixels, and the statistics panel's text.
 SAMPLE_JS = f"""(() => {{
@@ -359,8 +256,9 @@ SAMPLE_JS = f"""(() => {{
 }})()"""
 
 
-def test_page_in_headless_chromium(chromium: str, tmp_path: Path) -> None:
+def test_page_in_headless_chromium(tmp_path: Path) -> None:
     """The page loads, the stream's frames change live, and the statistics follow."""
+    chromium = find_chromium()
     published = [0]
     stop = threading.Event()
     with LiveView() as view:
