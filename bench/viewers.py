@@ -1,0 +1,213 @@
+"""The fan-out bench's viewers: N lightweight clients in one process, each recording arrivals.
+
+``python -m facewire.bench.viewers {websocket|zmq} TARGET N OUT.npz`` opens N clients:
+
+- ``websocket``: N WebSocket clients of ``TARGET`` (``ws://HOST:PORT/stream``, the gateway's
+  stream), opened ``OPEN_AT_ONCE`` at a time: the ``websockets`` library's own protocol
+  (``ClientProtocol``, its sans-I/O core: handshake, framing, pings, close; no compression
+  offered) on plain asyncio connections, without a task or a queue per client. A binary
+  frame is one packet, stamped with the time its bytes were read; text frames (status, hello,
+  model) are ignored.
+- ``zmq``: N ``protocol.transport.PacketSubscriber`` sockets (the receiver's SUB socket)
+  connected to ``TARGET`` (``tcp://HOST:PORT``, a relay's out), read by one poll loop.
+
+Per packet a client does nothing but append its arrival time (``time.monotonic()``, the
+system-wide monotonic clock, so comparable with the sender's stamps in another process) and
+the message itself to its lists; the sequence numbers are decoded afterwards, all at once,
+by ``protocol.packet.decode_frames`` (the packet layout's one definition; a message that is
+not a valid packet gets seq -1).
+
+The parent talks over stdio, one line each way: this process prints ``ready`` once every
+client has received a packet (``error: ...`` and exits 1 when it cannot), then reads ``stop``
+from stdin, writes ``OUT.npz`` and prints ``done``. ``OUT.npz`` holds, for every packet
+received (M of them), in client order: ``viewer`` (M,) int32 client index, ``seq`` (M,)
+int32, ``arrival`` (M,) float64 seconds; and ``closed`` (N,) bool, the clients whose
+connection ended before ``stop``.
+
+File descriptors: each client holds one TCP connection (a ZeroMQ socket also an eventfd), so
+the soft ``RLIMIT_NOFILE`` is raised to the hard limit (``raise_fd_limit``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import resource
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zmq
+from websockets.client import ClientProtocol
+from websockets.frames import Frame, Opcode
+from websockets.uri import WebSocketURI, parse_uri
+
+from facewire.protocol.packet import PACKET_BYTES, decode_frames
+from facewire.protocol.transport import PacketSubscriber
+
+OPEN_AT_ONCE = 50  # WebSocket handshakes in flight at a time (below the listen backlog)
+OPEN_TIMEOUT_S = 60.0
+READY_POLL_S = 0.1
+POLL_MS = 100
+KINDS = ("websocket", "zmq")
+
+
+def raise_fd_limit() -> int:
+    """Raise the soft limit of open files to the hard limit (inherited by children); the
+    new soft limit."""
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    return hard
+
+
+class _Recorder:
+    """Each client's arrival times and messages, and the stop signal from stdin."""
+
+    def __init__(self, n: int) -> None:
+        self.arrivals: list[list[float]] = [[] for _ in range(n)]
+        self.messages: list[list[bytes | bytearray | memoryview]] = [[] for _ in range(n)]
+        self.closed = np.zeros(n, bool)
+        self.stop = threading.Event()
+
+    def all_joined(self) -> bool:
+        return all(self.arrivals)
+
+    def save(self, path: Path) -> None:
+        """Decode every message's seq and write ``path`` (module docstring)."""
+        counts = [len(a) for a in self.arrivals]
+        viewer = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+        flat = [m for ms in self.messages for m in ms]
+        seq = np.full(len(flat), -1, np.int32)
+        whole = np.array([len(m) == PACKET_BYTES for m in flat], bool)
+        if whole.any():
+            rows = np.frombuffer(b"".join(m for m, w in zip(flat, whole) if w), np.uint8)
+            frames, errors = decode_frames(rows.reshape(-1, PACKET_BYTES))
+            valid = np.array([e is None for e in errors], bool)
+            seq[np.flatnonzero(whole)[valid]] = frames["seq"][valid]
+        arrival = np.fromiter((t for a in self.arrivals for t in a), np.float64, len(flat))
+        np.savez(path, viewer=viewer, seq=seq, arrival=arrival, closed=self.closed)
+
+
+class _WebSocketViewer(asyncio.Protocol):
+    """One WebSocket client: the library's protocol (``websockets.client.ClientProtocol``)
+    over an asyncio connection, each binary frame recorded with the time its bytes were read."""
+
+    def __init__(self, uri: WebSocketURI, i: int, rec: _Recorder) -> None:
+        self.ws = ClientProtocol(uri)
+        self.i, self.rec = i, rec
+        self.arrivals, self.messages = rec.arrivals[i], rec.messages[i]
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        self.ws.send_request(self.ws.connect())
+        self._flush()
+
+    def data_received(self, data: bytes) -> None:
+        now = time.monotonic()
+        self.ws.receive_data(data)
+        for event in self.ws.events_received():
+            if type(event) is Frame and event.opcode is Opcode.BINARY:
+                self.arrivals.append(now)
+                self.messages.append(event.data)
+        self._flush()
+
+    def _flush(self) -> None:
+        assert self.transport is not None
+        for chunk in self.ws.data_to_send():
+            if chunk:
+                self.transport.write(chunk)
+            else:  # the protocol asks to close the connection
+                self.transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.rec.stop.is_set():
+            self.rec.closed[self.i] = True
+
+
+async def _websocket_viewers(url: str, n: int, rec: _Recorder) -> None:
+    uri = parse_uri(url)
+    loop = asyncio.get_running_loop()
+    viewers = [_WebSocketViewer(uri, i, rec) for i in range(n)]
+    gate = asyncio.Semaphore(OPEN_AT_ONCE)
+
+    async def open_one(viewer: _WebSocketViewer) -> None:
+        async with gate:
+            try:
+                await asyncio.wait_for(loop.create_connection(lambda: viewer, uri.host,
+                                                              uri.port), OPEN_TIMEOUT_S)
+            except (OSError, TimeoutError):
+                rec.closed[viewer.i] = True
+
+    await asyncio.gather(*(open_one(v) for v in viewers))
+    ready = False
+    while not rec.stop.is_set():
+        if not ready and rec.all_joined():
+            ready = True
+            _say("ready")
+        elif not ready and rec.closed.any():
+            _say(f"error: {int(rec.closed.sum())} of {n} WebSocket clients could not join "
+                 f"{url} or were dropped before their first packet")
+            sys.exit(1)
+        await asyncio.sleep(READY_POLL_S)
+    for viewer in viewers:
+        if viewer.transport is not None:
+            viewer.transport.abort()
+
+
+def _zmq_viewers(endpoint: str, n: int, rec: _Recorder) -> None:
+    zmq.Context.instance().set(zmq.MAX_SOCKETS, 2 * n + 64)
+    subs = [PacketSubscriber(endpoint) for _ in range(n)]
+    index = {sub.socket: i for i, sub in enumerate(subs)}
+    poller = zmq.Poller()
+    for sub in subs:
+        poller.register(sub.socket, zmq.POLLIN)
+    ready = False
+    clock = time.monotonic
+    try:
+        while not rec.stop.is_set():
+            for socket, _ in poller.poll(POLL_MS):  # level-triggered: one message each
+                i = index[socket]
+                rec.messages[i].append(socket.recv(zmq.NOBLOCK))
+                rec.arrivals[i].append(clock())
+            if not ready and rec.all_joined():
+                ready = True
+                _say("ready")
+    finally:
+        for sub in subs:
+            sub.close()
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def _wait_for_stop(rec: _Recorder) -> None:
+    for line in sys.stdin:
+        if line.strip() == "stop":
+            break
+    rec.stop.set()
+
+
+def main(argv: list[str]) -> int:
+    """Run the viewers (module docstring); the exit status."""
+    if len(argv) != 4 or argv[0] not in KINDS:
+        print("usage: python -m facewire.bench.viewers {websocket|zmq} TARGET N OUT.npz",
+              file=sys.stderr)
+        return 2
+    kind, target, n, out = argv[0], argv[1], int(argv[2]), Path(argv[3])
+    raise_fd_limit()
+    rec = _Recorder(n)
+    threading.Thread(target=_wait_for_stop, args=(rec,), daemon=True).start()
+    if kind == "websocket":
+        asyncio.run(_websocket_viewers(target, n, rec))
+    else:
+        _zmq_viewers(target, n, rec)
+    rec.save(out)
+    _say("done")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
