@@ -401,11 +401,12 @@ def format_run(run: dict[str, Any]) -> str:
     """One run as a row of the table."""
     return (f"{run['kind']:<9} {run['viewers']:>6} {run['expected']:>8} {run['delivered']:>10} "
             f"{run['lost']:>6} {run['closed']:>6} {run['latency_ms_median']!s:>8} "
-            f"{run['latency_ms_p95']!s:>8} {run['cpu_percent']:>6} {run['rss_mb']:>7}")
+            f"{run['latency_ms_p95']!s:>8} {run['cpu_percent']:>6} {run['rss_mb']:>7} "
+            f"{run['viewers_cpu_percent']:>9}")
 
 
 HEADER = (f"{'kind':<9} {'N':>6} {'expected':>8} {'delivered':>10} {'lost':>6} {'closed':>6} "
-          f"{'med ms':>8} {'p95 ms':>8} {'cpu %':>6} {'rss MB':>7}")
+          f"{'med ms':>8} {'p95 ms':>8} {'cpu %':>6} {'rss MB':>7} {'viewers %':>9}")
 
 
 def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | None = None,
@@ -416,7 +417,8 @@ def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | 
     targets: a miss informs, it is no failure)."""
     result = measure_fanout(model_path, source, viewers, seconds, log_path, status)
     lines = [f"{result['rate_hz']:g} Hz; each run {seconds:g} s; expected is per viewer; "
-             f"cpu and rss: the gateway (websocket), the relay (zmq)", HEADER,
+             f"cpu and rss: the gateway (websocket), the relay (zmq); viewers %: the viewer "
+             f"processes' CPU", HEADER,
              *(format_run(r) for r in result["runs"])]
     for kind, t in result["targets"].items():
         limits = f"nothing lost, p95 <= {t['latency_ms_p95']:g} ms" + (
