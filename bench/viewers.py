@@ -6,14 +6,17 @@
   stream), opened ``OPEN_AT_ONCE`` at a time: the ``websockets`` library's own protocol
   (``ClientProtocol``, its sans-I/O core: handshake, framing, pings, close; no compression
   offered) on plain asyncio connections, without a task or a queue per client. A binary
-  frame is one packet, stamped with the time its bytes were read; text frames (status, hello,
-  model) are ignored.
+  frame is one packet; text frames (status, hello, model) are ignored.
 - ``zmq``: N ``protocol.transport.PacketSubscriber`` sockets (the receiver's SUB socket)
   connected to ``TARGET`` (``tcp://HOST:PORT``, a relay's out), read by one poll loop.
 
-Per packet a client does nothing but append its arrival time (``time.monotonic()``, the
-system-wide monotonic clock, so comparable with the sender's stamps in another process) and
-the message itself to its lists; the sequence numbers are decoded afterwards, all at once,
+Per packet a client does nothing but append its arrival time and the message itself to its
+lists. The arrival time is when the process's poll (epoll under asyncio, ``zmq_poll``)
+returned with the socket readable (``time.monotonic()``, the system-wide monotonic clock, so
+comparable with the sender's stamps in another process): a packet reaches all of a process's
+clients at once, and stamping each when its turn comes would add the process's own work on
+the others before it, which is not delivery. The delay of the process itself getting a core
+stays in. the sequence numbers are decoded afterwards, all at once,
 by ``protocol.packet.decode_frames`` (the packet layout's one definition; a message that is
 not a valid packet gets seq -1).
 
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import resource
+import selectors
 import sys
 import threading
 import time
@@ -41,6 +45,7 @@ import numpy as np
 import zmq
 from websockets.client import ClientProtocol
 from websockets.frames import Frame, Opcode
+from websockets.protocol import State
 from websockets.uri import WebSocketURI, parse_uri
 
 from facewire.protocol.packet import PACKET_BYTES, decode_frames
@@ -48,6 +53,7 @@ from facewire.protocol.transport import PacketSubscriber
 
 OPEN_AT_ONCE = 50  # WebSocket handshakes in flight at a time (below the listen backlog)
 OPEN_TIMEOUT_S = 60.0
+JOIN_TIMEOUT_S = 100.0  # every client has a packet by then, or the process gives up
 READY_POLL_S = 0.1
 POLL_MS = 100
 KINDS = ("websocket", "zmq")
@@ -73,6 +79,10 @@ class _Recorder:
     def all_joined(self) -> bool:
         return all(self.arrivals)
 
+    def joined(self) -> int:
+        """How many clients have received a packet."""
+        return sum(1 for a in self.arrivals if a)
+
     def save(self, path: Path) -> None:
         """Decode every message's seq and write ``path`` (module docstring)."""
         counts = [len(a) for a in self.arrivals]
@@ -89,15 +99,30 @@ class _Recorder:
         np.savez(path, viewer=viewer, seq=seq, arrival=arrival, closed=self.closed)
 
 
+class _StampingSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
+    """The event loop's selector, remembering when its last ``select`` returned."""
+
+    ready_at = 0.0
+
+    def select(self, timeout: float | None = None) -> list:
+        ready = super().select(timeout)
+        self.ready_at = time.monotonic()
+        return ready
+
+
 class _WebSocketViewer(asyncio.Protocol):
     """One WebSocket client: the library's protocol (``websockets.client.ClientProtocol``)
-    over an asyncio connection, each binary frame recorded with the time its bytes were read."""
+    over an asyncio connection, each binary frame recorded with the time the loop's poll saw
+    its bytes."""
 
-    def __init__(self, uri: WebSocketURI, i: int, rec: _Recorder) -> None:
+    def __init__(self, uri: WebSocketURI, i: int, rec: _Recorder,
+                 selector: _StampingSelector) -> None:
         self.ws = ClientProtocol(uri)
+        self.selector = selector
         self.i, self.rec = i, rec
         self.arrivals, self.messages = rec.arrivals[i], rec.messages[i]
         self.transport: asyncio.Transport | None = None
+        self.opened: asyncio.Future[None] = asyncio.get_running_loop().create_future()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -105,8 +130,10 @@ class _WebSocketViewer(asyncio.Protocol):
         self._flush()
 
     def data_received(self, data: bytes) -> None:
-        now = time.monotonic()
+        now = self.selector.ready_at
         self.ws.receive_data(data)
+        if not self.opened.done() and self.ws.state is not State.CONNECTING:
+            self.opened.set_result(None)
         for event in self.ws.events_received():
             if type(event) is Frame and event.opcode is Opcode.BINARY:
                 self.arrivals.append(now)
@@ -122,33 +149,41 @@ class _WebSocketViewer(asyncio.Protocol):
                 self.transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if not self.opened.done():
+            self.opened.set_result(None)
         if not self.rec.stop.is_set():
             self.rec.closed[self.i] = True
 
 
-async def _websocket_viewers(url: str, n: int, rec: _Recorder) -> None:
+async def _websocket_viewers(url: str, n: int, rec: _Recorder,
+                             selector: _StampingSelector) -> None:
     uri = parse_uri(url)
     loop = asyncio.get_running_loop()
-    viewers = [_WebSocketViewer(uri, i, rec) for i in range(n)]
+    viewers = [_WebSocketViewer(uri, i, rec, selector) for i in range(n)]  # in the loop
     gate = asyncio.Semaphore(OPEN_AT_ONCE)
 
     async def open_one(viewer: _WebSocketViewer) -> None:
-        async with gate:
+        async with gate:  # held until the handshake's answer, so the server is not flooded
             try:
-                await asyncio.wait_for(loop.create_connection(lambda: viewer, uri.host,
-                                                              uri.port), OPEN_TIMEOUT_S)
+                async with asyncio.timeout(OPEN_TIMEOUT_S):
+                    await loop.create_connection(lambda: viewer, uri.host, uri.port)
+                    await viewer.opened
             except (OSError, TimeoutError):
                 rec.closed[viewer.i] = True
+                if viewer.transport is not None:
+                    viewer.transport.abort()
 
+    start = time.monotonic()
     await asyncio.gather(*(open_one(v) for v in viewers))
     ready = False
     while not rec.stop.is_set():
         if not ready and rec.all_joined():
             ready = True
             _say("ready")
-        elif not ready and rec.closed.any():
-            _say(f"error: {int(rec.closed.sum())} of {n} WebSocket clients could not join "
-                 f"{url} or were dropped before their first packet")
+        elif not ready and (rec.closed.any() or time.monotonic() - start > JOIN_TIMEOUT_S):
+            _say(f"error: of {n} WebSocket clients of {url}, {rec.joined()} had a packet "
+                 f"and {int(rec.closed.sum())} were refused or dropped in "
+                 f"{time.monotonic() - start:.0f} s")
             sys.exit(1)
         await asyncio.sleep(READY_POLL_S)
     for viewer in viewers:
@@ -163,17 +198,23 @@ def _zmq_viewers(endpoint: str, n: int, rec: _Recorder) -> None:
     poller = zmq.Poller()
     for sub in subs:
         poller.register(sub.socket, zmq.POLLIN)
-    ready = False
-    clock = time.monotonic
+    joined = False
+    start = time.monotonic()
     try:
         while not rec.stop.is_set():
-            for socket, _ in poller.poll(POLL_MS):  # level-triggered: one message each
+            ready = poller.poll(POLL_MS)
+            now = time.monotonic()
+            for socket, _ in ready:  # level-triggered: one message each, the rest next time
                 i = index[socket]
                 rec.messages[i].append(socket.recv(zmq.NOBLOCK))
-                rec.arrivals[i].append(clock())
-            if not ready and rec.all_joined():
-                ready = True
+                rec.arrivals[i].append(now)
+            if not joined and rec.all_joined():
+                joined = True
                 _say("ready")
+            elif not joined and time.monotonic() - start > JOIN_TIMEOUT_S:
+                _say(f"error: of {n} ZeroMQ subscribers of {endpoint}, {rec.joined()} had a "
+                     f"packet in {time.monotonic() - start:.0f} s")
+                sys.exit(1)
     finally:
         for sub in subs:
             sub.close()
@@ -201,7 +242,12 @@ def main(argv: list[str]) -> int:
     rec = _Recorder(n)
     threading.Thread(target=_wait_for_stop, args=(rec,), daemon=True).start()
     if kind == "websocket":
-        asyncio.run(_websocket_viewers(target, n, rec))
+        selector = _StampingSelector()
+        loop = asyncio.SelectorEventLoop(selector)
+        try:
+            loop.run_until_complete(_websocket_viewers(target, n, rec, selector))
+        finally:
+            loop.close()
     else:
         _zmq_viewers(target, n, rec)
     rec.save(out)
