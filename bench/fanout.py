@@ -213,6 +213,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def wait_seconds(pid: int) -> float:
+    """Time the threads of a process spent ready to run but waiting for a core, s (the run
+    queue delay, second field of each ``/proc/PID/task/TID/schedstat``)."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").glob("*/schedstat"):
+        try:
+            total += int(task.read_text().split()[1])
+        except (OSError, IndexError, ValueError):
+            continue  # a thread that ended meanwhile
+    return total / 1e9
+
+
 def rss_mb(pid: int) -> float:
     """The resident set size of a process, MB (``VmRSS`` of ``/proc/PID/status``)."""
     for line in _proc(pid, "status").splitlines():
@@ -248,7 +260,9 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
         in the window), ``delivered``, ``lost``, ``closed`` (viewers whose connection ended
         early), ``latency_ms_median``, ``latency_ms_p95``, ``cpu_percent``, ``rss_mb`` (of
         process ``pid``), ``viewers_cpu_percent`` (the viewer processes' CPU, summed),
-        ``seconds`` (the window).
+        ``wait_percent`` and ``viewers_wait_percent`` (their threads' time ready to run but
+        waiting for a core: how much the machine's other load held them up), ``seconds``
+        (the window).
     """
     sizes = [len(part) for part in np.array_split(np.arange(n), math.ceil(n / PER_PROCESS))]
     outs = [folder / f"{kind}-{n}-{i}.npz" for i in range(len(sizes))]
@@ -265,9 +279,11 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
                 raise FanoutError(f"{v.name}: {line}")
         time.sleep(SETTLE_S)
         pids = [pid, *(v.popen.pid for v in viewers)]
-        k0, cpu0, t0 = len(sender.times), [cpu_seconds(p) for p in pids], time.monotonic()
+        k0, t0 = len(sender.times), time.monotonic()
+        cpu0, wait0 = [cpu_seconds(p) for p in pids], [wait_seconds(p) for p in pids]
         time.sleep(seconds)
-        k1, cpu1, t1 = len(sender.times), [cpu_seconds(p) for p in pids], time.monotonic()
+        k1, t1 = len(sender.times), time.monotonic()
+        cpu1, wait1 = [cpu_seconds(p) for p in pids], [wait_seconds(p) for p in pids]
         rss = rss_mb(pid)
         time.sleep(DRAIN_S)
         for v in viewers:
@@ -295,6 +311,9 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
             "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if len(lat) else None,
             "cpu_percent": round(100 * (cpu1[0] - cpu0[0]) / (t1 - t0), 1),
             "viewers_cpu_percent": round(100 * (sum(cpu1[1:]) - sum(cpu0[1:])) / (t1 - t0), 1),
+            "wait_percent": round(100 * (wait1[0] - wait0[0]) / (t1 - t0), 1),
+            "viewers_wait_percent": round(100 * (sum(wait1[1:]) - sum(wait0[1:])) / (t1 - t0),
+                                          1),
             "rss_mb": round(rss, 1), "seconds": round(t1 - t0, 2)}
 
 
@@ -402,11 +421,13 @@ def format_run(run: dict[str, Any]) -> str:
     return (f"{run['kind']:<9} {run['viewers']:>6} {run['expected']:>8} {run['delivered']:>10} "
             f"{run['lost']:>6} {run['closed']:>6} {run['latency_ms_median']!s:>8} "
             f"{run['latency_ms_p95']!s:>8} {run['cpu_percent']:>6} {run['rss_mb']:>7} "
-            f"{run['viewers_cpu_percent']:>9}")
+            f"{run['viewers_cpu_percent']:>9} {run['wait_percent']:>6} "
+            f"{run['viewers_wait_percent']:>8}")
 
 
 HEADER = (f"{'kind':<9} {'N':>6} {'expected':>8} {'delivered':>10} {'lost':>6} {'closed':>6} "
-          f"{'med ms':>8} {'p95 ms':>8} {'cpu %':>6} {'rss MB':>7} {'viewers %':>9}")
+          f"{'med ms':>8} {'p95 ms':>8} {'cpu %':>6} {'rss MB':>7} {'viewers %':>9} "
+          f"{'wait %':>6} {'v wait %':>8}")
 
 
 def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | None = None,
@@ -417,8 +438,8 @@ def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | 
     targets: a miss informs, it is no failure)."""
     result = measure_fanout(model_path, source, viewers, seconds, log_path, status)
     lines = [f"{result['rate_hz']:g} Hz; each run {seconds:g} s; expected is per viewer; "
-             f"cpu and rss: the gateway (websocket), the relay (zmq); viewers %: the viewer "
-             f"processes' CPU", HEADER,
+             f"cpu, rss and wait (ready to run, waiting for a core): the gateway (websocket), "
+             f"the relay (zmq); viewers %, v wait %: the viewer processes'", HEADER,
              *(format_run(r) for r in result["runs"])]
     for kind, t in result["targets"].items():
         limits = f"nothing lost, p95 <= {t['latency_ms_p95']:g} ms" + (

@@ -99,7 +99,7 @@ class _Recorder:
         np.savez(path, viewer=viewer, seq=seq, arrival=arrival, closed=self.closed)
 
 
-class _StampingSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
+class _StampingSelector(selectors.DefaultSelector):
     """The event loop's selector, remembering when its last ``select`` returned."""
 
     ready_at = 0.0
@@ -174,7 +174,7 @@ async def _websocket_viewers(url: str, n: int, rec: _Recorder,
                     viewer.transport.abort()
 
     start = time.monotonic()
-    await asyncio.gather(*(open_one(v) for v in viewers))
+    opening = asyncio.gather(*(open_one(v) for v in viewers))
     ready = False
     while not rec.stop.is_set():
         if not ready and rec.all_joined():
@@ -186,6 +186,7 @@ async def _websocket_viewers(url: str, n: int, rec: _Recorder,
                  f"{time.monotonic() - start:.0f} s")
             sys.exit(1)
         await asyncio.sleep(READY_POLL_S)
+    opening.cancel()
     for viewer in viewers:
         if viewer.transport is not None:
             viewer.transport.abort()
