@@ -83,7 +83,7 @@ DRAIN_S = 1.0
 JOIN_TIMEOUT_S = 120.0
 STOP_TIMEOUT_S = 30.0
 GATEWAY_TIMEOUT_S = 60.0
-PAUSE_S = 1.0  # between runs: the closed connections of the last one are let go
+PAUSE_S = 3.0  # between runs: the server lets the last run's connections go
 KINDS = ("websocket", "zmq")
 TARGETS = {"websocket": {"lost": 0, "latency_ms_p95": 50.0, "cpu_percent": 100.0},
            "zmq": {"lost": 0, "latency_ms_p95": 20.0}}
@@ -258,7 +258,8 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
     Returns:
         ``kind``, ``viewers``, ``processes`` (viewer processes), ``expected`` (packets sent
         in the window), ``delivered``, ``lost``, ``closed`` (viewers whose connection ended
-        early), ``latency_ms_median``, ``latency_ms_p95``, ``cpu_percent``, ``rss_mb`` (of
+        early), ``retries`` (WebSocket handshakes made again while joining),
+        ``latency_ms_median``, ``latency_ms_p95``, ``cpu_percent``, ``rss_mb`` (of
         process ``pid``), ``viewers_cpu_percent`` (the viewer processes' CPU, summed),
         ``wait_percent`` and ``viewers_wait_percent`` (their threads' time ready to run but
         waiting for a core: how much the machine's other load held them up), ``seconds``
@@ -293,11 +294,12 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
                 raise FanoutError(f"{v.name}: {line}")
     sent = np.asarray(sender.times[k0:k1])
     expected = k1 - k0
-    delivered, closed, latencies = 0, 0, []
+    delivered, closed, retries, latencies = 0, 0, 0, []
     for out in outs:
         with np.load(out, allow_pickle=False) as data:
             viewer, seq, arrival = data["viewer"], data["seq"], data["arrival"]
             closed += int(data["closed"].sum())
+            retries += int(data["retries"].sum())
         offset = (seq - k0) % SEQ_MODULO
         keep = (seq >= 0) & (offset < expected)
         key = viewer[keep].astype(np.int64) * SEQ_MODULO + offset[keep]
@@ -307,6 +309,7 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
     lat = np.concatenate(latencies)
     return {"kind": kind, "viewers": n, "processes": len(sizes), "expected": expected,
             "delivered": delivered, "lost": n * expected - delivered, "closed": closed,
+            "retries": retries,
             "latency_ms_median": round(float(np.median(lat)), 2) if len(lat) else None,
             "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if len(lat) else None,
             "cpu_percent": round(100 * (cpu1[0] - cpu0[0]) / (t1 - t0), 1),

@@ -24,8 +24,9 @@ The parent talks over stdio, one line each way: this process prints ``ready`` on
 client has received a packet (``error: ...`` and exits 1 when it cannot), then reads ``stop``
 from stdin, writes ``OUT.npz`` and prints ``done``. ``OUT.npz`` holds, for every packet
 received (M of them), in client order: ``viewer`` (M,) int32 client index, ``seq`` (M,)
-int32, ``arrival`` (M,) float64 seconds; and ``closed`` (N,) bool, the clients whose
-connection ended before ``stop``.
+int32, ``arrival`` (M,) float64 seconds; ``closed`` (N,) bool, the clients whose
+connection ended before ``stop``; ``retries`` (N,) int32, the WebSocket handshakes a client
+made again because one timed out (``OPEN_TIMEOUT_S``) or was refused, as a browser would.
 
 File descriptors: each client holds one TCP connection (a ZeroMQ socket also an eventfd), so
 the soft ``RLIMIT_NOFILE`` is raised to the hard limit (``raise_fd_limit``).
@@ -51,8 +52,9 @@ from websockets.uri import WebSocketURI, parse_uri
 from facewire.protocol.packet import PACKET_BYTES, decode_frames
 from facewire.protocol.transport import PacketSubscriber
 
-OPEN_AT_ONCE = 50  # WebSocket handshakes in flight at a time (below the listen backlog)
-OPEN_TIMEOUT_S = 60.0
+OPEN_AT_ONCE = 20  # handshakes in flight per process: two stay below a listen backlog of 100
+OPEN_TIMEOUT_S = 20.0
+CLOSE_S = 1.0  # for the server's answers to the close frames
 JOIN_TIMEOUT_S = 100.0  # every client has a packet by then, or the process gives up
 READY_POLL_S = 0.1
 POLL_MS = 100
@@ -74,6 +76,7 @@ class _Recorder:
         self.arrivals: list[list[float]] = [[] for _ in range(n)]
         self.messages: list[list[bytes | bytearray | memoryview]] = [[] for _ in range(n)]
         self.closed = np.zeros(n, bool)
+        self.retries = np.zeros(n, np.int32)
         self.stop = threading.Event()
 
     def all_joined(self) -> bool:
@@ -96,7 +99,8 @@ class _Recorder:
             valid = np.array([e is None for e in errors], bool)
             seq[np.flatnonzero(whole)[valid]] = frames["seq"][valid]
         arrival = np.fromiter((t for a in self.arrivals for t in a), np.float64, len(flat))
-        np.savez(path, viewer=viewer, seq=seq, arrival=arrival, closed=self.closed)
+        np.savez(path, viewer=viewer, seq=seq, arrival=arrival, closed=self.closed,
+                 retries=self.retries)
 
 
 class _StampingSelector(selectors.DefaultSelector):
@@ -127,7 +131,7 @@ class _WebSocketViewer(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
         self.ws.send_request(self.ws.connect())
-        self._flush()
+        self.flush()
 
     def data_received(self, data: bytes) -> None:
         now = self.selector.ready_at
@@ -138,9 +142,9 @@ class _WebSocketViewer(asyncio.Protocol):
             if type(event) is Frame and event.opcode is Opcode.BINARY:
                 self.arrivals.append(now)
                 self.messages.append(event.data)
-        self._flush()
+        self.flush()
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
         assert self.transport is not None
         for chunk in self.ws.data_to_send():
             if chunk:
@@ -162,31 +166,45 @@ async def _websocket_viewers(url: str, n: int, rec: _Recorder,
     viewers = [_WebSocketViewer(uri, i, rec, selector) for i in range(n)]  # in the loop
     gate = asyncio.Semaphore(OPEN_AT_ONCE)
 
-    async def open_one(viewer: _WebSocketViewer) -> None:
-        async with gate:  # held until the handshake's answer, so the server is not flooded
-            try:
-                async with asyncio.timeout(OPEN_TIMEOUT_S):
-                    await loop.create_connection(lambda: viewer, uri.host, uri.port)
-                    await viewer.opened
-            except (OSError, TimeoutError):
-                rec.closed[viewer.i] = True
-                if viewer.transport is not None:
-                    viewer.transport.abort()
+    async def open_one(i: int) -> None:
+        """Open viewer i, again (counted in ``retries``) while its handshake times out or is
+        refused, as a browser would, until the join deadline."""
+        while not rec.stop.is_set():
+            viewer = viewers[i]
+            async with gate:  # held until the handshake's answer: the server is not flooded
+                try:
+                    async with asyncio.timeout(OPEN_TIMEOUT_S):
+                        await loop.create_connection(lambda v=viewer: v, uri.host, uri.port)
+                        await viewer.opened
+                except (OSError, TimeoutError):
+                    pass
+            if viewer.ws.state is State.OPEN:
+                return
+            if viewer.transport is not None:
+                viewer.transport.abort()
+            rec.retries[i] += 1
+            rec.closed[i] = False
+            viewers[i] = _WebSocketViewer(uri, i, rec, selector)
 
     start = time.monotonic()
-    opening = asyncio.gather(*(open_one(v) for v in viewers))
+    opening = asyncio.gather(*(open_one(i) for i in range(n)))
     ready = False
     while not rec.stop.is_set():
         if not ready and rec.all_joined():
             ready = True
             _say("ready")
-        elif not ready and (rec.closed.any() or time.monotonic() - start > JOIN_TIMEOUT_S):
-            _say(f"error: of {n} WebSocket clients of {url}, {rec.joined()} had a packet "
-                 f"and {int(rec.closed.sum())} were refused or dropped in "
-                 f"{time.monotonic() - start:.0f} s")
+        elif not ready and time.monotonic() - start > JOIN_TIMEOUT_S:
+            _say(f"error: of {n} WebSocket clients of {url}, {rec.joined()} had a packet in "
+                 f"{time.monotonic() - start:.0f} s ({int(rec.retries.sum())} handshakes "
+                 f"timed out or refused)")
             sys.exit(1)
         await asyncio.sleep(READY_POLL_S)
     opening.cancel()
+    for viewer in viewers:  # a close frame, as a browser leaving sends, then the TCP close
+        if viewer.transport is not None and viewer.ws.state is State.OPEN:
+            viewer.ws.send_close()
+            viewer.flush()
+    await asyncio.sleep(CLOSE_S)
     for viewer in viewers:
         if viewer.transport is not None:
             viewer.transport.abort()
