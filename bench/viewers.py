@@ -35,6 +35,7 @@ the soft ``RLIMIT_NOFILE`` is raised to the hard limit (``raise_fd_limit``).
 from __future__ import annotations
 
 import asyncio
+import functools
 import resource
 import selectors
 import sys
@@ -174,7 +175,8 @@ async def _websocket_viewers(url: str, n: int, rec: _Recorder,
             async with gate:  # held until the handshake's answer: the server is not flooded
                 try:
                     async with asyncio.timeout(OPEN_TIMEOUT_S):
-                        await loop.create_connection(lambda v=viewer: v, uri.host, uri.port)
+                        await loop.create_connection(functools.partial(_same, viewer), uri.host,
+                                                     uri.port)
                         await viewer.opened
                 except (OSError, TimeoutError):
                     pass
@@ -237,6 +239,11 @@ def _zmq_viewers(endpoint: str, n: int, rec: _Recorder) -> None:
     finally:
         for sub in subs:
             sub.close()
+
+
+def _same(viewer: _WebSocketViewer) -> _WebSocketViewer:
+    """The protocol factory's result: the viewer made beforehand."""
+    return viewer
 
 
 def _say(line: str) -> None:
