@@ -394,15 +394,15 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
         _wait_listening(port, gateway)
         targets = {"websocket": (f"ws://127.0.0.1:{port}/stream", gateway),
                    "zmq": (relay_out, relay)}
-        for n in viewers:
-            for kind in KINDS:
-                status(f"{kind}: {n} viewers, {seconds:g} s")
-                target, measured = targets[kind]
-                measured.check()
-                runs.append(measure_run(kind, n, target, measured.popen.pid, sender, seconds,
-                                        folder))
-                status(format_run(runs[-1]))
+        for n, kind in ((n, kind) for n in viewers for kind in KINDS):
+            if runs:
                 time.sleep(PAUSE_S)
+            status(f"{kind}: {n} viewers, {seconds:g} s")
+            target, measured = targets[kind]
+            measured.check()
+            runs.append(measure_run(kind, n, target, measured.popen.pid, sender, seconds,
+                                    folder))
+            status(format_run(runs[-1]))
     largest = {kind: next(r for r in reversed(runs) if r["kind"] == kind) for kind in KINDS}
     return {"runs": runs, "rate_hz": log.hello.rate_hz, "seconds": seconds,
             "log_packets": len(log.frames),
