@@ -25,7 +25,8 @@ One run (kind, N): start the viewers; once every one has a packet, wait ``SETTLE
 measure a window of ``seconds``: the packets sent in it (numbers k0 .. k1 - 1, ``expected``
 = k1 - k0) and the measured process's CPU time (utime + stime of ``/proc/PID/stat``: the
 gateway for WebSocket, the relay for ZeroMQ) and, at its end, its resident set (``VmRSS``);
-then ``DRAIN_S`` for the last arrivals and stop the viewers. For each viewer, ``delivered``
+then the viewers stop once each has the window's last packet, or after ``DRAIN_S`` (a packet
+not there by then is lost). For each viewer, ``delivered``
 is the number of distinct window packets it received (a packet's number is known from its
 16-bit seq and k0: the window is far shorter than the 36 min it takes to wrap); ``lost`` =
 N * expected - delivered, summed over the viewers. Added latency: arrival minus send time of
@@ -79,7 +80,7 @@ MAX_SECONDS = 600.0  # a window far shorter than the seq's wrap (65536 / 30 Hz =
 MAX_VIEWERS = 5000
 PER_PROCESS = 500  # viewers per viewer process
 SETTLE_S = 1.0
-DRAIN_S = 1.0
+DRAIN_S = 10.0  # at most, after the window, for the last arrivals
 JOIN_TIMEOUT_S = 120.0
 STOP_TIMEOUT_S = 30.0
 GATEWAY_TIMEOUT_S = 60.0
@@ -286,11 +287,10 @@ def measure_run(kind: str, n: int, target: str, pid: int, sender: LogSender,
         k1, t1 = len(sender.times), time.monotonic()
         cpu1, wait1 = [cpu_seconds(p) for p in pids], [wait_seconds(p) for p in pids]
         rss = rss_mb(pid)
-        time.sleep(DRAIN_S)
         for v in viewers:
-            v.tell("stop")
+            v.tell(f"stop {(k1 - 1) % SEQ_MODULO} {DRAIN_S}")
         for v in viewers:
-            if (line := v.line(time.monotonic() + STOP_TIMEOUT_S)) != "done":
+            if (line := v.line(time.monotonic() + DRAIN_S + STOP_TIMEOUT_S)) != "done":
                 raise FanoutError(f"{v.name}: {line}")
     sent = np.asarray(sender.times[k0:k1])
     expected = k1 - k0

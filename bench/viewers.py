@@ -21,8 +21,10 @@ by ``protocol.packet.decode_frames`` (the packet layout's one definition; a mess
 not a valid packet gets seq -1).
 
 The parent talks over stdio, one line each way: this process prints ``ready`` once every
-client has received a packet (``error: ...`` and exits 1 when it cannot), then reads ``stop``
-from stdin, writes ``OUT.npz`` and prints ``done``. ``OUT.npz`` holds, for every packet
+client has received a packet (``error: ...`` and exits 1 when it cannot), then reads ``stop
+SEQ S`` from stdin, waits until every client still connected has packet ``SEQ`` or a later
+one (at most S seconds: what has not come by then is lost), writes ``OUT.npz`` and prints
+``done``. ``OUT.npz`` holds, for every packet
 received (M of them), in client order: ``viewer`` (M,) int32 client index, ``seq`` (M,)
 int32, ``arrival`` (M,) float64 seconds; ``closed`` (N,) bool, the clients whose
 connection ended before ``stop``; ``retries`` (N,) int32, the WebSocket handshakes a client
@@ -50,7 +52,7 @@ from websockets.frames import Frame, Opcode
 from websockets.protocol import State
 from websockets.uri import WebSocketURI, parse_uri
 
-from facewire.protocol.packet import PACKET_BYTES, decode_frames
+from facewire.protocol.packet import PACKET_BYTES, SEQ_MODULO, decode_frames
 from facewire.protocol.transport import PacketSubscriber
 
 OPEN_AT_ONCE = 20  # handshakes in flight per process: two stay below a listen backlog of 100
@@ -82,6 +84,18 @@ class _Recorder:
 
     def all_joined(self) -> bool:
         return all(self.arrivals)
+
+    def caught_up(self, last: int) -> bool:
+        """Whether every client still connected has received packet ``last`` (a 16-bit seq)
+        or a later one."""
+        newest = [m[-1] for m, closed in zip(self.messages, self.closed)
+                  if m and not closed and len(m[-1]) == PACKET_BYTES]
+        if len(newest) < int((~self.closed).sum()):
+            return False
+        frames, errors = decode_frames(np.frombuffer(b"".join(newest), np.uint8)
+                                       .reshape(-1, PACKET_BYTES))
+        behind = (frames["seq"].astype(np.int64) - last) % SEQ_MODULO >= SEQ_MODULO // 2
+        return not behind.any() and all(e is None for e in errors)
 
     def joined(self) -> int:
         """How many clients have received a packet."""
@@ -251,8 +265,14 @@ def _say(line: str) -> None:
 
 
 def _wait_for_stop(rec: _Recorder) -> None:
+    """Read ``stop SEQ S`` from stdin, then stop once every open client's newest packet is
+    ``SEQ`` or later (packets come in order on each connection), or after S seconds."""
     for line in sys.stdin:
-        if line.strip() == "stop":
+        words = line.split()
+        if len(words) == 3 and words[0] == "stop":
+            last, deadline = int(words[1]), time.monotonic() + float(words[2])
+            while not rec.caught_up(last) and time.monotonic() < deadline:
+                time.sleep(READY_POLL_S)
             break
     rec.stop.set()
 
