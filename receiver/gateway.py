@@ -62,10 +62,12 @@ Bounds. A page need send nothing: a message over ``MAX_MESSAGE_BYTES`` closes it
 (1009, by ``websockets``' ``max_size``), more than ``MAX_MESSAGES_PER_S`` in a second closes
 it (1008, policy violation). Packets go out with ``websockets.broadcast``, which writes to
 each connection's buffer without waiting: a page that does not read fills its kernel send
-buffer (fixed at ``SEND_BUFFER_BYTES`` per connection), then the gateway's; every
-``SWEEP_S`` a page with more than ``MAX_BUFFER_BYTES`` unsent is cut off (``slow``). So a
-page that stalls is dropped after about (32 + 16) KiB / 1.35 kB/s, 35 s at 30 Hz, and never
-holds up the others; ``websockets``' keepalive ping also closes one that stops answering.
+buffer (fixed at ``SEND_BUFFER_BYTES`` per connection, which Linux doubles), then the
+gateway's; every ``SWEEP_S`` a page with more than ``MAX_BUFFER_BYTES`` unsent is cut off
+(``dropped_slow``). So a page that stalls costs at most those buffers and never holds up the
+others; at 1.35 kB/s it is dropped once its own receive buffer and these are full (a minute
+or more), unless ``websockets``' keepalive ping (20 s, then 20 s for the answer) closed it
+first.
 At most ``MAX_VIEWERS`` WebSockets at once (503 beyond). HTTP requests are ``websockets``'
 own parser's (its limits on lines and headers; ``open_timeout`` for a slow client).
 
