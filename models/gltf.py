@@ -443,20 +443,23 @@ def write_glb(path: str | os.PathLike, vertices: np.ndarray, triangles: np.ndarr
     """
     path = Path(path)
     normals = _checked_inputs(path, vertices, triangles, uv, texture, normals)
-    builder = _BinBuilder()
-    doc = _document(builder, vertices, triangles, uv, normals)
+    builder = BinBuilder()
+    doc = mesh_document(builder, vertices, triangles, uv, normals)
     if texture is not None:
         _embed_texture(path, doc, builder, texture)
+    data = glb_bytes(doc, builder)
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def glb_bytes(doc: dict, builder: BinBuilder) -> bytes:
+    """The .glb file of ``doc`` and the binary chunk ``builder`` holds (module docstring)."""
     binary = builder.finish(doc)
     json_bytes = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     json_bytes += b" " * (-len(json_bytes) % 4)
     total = _HEADER.size + 2 * _CHUNK.size + len(json_bytes) + len(binary)
-    with open(path, "wb") as f:
-        f.write(_HEADER.pack(_MAGIC, 2, total))
-        f.write(_CHUNK.pack(len(json_bytes), _CHUNK_JSON))
-        f.write(json_bytes)
-        f.write(_CHUNK.pack(len(binary), _CHUNK_BIN))
-        f.write(binary)
+    return b"".join([_HEADER.pack(_MAGIC, 2, total), _CHUNK.pack(len(json_bytes), _CHUNK_JSON),
+                     json_bytes, _CHUNK.pack(len(binary), _CHUNK_BIN), binary])
 
 
 def _checked_inputs(path: Path, vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray,
@@ -481,11 +484,12 @@ def _checked_inputs(path: Path, vertices: np.ndarray, triangles: np.ndarray, uv:
     return (normals / length).astype(np.float32)
 
 
-def _document(builder: _BinBuilder, vertices: np.ndarray, triangles: np.ndarray,
-              uv: np.ndarray, normals: np.ndarray | None) -> dict:
+def mesh_document(builder: BinBuilder, vertices: np.ndarray, triangles: np.ndarray,
+                  uv: np.ndarray, normals: np.ndarray | None, in_mm: bool = False) -> dict:
     """The JSON chunk of one node with one triangle primitive and its unlit material, its
-    attributes and indices appended to ``builder`` (positions in metres, v down)."""
-    positions = (vertices.astype(np.float64) / MM_PER_M).astype(np.float32)
+    attributes and indices appended to ``builder`` (positions in metres, v down; with
+    ``in_mm``, the positions stay the float32 mm given and the node scales them to metres)."""
+    positions = vertices if in_mm else (vertices.astype(np.float64) / MM_PER_M).astype(np.float32)
     attributes = {"POSITION": builder.accessor(positions, _FLOAT, "VEC3", _ARRAY_BUFFER,
                                                bounds=True)}
     if normals is not None:
@@ -504,26 +508,33 @@ def _document(builder: _BinBuilder, vertices: np.ndarray, triangles: np.ndarray,
         "asset": {"version": "2.0", "generator": "facewire models.gltf"},
         "extensionsUsed": ["KHR_materials_unlit"],
         "scene": 0, "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "name": "facewire"}],
+        "nodes": [{"mesh": 0, "name": "facewire", **({"scale": [1 / MM_PER_M] * 3} if in_mm
+                                                        else {})}],
         "meshes": [{"primitives": [{"attributes": attributes, "indices": indices,
                                     "material": 0, "mode": _TRIANGLES}]}],
         "materials": [material],
     }
 
 
-def _embed_texture(path: Path, doc: dict, builder: _BinBuilder, texture: np.ndarray) -> None:
+def _embed_texture(path: Path, doc: dict, builder: BinBuilder, texture: np.ndarray) -> None:
     """Embed the (H, W, 3) uint8 RGB texture as PNG, the base colour of ``doc``'s material."""
     ok, png = cv2.imencode(".png", cv2.cvtColor(texture, cv2.COLOR_RGB2BGR))
     if not ok:
         raise GltfError(f"{path}: texture: PNG encoding failed")
-    doc["images"] = [{"bufferView": builder.view(png.tobytes()), "mimeType": "image/png"}]
+    embed_base_colour(doc, builder, png.tobytes())
+
+
+def embed_base_colour(doc: dict, builder: BinBuilder, png: bytes) -> None:
+    """Embed ``png`` (a PNG file's bytes, as they are) as image 0, the base colour of
+    ``doc``'s material (``mesh_document``), mipmapped, clamped to the edge."""
+    doc["images"] = [{"bufferView": builder.view(png), "mimeType": "image/png"}]
     doc["samplers"] = [{"magFilter": _LINEAR, "minFilter": _LINEAR_MIPMAP_LINEAR,
                         "wrapS": _CLAMP_TO_EDGE, "wrapT": _CLAMP_TO_EDGE}]
     doc["textures"] = [{"source": 0, "sampler": 0}]
     doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] = {"index": 0}
 
 
-class _BinBuilder:
+class BinBuilder:
     """Accumulates the BIN chunk: 4-byte aligned bufferViews and their accessors."""
 
     def __init__(self) -> None:

@@ -450,6 +450,24 @@ _RULES = ZipRules("a facewire model", _limit, MAX_MEMBERS, MAX_TOTAL_BYTES, MAX_
 
 # ---- writing -----------------------------------------------------------------------------
 
+def png_members(model: PersonModel) -> dict[str, tuple[np.ndarray, bytes]]:
+    """The model's images as its file holds them: {member name: (array, PNG bytes)}.
+
+    The neutral texture, then each region's areas (main first), each area's layers in order
+    and its mask. The bytes are ``png_bytes`` of the arrays, deterministic (module docstring),
+    so for a model read from a file written by this module they are that file's members, byte
+    for byte; the browser's model (``models.webmodel``) carries them as they are.
+    """
+    out = {TEXTURE_MEMBER: (model.texture, png_bytes(model.texture))}
+    for r in model.regions:
+        for n, area in enumerate(r.parts()):
+            folder = f"regions/{r.name}" + (f"/area_{n}" if n else "")
+            for j, layer in enumerate(area.layers):
+                out[f"{folder}/layer_{j:02d}.png"] = (layer, png_bytes(layer))
+            out[f"{folder}/mask.png"] = (area.mask, png_bytes(area.mask))
+    return out
+
+
 def _encode(model: PersonModel) -> bytes:
     """The file's bytes: deterministic for a given model (see the module docstring)."""
     members: dict[str, bytes] = {}
@@ -462,13 +480,9 @@ def _encode(model: PersonModel) -> bytes:
     for f in MESH_FIELDS:
         array = getattr(model.mesh, f)
         put(f"arrays/{f}.npy", array, npy_bytes(array))
-    put(TEXTURE_MEMBER, model.texture, png_bytes(model.texture))
+    for name, (array, data) in png_members(model).items():
+        put(name, array, data)
     for r in model.regions:
-        for n, area in enumerate(r.parts()):
-            folder = f"regions/{r.name}" + (f"/area_{n}" if n else "")
-            for j, layer in enumerate(area.layers):
-                put(f"{folder}/layer_{j:02d}.png", layer, png_bytes(layer))
-            put(f"{folder}/mask.png", area.mask, png_bytes(area.mask))
         put(f"regions/{r.name}/templates.npy", r.templates, npy_bytes(r.templates))
     c, i = model.camera, model.info
     manifest = {

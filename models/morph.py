@@ -98,6 +98,7 @@ cancel. Measured: about 0.12 ms a frame for 10,000 vertices and 31 centres on on
 from __future__ import annotations
 
 import copy
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -106,6 +107,32 @@ KERNELS = ("multiquadric", "gaussian")
 
 # A condition number above this means the centres are (nearly) degenerate for the system.
 _MAX_CONDITION = 1e12
+
+
+class RbfSolution(NamedTuple):
+    """A fitted ``VolumeMorph`` as numbers, for evaluating it elsewhere (the browser's rig,
+    ``models.webmodel``): the weights of a point p are ``rows(p) @ z`` with
+    ``rows(p) = [h_i(||p - x_i||) for each centre i, then alpha [(p - x0) / ell, 1]]``
+    (module docstring; no affine part for the Gaussian).
+
+    Attributes:
+        kernel: the kernel name.
+        centres: (M, 3) float64 centre positions x_i, mm.
+        shape: (M,) float64: the multiquadric's s_i, or the Gaussian's width w for each.
+        origin: (3,) float64 x0, the centres' centroid.
+        scale: ell, their RMS distance from it, mm.
+        balance: alpha, the affine rows' scale.
+        z: (M + 4, M) float64 (multiquadric) or (M, M) (Gaussian): the first M columns of the
+            system's inverse.
+    """
+
+    kernel: str
+    centres: np.ndarray
+    shape: np.ndarray
+    origin: np.ndarray
+    scale: float
+    balance: float
+    z: np.ndarray
 
 
 class VolumeMorph:
@@ -165,6 +192,11 @@ class VolumeMorph:
         other = copy.copy(self)
         other._bind(_check_xyz("points", points))
         return other
+
+    def solution(self) -> RbfSolution:
+        """The fitted system, from which ``weights`` at any point follow (``RbfSolution``)."""
+        return RbfSolution(self.kernel, self.centres.astype(np.float64), self._shape.copy(),
+                           self._origin.copy(), self._scale, self._balance, self._z.copy())
 
     def apply(self, displacements: np.ndarray) -> np.ndarray:
         """Move the points by the field fitted to the centres' displacements.
