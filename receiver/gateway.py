@@ -83,6 +83,7 @@ Stopping: ``stop`` set (Ctrl-C and SIGTERM in the CLI): the server closes every 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import email.utils
 import gzip
@@ -106,11 +107,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from facewire.models.modelfile import PersonModel
-from facewire.models.webmodel import (  # type: ignore[import-not-found]
-    model_glb,
-    rig_bin,
-    update_bin,
-)
+from facewire.models.webmodel import model_glb, rig_bin, update_bin
 from facewire.protocol.control import Hello, HelloRequest
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, client_keys
@@ -137,7 +134,7 @@ MAX_VIEWERS = 4096
 SWEEP_S = 0.25
 STATUS_S = 0.5
 MODELS_KEPT = 4
-GZIP_SAVES = 0.95  # serve gzip only when it is at most this fraction of the raw bytes
+GZIP_SAVES = 1.0  # serve gzip when it is smaller than the raw bytes at all
 _WAKE_S = 0.1
 _FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html))")
 _MODEL = re.compile(r"/model/(?P<sha>[0-9a-f]{64})\.(?P<kind>glb|rig)")
@@ -458,7 +455,12 @@ class Gateway:
                 if len(recent) > MAX_MESSAGES_PER_S:
                     self.counts["dropped_junk"] += 1
                     self.viewers.discard(viewer)
-                    await viewer.close(1008, "this stream takes no messages")
+                    closing = asyncio.create_task(
+                        viewer.close(1008, "this stream takes no messages"))
+                    with contextlib.suppress(ConnectionClosed):
+                        async for _ in viewer:  # read what came before its answering close
+                            pass
+                    await closing
                     return
         except ConnectionClosed as closed:
             if closed.sent is not None and closed.sent.code == 1009:  # over max_size

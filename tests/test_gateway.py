@@ -34,43 +34,15 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
 from facewire.cli import main
-from facewire.models.modelfile import PersonModel, load_model
+from facewire.models import webmodel
+from facewire.models.modelfile import load_model
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.packet import decode, encode
 from facewire.protocol.shaper import UpdateShaper
 from facewire.protocol.transport import ControlServer, PacketPublisher, control_endpoint
-
-
-def _fake_webmodel() -> Any:
-    """TEMPORARY, until models/webmodel.py (branch fmt) is in main: the three functions of
-    the contract as stand-ins, so that the gateway's own behaviour can be tested."""
-    import hashlib
-    import sys
-    import types
-
-    def digest(*models: PersonModel) -> bytes:
-        h = hashlib.sha256()
-        for m in models:
-            for r in m.regions:
-                h.update(r.layers.tobytes())
-        return h.digest()
-
-    fake = types.ModuleType("facewire.models.webmodel")
-    fake.model_glb = lambda m: b"glTF" + digest(m) * 4096  # type: ignore[attr-defined]
-    fake.rig_bin = lambda m: b"FWRG" + bytes(50_000) + digest(m)  # type: ignore[attr-defined]
-    fake.update_bin = lambda a, b: b"FWUP" + digest(a, b)  # type: ignore[attr-defined]
-    sys.modules["facewire.models.webmodel"] = fake
-    return fake
-
-
-try:
-    from facewire.models import webmodel
-except ImportError:
-    webmodel = _fake_webmodel()
-
-from facewire.receiver.gateway import serve_gateway  # noqa: E402 (after the stand-in)
-from facewire.sender.responder import Responder  # noqa: E402
-from facewire.sender.updates import UpdateStore  # noqa: E402
+from facewire.receiver.gateway import serve_gateway
+from facewire.sender.responder import Responder
+from facewire.sender.updates import UpdateStore
 
 FAST = (10**9, 1.1, (1e9, 1e9))  # a shaper that holds nothing: the tests are not about rate
 TOKEN = "s3cret-T0ken"
@@ -130,6 +102,10 @@ class _Page(threading.Thread):
     @property
     def packets(self) -> list[bytes]:
         return [m for m in list(self.messages) if isinstance(m, bytes)]
+
+    def status(self) -> str:
+        """The sender's state the last status message gave."""
+        return [t for t in self.texts if t["type"] == "status"][-1]["sender"]
 
     def kinds(self) -> list[str]:
         return [json.loads(m)["type"] if isinstance(m, str) else "packet"
@@ -205,13 +181,19 @@ def test_pages_get_the_model_first_then_every_packet_unchanged_and_in_order(
     hello, packets = stream
     model = load_model(person_model)
     endpoint = free_endpoint()
-    sender = _Sender(endpoint, person_model, hello)
     gateway = _Gateway(endpoint, tmp_path / "cache")
+    sender = None
     try:
-        a, b = gateway.page(), gateway.page()
+        a = gateway.page()  # before any sender: told so
+        _until(lambda: bool(a.texts), "the page is told the status")
+        assert a.texts == [{"type": "status", "sender": "waiting",
+                            "text": "waiting for the sender"}]
+        sender = _Sender(endpoint, person_model, hello)
+        b = gateway.page()
         _until(lambda: "model" in a.kinds() and "model" in b.kinds(), "the model is announced")
         texts = a.texts
-        assert texts[0]["type"] == "status"
+        assert texts[-1] == {"type": "status", "sender": "connected",
+                             "text": "the sender is connected"}
         assert a.kinds().index("hello") < a.kinds().index("model")
         sent_hello = next(t for t in texts if t["type"] == "hello")
         assert sent_hello == {"type": "hello", **json.loads(json.dumps(
@@ -268,13 +250,25 @@ def test_pages_get_the_model_first_then_every_packet_unchanged_and_in_order(
         assert c.kinds().index("model") < c.kinds().index("update")
         _until(lambda: len(a.packets) == len(packets) + len(later), "the later packets")
         assert a.packets[len(packets):] == later
+
+        # the sender goes: the pages are told; it comes back, a new session of the same
+        # model: the pages are told to start again from the model file
+        sender.close()
+        sender = None
+        _until(lambda: a.status() == "waiting", "the pages are told the sender went")
+        told = len(a.messages)
+        sender = _Sender(endpoint, person_model, hello)
+        _until(lambda: a.status() == "connected", "the pages are told it is back")
+        assert [t["type"] for t in a.texts[-3:]] == ["hello", "model", "status"]
+        assert len(a.messages) - told <= 5  # connected, fetching (from the cache), the three
     finally:
         summary = gateway.close()
-        sender.close()
+        if sender is not None:
+            sender.close()
     assert summary["forwarded"] == len(packets) + len(later)
     assert summary["corrupt"] == 3 and summary["corrupt_crc"] == summary["corrupt_size"] == \
         summary["corrupt_version"] == 1
-    assert summary["model_sha256"] == sha and summary["model_serial"] == 1
+    assert summary["model_sha256"] == sha and summary["model_serial"] == 0  # a new session
     assert summary["dropped_junk"] == summary["dropped_slow"] == 0
 
 
