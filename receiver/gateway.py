@@ -47,7 +47,7 @@ otherwise. Plain GETs are answered in ``process_request``:
   under the same serials);
 - anything else 404. Each body is made once per model or version, on the upstream
   thread; gzip (``Content-Encoding``) is made once too, and served to a client that accepts
-  it when it saves more than 5 %.
+  it when it is smaller.
 
 ``/stream`` is the WebSocket (its ``Origin``, when a browser sends one, must be the page's
 own host, so that another site's page cannot open it). On connecting a page gets, before any
