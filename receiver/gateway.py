@@ -17,9 +17,13 @@ Upstream (what a receiver does, with the receiver's own parts)
   names. CURVE with ``curve_dir`` (``protocol.keys.client_keys``) on every socket.
 - The sender's presence. With no sender the Hello is asked again and again
   (``HELLO_TIMEOUT_S`` each); once one answers the sender is *connected*. The Hello is asked
-  again every ``RECHECK_S``, at once when packets resume after ``RESUME_GAP_S`` of silence (a
-  restarted sender), and when none has come for ``SILENT_S``; a sender that does not answer
-  while no packet has come for ``SILENT_S`` is *lost*, and the gateway waits again. A Hello
+  again every ``RECHECK_S``, at once when packets resume after ``RESUME_GAP_S`` of silence or
+  a packet's seq is not among the ``FAR_SLOTS`` after the last one's (a restarted sender), and
+  when none has come for ``SILENT_S``; a sender that does not answer
+  while no packet has come for ``SILENT_S`` is *lost*, and the gateway waits again. The
+  packets that came after such a sign are held (at most ``MAX_DOUBT``) until the Hello
+  answers: with the same model they go out; with another they are dropped (``held``), since
+  the pages do not have that model yet; with no answer they go out (nothing tells). A Hello
   with another model sha256 brings that model (cache or fetch) and announces it; one whose
   ``model_serial`` is below the versions fetched is a new session of the same model: its
   updates are fetched anew and the model announced again (the page starts again from
@@ -112,7 +116,7 @@ from facewire.protocol.control import Hello, HelloRequest
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, client_keys
 from facewire.protocol.loopback import host_header_is_loopback, is_loopback
-from facewire.protocol.packet import PacketError, decode
+from facewire.protocol.packet import SEQ_MODULO, PacketError, decode
 from facewire.protocol.transport import PacketSubscriber, control_endpoint
 from facewire.receiver.acquire import ControlChannel, ModelAcquirer
 from facewire.receiver.modelcache import ModelCache
@@ -123,6 +127,8 @@ DEFAULT_HTTP = "127.0.0.1:8080"
 HELLO_TIMEOUT_S = 1.0
 RECHECK_S = 2.0
 RESUME_GAP_S = 0.5
+FAR_SLOTS = 60  # a packet's seq this far from the last one's, or behind it: a new stream?
+MAX_DOUBT = 256  # packets held while the Hello is asked again; beyond, dropped (held)
 SILENT_S = 1.0
 QUEUE_PACKETS = 4096
 REOPEN_S = 8.0
@@ -275,6 +281,9 @@ class Gateway:
         self.url = ""
         self.error: BaseException | None = None
         self._last_arrival: float | None = None
+        self._last_seq: int | None = None
+        self._doubt: list[bytes] | None = None  # packets held until a Hello says whose
+        self._doubt_since = 0.0
         self._scheduled = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self.reader: PacketReader | None = None
@@ -351,9 +360,8 @@ class Gateway:
         try:
             while (item := self.reader.take()) is not None:
                 data, arrival = item
-                if self._last_arrival is not None and arrival - self._last_arrival > \
-                        RESUME_GAP_S and self.upstream is not None:
-                    self.upstream.recheck.set()
+                resumed = self._last_arrival is not None and \
+                    arrival - self._last_arrival > RESUME_GAP_S
                 self._last_arrival = arrival
                 try:
                     frame = decode(data)
@@ -361,15 +369,28 @@ class Gateway:
                     self.counts["corrupt"] += 1
                     self.counts[f"corrupt_{exc.reason}"] += 1
                     continue
+                jumped = self._last_seq is not None and \
+                    not 0 < (frame.seq - self._last_seq) % SEQ_MODULO <= FAR_SLOTS
+                if (resumed or jumped) and self.upstream is not None:
+                    self.upstream.recheck.set()  # perhaps a restarted sender: ask its Hello
+                    if self._doubt is None:
+                        self._doubt, self._doubt_since = [], time.monotonic()
+                self._last_seq = frame.seq
                 self.latest_serial = frame.serial
-                if self.model_json is None:
+                if self.model_json is None or self._doubt is not None and \
+                        len(self._doubt) >= MAX_DOUBT:
                     self.counts["held"] += 1
-                    continue
-                broadcast(self.viewers, data)
-                self.counts["forwarded"] += 1
-                self.counts["forwarded_bytes"] += len(data)
+                elif self._doubt is not None:
+                    self._doubt.append(data)
+                else:
+                    self._send_packet(data)
         except FacewireError as exc:
             self.error = exc
+
+    def _send_packet(self, data: bytes) -> None:
+        broadcast(self.viewers, data)
+        self.counts["forwarded"] += 1
+        self.counts["forwarded_bytes"] += len(data)
 
     def _sweep(self) -> None:
         """Cut off the viewers that do not read (module docstring)."""
@@ -409,8 +430,19 @@ class Gateway:
         self.set_status("connected", "the sender is connected")
 
     def unready(self) -> None:
-        """The sender names another model: no packet goes out until it is here."""
+        """The sender names another model: no packet goes out until it is here (those in
+        doubt were of that model: held)."""
         self.model_json = None
+        self.counts["held"] += len(self._doubt or ())
+        self._doubt = None
+
+    def confirm(self, asked: float) -> None:
+        """A Hello asked at ``asked`` (monotonic) was answered with the stream's model, or
+        not answered: the packets in doubt since before it go out (module docstring)."""
+        if self._doubt is not None and asked >= self._doubt_since:
+            doubt, self._doubt = self._doubt, None
+            for data in doubt:
+                self._send_packet(data)
 
     def set_hello(self, hello: Hello) -> None:
         self.hello_json = _hello_json(hello)
@@ -586,6 +618,7 @@ class Upstream:
 
     def close(self) -> None:
         self._closing.set()
+        self.recheck.set()
         self._thread.join()
         if self._fetcher is not None:
             self._fetcher.close()
@@ -616,6 +649,7 @@ class Upstream:
             silent = last is None or now - last > SILENT_S
             if not connected or now >= next_ask or self.recheck.is_set() or silent:
                 self.recheck.clear()
+                asked = time.monotonic()
                 got = self._control.ask(HelloRequest(), Hello, HELLO_TIMEOUT_S)
                 if got is None:
                     if connected and silent:
@@ -623,6 +657,7 @@ class Upstream:
                         gw.post(gw.set_status, "waiting",
                                 "the sender stopped answering: waiting for it")
                     next_ask = time.monotonic() + RECHECK_S
+                    gw.post(gw.confirm, asked)  # cannot tell: what was held goes out
                     continue
                 next_ask = time.monotonic() + (SILENT_S if silent else RECHECK_S)
                 if not connected:
@@ -649,6 +684,7 @@ class Upstream:
                 elif dataclasses.replace(got, model_serial=0) != \
                         dataclasses.replace(hello, model_serial=0):
                     gw.post(gw.set_hello, got)
+                gw.post(gw.confirm, asked)
                 hello = got
             fetcher = self._fetcher
             if fetcher is not None and hello is not None:
@@ -660,7 +696,7 @@ class Upstream:
                     body = Body.make(update_bin(before, after), "application/octet-stream",
                                      "no-store")
                     gw.post(gw.add_update, fetcher.base_sha256, announced, body)
-            self._closing.wait(_WAKE_S)
+            self.recheck.wait(_WAKE_S)
 
     def _start_updates(self, model: PersonModel | None) -> None:
         assert model is not None  # version 0 is always held

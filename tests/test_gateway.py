@@ -40,7 +40,7 @@ from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.packet import decode, encode
 from facewire.protocol.shaper import UpdateShaper
 from facewire.protocol.transport import ControlServer, PacketPublisher, control_endpoint
-from facewire.receiver.gateway import serve_gateway
+from facewire.receiver.gateway import parse_http, remote_warning, serve_gateway
 from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
@@ -258,9 +258,10 @@ def test_pages_get_the_model_first_then_every_packet_unchanged_and_in_order(
         _until(lambda: a.status() == "waiting", "the pages are told the sender went")
         told = len(a.messages)
         sender = _Sender(endpoint, person_model, hello)
-        _until(lambda: a.status() == "connected", "the pages are told it is back")
-        assert [t["type"] for t in a.texts[-3:]] == ["hello", "model", "status"]
-        assert len(a.messages) - told <= 5  # connected, fetching (from the cache), the three
+        _until(lambda: a.kinds()[told:][-1:] == ["status"] and "model" in a.kinds()[told:],
+               "the pages are told it is back, with the model to start again from")
+        assert a.kinds()[told:] == ["status", "hello", "model", "status"]
+        assert a.status() == "connected"
     finally:
         summary = gateway.close()
         if sender is not None:
@@ -362,6 +363,41 @@ def test_no_sender_means_waiting_and_every_request_needs_the_token_and_a_loopbac
     assert summary["http_refused"] >= 9
 
 
+def test_another_model_holds_the_packets_back_until_the_pages_are_told_of_it(
+        person_model: Path, generic_model: Path, stream: tuple[Hello, list[bytes]],
+        tmp_path: Path) -> None:
+    hello, packets = stream
+    endpoint = free_endpoint()
+    gateway = _Gateway(endpoint, tmp_path / "cache")
+    sender = _Sender(endpoint, generic_model, hello_for(generic_model, hello))
+    try:
+        page = gateway.page()
+        _until(lambda: "model" in page.kinds(), "the first model is announced")
+        sender.send(packets[:10])
+        _until(lambda: len(page.packets) == 10, "the first sender's packets")
+        told = len(page.messages)
+        sender.close()
+        sender = _Sender(endpoint, person_model, hello)  # a restarted sender, another model
+        time.sleep(0.3)  # the gateway's packet socket connects again (every 0.1 s)
+        sender.send(packets[:10])  # numbered from 0 again: the gateway asks for the Hello
+        _until(lambda: page.kinds().count("model") == 2, "the second model is announced")
+        sender.send(packets[10:])
+        _until(lambda: page.packets[-1:] == packets[-1:], "the second sender's packets")
+        models = [t for t in page.texts if t["type"] == "model"]
+        assert [m["sha256"] for m in models] == [load_model(generic_model).sha256,
+                                                 load_model(person_model).sha256]
+        after = page.kinds()[told:]
+        model_at = after.index("model")
+        assert after.index("hello") < model_at and "packet" not in after[:model_at]
+        assert page.packets[-(len(packets) - 10):] == packets[10:]  # all sent after it
+    finally:
+        summary = gateway.close()
+        sender.close()
+    # the new sender's first packets: held until its Hello said whose they are (or lost
+    # while the gateway's socket connected to the new sender)
+    assert 10 + len(packets) - 10 <= summary["forwarded"] + summary["held"] <= 10 + len(packets)
+
+
 def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(
         tmp_path: Path, capsys: pytest.CaptureFixture[str],
         monkeypatch: pytest.MonkeyPatch) -> None:
@@ -372,6 +408,15 @@ def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(
     assert len(err.splitlines()) == 1 and "--allow-remote" in err
     assert main(["web", "--connect", endpoint, "--token", "no spaces"]) == 2
     assert "--token" in capsys.readouterr().err
+    assert parse_http("0.0.0.0:8080", allow_remote=True) == ("0.0.0.0", 8080)
+    assert parse_http("[::1]:0", allow_remote=False) == ("::1", 0)
+    warning = remote_warning("0.0.0.0", None)
+    assert warning is not None and "unencrypted" in warning and "--token" in warning
+    assert remote_warning("localhost", None) is None
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        assert main(["web", "--connect", endpoint, "--http", f"127.0.0.1:{port}"]) == 2
+    assert f"127.0.0.1:{port}: cannot serve there" in capsys.readouterr().err
     timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGTERM))
     timer.start()
     assert main(["web", "--connect", endpoint, "--http", "127.0.0.1:0", "--json"]) == 0
