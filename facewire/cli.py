@@ -176,10 +176,11 @@ def _relay(args: argparse.Namespace) -> int:
 
 
 def _web(args: argparse.Namespace) -> int:
-    from facewire.receiver.gateway import parse_http, remote_warning, serve_gateway
+    from facewire.receiver.gateway import DEFAULT_HTTP, parse_http, remote_warning, serve_gateway
     from facewire.report import report
 
-    host, _ = parse_http(args.http, args.allow_remote)
+    http = args.http or DEFAULT_HTTP
+    host, _ = parse_http(http, args.allow_remote)
     warning = remote_warning(host, args.token)
     if warning is not None:
         print(f"facewire web: {warning}", file=sys.stderr)
@@ -200,7 +201,7 @@ def _web(args: argparse.Namespace) -> int:
                       flush=True)
                 line.width = 0
 
-            s = serve_gateway(args.connect, args.http, args.curve_dir, args.token,
+            s = serve_gateway(args.connect, http, args.curve_dir, args.token,
                               args.allow_remote, stop=stop, say=say, status=line,
                               ready=lambda url: say(f"open {url} (Ctrl-C stops)"))
     finally:
@@ -815,7 +816,7 @@ def _add_tools(sub: Commands) -> None:
                    "tcp://HOST:5555")
     w.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "connect only to the sender whose key is in DIR/authorized")
-    w.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
+    w.add_argument("--http", metavar="HOST:PORT",
                    help="where to serve the page and the WebSocket (default 127.0.0.1:8080; "
                    "port 0: any free one)")
     w.add_argument("--token", help="require ?token=TOKEN on every request (the page's URL "
