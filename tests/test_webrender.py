@@ -165,3 +165,189 @@ def test_the_update_file_makes_the_next_version(model: PersonModel) -> None:
     header = _container(data, b"FWUP")[0]  # only the new state's images travel
     assert len(header["blobs"]) == len(new.parts())
     assert _container(update_bin(version, version), b"FWUP")[0]["regions"] == []
+
+
+# ---- the page's modules in real headless Chromium (WebGL2 through SwiftShader) ------------
+
+WIDTH, HEIGHT = 640, 480
+FRAMES = 24  # states of the log rendered by both
+
+TEST_PAGE = b"""<!doctype html>
+<canvas id="canvas" width="640" height="480"></canvas>
+<script type="module">
+import * as model from "./model.js";
+import * as render from "./render.js";
+import * as views from "./views.js";
+
+function state(o) {
+  return { ...o, rotation: Float64Array.from(o.rotation),
+           translation: Float64Array.from(o.translation),
+           residuals: Float32Array.from(o.residuals), q: Float32Array.from(o.q),
+           shade: Float32Array.from(o.shade) };
+}
+
+function base64(bytes) {
+  let text = "";
+  for (let i = 0; i < bytes.length; i += 0x8000)
+    text += String.fromCharCode.apply(null, bytes.subarray(i, i + 0x8000));
+  return btoa(text);
+}
+
+async function refused(promise) {
+  try {
+    await promise;
+  } catch (error) {
+    return `${error.name}: ${error.message}`;
+  }
+  return "accepted";
+}
+
+window.t = { model, render, views, state, base64, refused };
+window.ready = true;
+</script>
+"""
+
+
+def _evaluate(browser, session: str, expression: str, timeout: float = 60.0):
+    """A JavaScript expression's value in the page (promises awaited), with a timeout long
+    enough for loading a model on a loaded machine."""
+    result = browser.call("Runtime.evaluate", {"expression": expression, "returnByValue": True,
+                                               "awaitPromise": True}, session, timeout=timeout)
+    if "exceptionDetails" in result:
+        raise RuntimeError(f"page script failed: {result['exceptionDetails']}")
+    return result["result"].get("value")
+
+
+def _state_json(state) -> dict:
+    return {"seq": state.seq, "rotation": state.rotation.ravel().tolist(),
+            "translation": state.translation.tolist(),
+            "residuals": state.residuals.ravel().tolist(), "q": state.q.tolist(),
+            "flags": int(state.flags), "status": state.status, "weight": state.weight,
+            "arrival_s": state.arrival_s, "serial": state.serial,
+            "shade": state.shade.tolist()}
+
+
+@pytest.fixture(scope="module")
+def states(person_model: Path, shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
+    """The log's hello and FRAMES of its playout states, evenly spread over lp_d0.mp4."""
+    from facewire.protocol.log import read_log
+    from facewire.receiver.playout import replay_states
+    from facewire.sender.pipeline import encode_video
+
+    path = tmp_path_factory.mktemp("web") / "lp_d0.fwlog"
+    encode_video(person_model, shared_data / "video" / "lp_d0.mp4", path, learn=False)
+    log = read_log(path)
+    played = list(replay_states(log.packets, log.times, log.hello.rate_hz))
+    picks = np.linspace(0, len(played) - 1, FRAMES).round().astype(int)
+    return log.hello, [played[i] for i in picks]
+
+
+@pytest.fixture(scope="module")
+def page(model: PersonModel, glb: bytes, tmp_path_factory: pytest.TempPathFactory):
+    """A Chromium tab on the test page, with the model's files, a version step and corrupt
+    copies served beside the page's modules; yields (browser, session)."""
+    from browser import WEBGL_FLAGS, DevTools, find_chromium
+    from webpage import PageServer, open_tab
+
+    chromium = find_chromium()
+    rig = rig_bin(model)
+    update = update_bin(model, learned_version(model))
+    binary = "application/octet-stream"
+    bad_rig = bytearray(rig)
+    header = _container(rig, b"FWRG")[0]
+    at = 12 + struct.unpack_from("<I", rig, 8)[0] + header["arrays"]["z"]["offset"]
+    bad_rig[at:at + 8] = struct.pack("<d", float("nan"))
+    bad_update = bytearray(update)
+    body = 12 + struct.unpack_from("<I", update, 8)[0]
+    bad_update[body:body + 8] = b"notapng!"  # the new state's first image
+    extra = {"/test.html": ("text/html", TEST_PAGE), "/m.glb": (binary, glb),
+             "/m.rig": (binary, rig), "/m/1.upd": (binary, update),
+             "/cut.glb": (binary, glb[:len(glb) // 2]), "/nan.rig": (binary, bytes(bad_rig)),
+             "/bad.upd": (binary, bytes(bad_update))}
+    folder = tmp_path_factory.mktemp("chromium")
+    with PageServer(extra) as server:
+        browser = DevTools(chromium, folder / "profile", folder / "chromium.log", WEBGL_FLAGS)
+        try:
+            session = open_tab(browser, server.url + "/test.html", "window.ready === true")
+            _evaluate(browser, session, """(async () => {
+              window.m = await t.model.loadModel({sha256: "x", glb: "/m.glb", rig: "/m.rig"});
+              return true; })()""", timeout=120)
+            yield browser, session
+        finally:
+            browser.close()
+
+
+def _floats(text: str) -> np.ndarray:
+    import base64
+    return np.frombuffer(base64.b64decode(text), np.float32)
+
+
+def test_the_page_morphs_like_the_rig(page, model: PersonModel) -> None:
+    browser, session = page
+    rig = Rig(model.mesh)
+    uv = np.random.default_rng(7).normal(0.0, 4.0, (9, 2)).astype(np.float32)
+    got = _floats(_evaluate(browser, session, f"""
+        t.base64(new Uint8Array(m.rig.morph(Float32Array.from({uv.ravel().tolist()})).buffer))
+        """)).reshape(-1, 3)
+    want = rig.morph(rig.from_tangent(uv))
+    assert np.abs(got - want).max() < 1e-3  # mm
+    assert np.abs(want - model.mesh.vertices).max() > 3.0  # it did move
+
+
+def _hello_json(hello) -> dict:
+    c = hello.camera
+    return {"type": "hello", "model_sha256": hello.model_sha256, "rate_hz": hello.rate_hz,
+            "camera": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
+                       "height": c.height}}
+
+
+def _page_frames(browser, session: str, states: list, model_expr: str = "m") -> list[np.ndarray]:
+    """The page's renderings of ``states`` (FaceRenderer on the test page's canvas)."""
+    import base64
+    frames = []
+    for state in states:
+        text = _evaluate(browser, session, f"""(() => {{
+            window.r.setModel({model_expr});
+            window.r.render(t.state({json.dumps(_state_json(state))}), {{kind: "camera"}});
+            return t.base64(window.r.readPixels()); }})()""")
+        frames.append(np.frombuffer(base64.b64decode(text), np.uint8).reshape(HEIGHT, WIDTH, 3))
+    return frames
+
+
+def _face_ssim(rig: Rig, hello, state, a: np.ndarray, b: np.ndarray) -> float:
+    """Grey SSIM of two RGB renderings over the face (bench.fidelity's box and mask of the
+    state's projected landmarks)."""
+    from bench.fidelity import face_box, face_mask, gray_ssim
+    from facewire.receiver.views import sender_view
+
+    camera = sender_view(hello.camera, state.rotation, state.translation, WIDTH, HEIGHT)
+    points = camera.project(rig.landmarks(rig.from_tangent(state.residuals)))
+    box = face_box(points, WIDTH, HEIGHT)
+    x0, y0, x1, y1 = box
+    crop = (slice(y0, y1), slice(x0, x1))
+    return gray_ssim(a[crop][..., ::-1], b[crop][..., ::-1], face_mask(points, box))
+
+
+def test_the_page_renders_the_log_like_python(page, model: PersonModel, states,
+                                              tmp_path: Path) -> None:
+    from facewire.receiver.scene import StateRenderer
+
+    browser, session = page
+    hello, played = states
+    _evaluate(browser, session, f"""(() => {{
+        window.r = new t.render.FaceRenderer(document.getElementById("canvas"), m,
+                                             {json.dumps(_hello_json(hello))});
+        return true; }})()""")
+    ours = _page_frames(browser, session, played)
+    with StateRenderer(model, WIDTH, HEIGHT, hello.camera) as python:
+        theirs = [python.render(s) for s in played]
+        rig = python.rig
+    ssim = [_face_ssim(rig, hello, s, a, b) for s, a, b in zip(played, ours, theirs,
+                                                                strict=True)]
+    worst = int(np.argmin(ssim))
+    side = tmp_path / "page_vs_python.png"
+    cv2.imwrite(str(side), np.hstack([ours[worst], theirs[worst]])[..., ::-1])
+    print(f"face SSIM page vs Python: mean {np.mean(ssim):.4f}, min {min(ssim):.4f} "
+          f"(frame {worst}: {side})")
+    assert np.mean(ssim) >= 0.97, (ssim, side)
+    assert all(f.mean() > 5 for f in ours)  # a face in every frame
