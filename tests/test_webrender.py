@@ -7,6 +7,7 @@ alone) and compared with the Python model, rig and versions.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 from pathlib import Path
@@ -301,9 +302,14 @@ def _hello_json(hello) -> dict:
                        "height": c.height}}
 
 
-def _page_frames(browser, session: str, states: list, model_expr: str = "m") -> list[np.ndarray]:
-    """The page's renderings of ``states`` (FaceRenderer on the test page's canvas)."""
+def _page_frames(browser, session: str, hello, states: list, model_expr: str = "m"
+                 ) -> list[np.ndarray]:
+    """The page's renderings of ``states`` (one FaceRenderer on the test page's canvas)."""
     import base64
+    _evaluate(browser, session, f"""(() => {{
+        window.r ??= new t.render.FaceRenderer(document.getElementById("canvas"), m,
+                                               {json.dumps(_hello_json(hello))});
+        return true; }})()""")
     frames = []
     for state in states:
         text = _evaluate(browser, session, f"""(() => {{
@@ -334,11 +340,7 @@ def test_the_page_renders_the_log_like_python(page, model: PersonModel, states,
 
     browser, session = page
     hello, played = states
-    _evaluate(browser, session, f"""(() => {{
-        window.r = new t.render.FaceRenderer(document.getElementById("canvas"), m,
-                                             {json.dumps(_hello_json(hello))});
-        return true; }})()""")
-    ours = _page_frames(browser, session, played)
+    ours = _page_frames(browser, session, hello, played)
     with StateRenderer(model, WIDTH, HEIGHT, hello.camera) as python:
         theirs = [python.render(s) for s in played]
         rig = python.rig
@@ -351,3 +353,110 @@ def test_the_page_renders_the_log_like_python(page, model: PersonModel, states,
           f"(frame {worst}: {side})")
     assert np.mean(ssim) >= 0.97, (ssim, side)
     assert all(f.mean() > 5 for f in ours)  # a face in every frame
+
+
+def test_an_update_renders_like_pythons_version(page, model: PersonModel, states) -> None:
+    from facewire.receiver.scene import StateRenderer
+
+    browser, session = page
+    hello, played = states
+    version = learned_version(model)
+    mouth = [r.name for r in model.regions].index("mouth")
+    new_state = round(next(r for r in model.regions if r.name == "mouth").rest)
+    shown = []
+    for s in played[::4]:  # the new mouth state shown (where the mouth is open)
+        q = s.q.copy()
+        q[mouth] = new_state
+        shown.append(dataclasses.replace(s, q=q, serial=1))
+    assert _evaluate(browser, session, """(async () => {
+        window.m1 = await t.model.loadUpdate(m, {type: "update", serial: 1, url: "/m/1.upd"});
+        return [m1.serial, m1.regions.map((r) => r.layers), m.regions.map((r) => r.layers)];
+        })()""") == [1, [len(r.layers) for r in version.regions],
+                     [len(r.layers) for r in model.regions]]
+    ours = _page_frames(browser, session, hello, shown, "m1")
+    with StateRenderer(version, WIDTH, HEIGHT, hello.camera) as python:
+        theirs = [python.render(s) for s in shown]
+        before = StateRenderer(model, WIDTH, HEIGHT, hello.camera)
+        try:
+            old = [before.render(s) for s in shown]
+        finally:
+            before.release()
+        rig = python.rig
+    ssim = [_face_ssim(rig, hello, s, a, b) for s, a, b in zip(shown, ours, theirs, strict=True)]
+    before = [_face_ssim(rig, hello, s, a, b) for s, a, b in zip(shown, ours, old, strict=True)]
+    shows = [_face_ssim(rig, hello, s, a, b) < 0.99 for s, a, b in zip(shown, theirs, old,
+                                                                        strict=True)]
+    print(f"update: face SSIM page vs Python's version 1: {np.round(ssim, 4)}; "
+          f"vs version 0: {np.round(before, 4)}; where Python's versions differ: {shows}")
+    assert min(ssim) >= 0.97
+    assert any(shows)
+    assert all(b < s - 0.005 for b, s, show in zip(before, ssim, shows, strict=True) if show)
+
+
+def test_corrupt_files_are_refused_and_the_model_kept(page) -> None:
+    browser, session = page
+    cut, nan, bad_update, serial = _evaluate(browser, session, """(async () => [
+        await t.refused(t.model.loadModel({glb: "/cut.glb", rig: "/m.rig"})),
+        await t.refused(t.model.loadModel({glb: "/m.glb", rig: "/nan.rig"})),
+        await t.refused(t.model.loadUpdate(m, {serial: 1, url: "/bad.upd"})),
+        m.serial])()""")
+    assert cut.startswith("ModelError: /cut.glb: header says") and "truncated" in cut
+    assert nan == "ModelError: /nan.rig: arrays.z: contains NaN or infinity"
+    assert bad_update.startswith("ModelError: /bad.upd: regions[0].states[") \
+        and "not a PNG" in bad_update, bad_update
+    assert serial == 0  # the model it was applied to is untouched
+
+
+def test_the_page_renders_at_30_fps(page, model: PersonModel, states) -> None:
+    """The render call (morph, upload, draw) until drawn (a one-pixel read waits for it) at
+    640 x 480, and frames through requestAnimationFrame over a second (the browser drawing
+    and presenting them); Python's renderer on the same frame for the ratio (the machine's
+    load changes both)."""
+    from facewire.receiver.scene import StateRenderer
+
+    browser, session = page
+    browser.call("Page.bringToFront", {}, session)
+    hello, played = states
+    _page_frames(browser, session, hello, [])
+    timing = _evaluate(browser, session, f"""(async () => {{
+        const r = window.r;
+        r.setModel(m);
+        const s = t.state({json.dumps(_state_json(played[len(played) // 2]))});
+        const pixel = new Uint8Array(4);  // reading one waits for the frame to be drawn
+        for (let i = 0; i < 5; i++) {{
+          r.render(s);
+          r.gl.readPixels(0, 0, 1, 1, r.gl.RGBA, r.gl.UNSIGNED_BYTE, pixel);
+        }}
+        const times = [];
+        for (let i = 0; i < 30; i++) {{
+          const start = performance.now();
+          r.render(s);
+          r.gl.readPixels(0, 0, 1, 1, r.gl.RGBA, r.gl.UNSIGNED_BYTE, pixel);
+          times.push(performance.now() - start);
+        }}
+        times.sort((a, b) => a - b);
+        let frames = 0;
+        const start = performance.now();
+        await new Promise((done) => {{
+          const frame = () => {{
+            r.render(s);
+            frames++;
+            if (performance.now() - start < 1000) requestAnimationFrame(frame); else done();
+          }};
+          requestAnimationFrame(frame);
+        }});
+        return [times[15], frames * 1000 / (performance.now() - start)];
+        }})()""")
+    median_ms, raf_fps = timing
+    state = played[len(played) // 2]
+    with StateRenderer(model, WIDTH, HEIGHT, hello.camera) as python:
+        for _ in range(5):
+            python.render(state)
+        python.render_seconds.clear()
+        for _ in range(30):
+            python.render(state)
+        python_ms = 1000 * float(np.median(python.render_seconds))
+    print(f"page at {WIDTH} x {HEIGHT}: render until drawn, median {median_ms:.1f} ms "
+          f"({1000 / median_ms:.0f} fps); requestAnimationFrame {raf_fps:.1f} fps; Python's "
+          f"StateRenderer (llvmpipe) on the same frame {python_ms:.1f} ms")
+    assert median_ms < 100  # on a loaded two-core CI machine; the target, 33 ms, is reported
