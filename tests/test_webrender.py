@@ -460,3 +460,50 @@ def test_the_page_renders_at_30_fps(page, model: PersonModel, states) -> None:
           f"({1000 / median_ms:.0f} fps); requestAnimationFrame {raf_fps:.1f} fps; Python's "
           f"StateRenderer (llvmpipe) on the same frame {python_ms:.1f} ms")
     assert median_ms < 100  # on a loaded two-core CI machine; the target, 33 ms, is reported
+
+
+@pytest.mark.parametrize(("kind", "yaw_deg"), [("front", 0.0), ("three-quarter", 35.0)])
+def test_the_orbit_view_is_pythons_virtual_view(page, model: PersonModel, states, kind: str,
+                                                yaw_deg: float) -> None:
+    import base64
+
+    from facewire.models.framing import THREE_QUARTER_YAW_DEG
+    from facewire.receiver.scene import StateRenderer
+
+    assert yaw_deg == (THREE_QUARTER_YAW_DEG if kind == "three-quarter" else 0.0)
+    browser, session = page
+    hello, played = states
+    state = played[len(played) // 2]
+    _page_frames(browser, session, hello, [])
+    text = _evaluate(browser, session, f"""(() => {{
+        r.setModel(m);
+        r.render(t.state({json.dumps(_state_json(state))}), {{kind: "orbit",
+                 yaw: {np.radians(yaw_deg)}, pitch: 0,
+                 distance: t.views.framingDistance(m.framing)}});
+        return t.base64(r.readPixels()); }})()""")
+    ours = np.frombuffer(base64.b64decode(text), np.uint8).reshape(HEIGHT, WIDTH, 3)
+    with StateRenderer(model, WIDTH, HEIGHT, hello.camera, view=kind) as python:
+        theirs = python.render(state)
+    from bench.fidelity import gray_ssim
+    face = theirs.max(axis=2) > 0
+    assert 0.05 < face.mean() < 0.9
+    assert gray_ssim(ours[..., ::-1], theirs[..., ::-1], face) >= 0.97
+
+
+def test_dragging_orbits_and_a_double_click_goes_back_to_the_camera(page) -> None:
+    browser, session = page
+    _evaluate(browser, session, """(() => {
+        window.orbit = new t.views.OrbitView(document.getElementById("canvas"));
+        return true; })()""")
+    assert _evaluate(browser, session, "orbit.view") == {"kind": "camera"}
+    for kind, x in (("mousePressed", 300), ("mouseMoved", 340), ("mouseReleased", 340)):
+        browser.call("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": 200,
+                                                  "button": "left", "buttons": 1,
+                                                  "clickCount": 1}, session)
+    view = _evaluate(browser, session, "orbit.view")
+    assert view["kind"] == "orbit" and view["yaw"] < 0 and view["pitch"] == 0
+    browser.call("Input.dispatchMouseEvent", {"type": "mousePressed", "x": 300, "y": 200,
+                                              "button": "left", "clickCount": 2}, session)
+    browser.call("Input.dispatchMouseEvent", {"type": "mouseReleased", "x": 300, "y": 200,
+                                              "button": "left", "clickCount": 2}, session)
+    assert _evaluate(browser, session, "orbit.view") == {"kind": "camera"}

@@ -273,7 +273,7 @@ export class FaceRenderer {
   // The camera's 4x4 row-major projection times view for this state and view.
   _mvp(state, view, width, height) {
     if (!view || view.kind === "camera") {
-      const c = this.hello?.camera ?? this.hello;
+      const c = this.hello?.camera;
       if (!c || !(c.width > 0 && c.height > 0)) throw new Error("hello: no sender camera");
       const sx = width / c.width, sy = height / c.height;
       const p = projection(c.fx * sx, c.fy * sy, (c.cx + 0.5) * sx - 0.5,

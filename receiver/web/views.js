@@ -57,3 +57,10 @@ export class OrbitView {
       : { kind: "orbit", yaw: this.yaw, pitch: this.pitch, distance: this.distance };
   }
 }
+
+// The distance at which the orbit frames the head as receiver/views.py's virtual views do
+// (models/framing.py: the field fills the height of the field of view); `framing` is a
+// Model's (model.js).
+export function framingDistance(framing) {
+  return framing.field / (2 * Math.tan(framing.fov_deg * Math.PI / 360));
+}
