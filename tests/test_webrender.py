@@ -395,15 +395,18 @@ def test_an_update_renders_like_pythons_version(page, model: PersonModel, states
 
 def test_corrupt_files_are_refused_and_the_model_kept(page) -> None:
     browser, session = page
-    cut, nan, bad_update, serial = _evaluate(browser, session, """(async () => [
+    cut, nan, bad_update, skipped, serial = _evaluate(browser, session, """(async () => [
         await t.refused(t.model.loadModel({glb: "/cut.glb", rig: "/m.rig"})),
         await t.refused(t.model.loadModel({glb: "/m.glb", rig: "/nan.rig"})),
         await t.refused(t.model.loadUpdate(m, {serial: 1, url: "/bad.upd"})),
+        await t.refused(t.model.loadUpdate(m, {serial: 2, url: "/m/1.upd"})),
         m.serial])()""")
     assert cut.startswith("ModelError: /cut.glb: header says") and "truncated" in cut
     assert nan == "ModelError: /nan.rig: arrays.z: contains NaN or infinity"
     assert bad_update.startswith("ModelError: /bad.upd: regions[0].states[") \
         and "not a PNG" in bad_update, bad_update
+    assert skipped == "ModelError: /m/1.upd: serial: update 2 applies to version 1, the model " \
+        "is version 0"
     assert serial == 0  # the model it was applied to is untouched
 
 
@@ -459,7 +462,9 @@ def test_the_page_renders_at_30_fps(page, model: PersonModel, states) -> None:
     print(f"page at {WIDTH} x {HEIGHT}: render until drawn, median {median_ms:.1f} ms "
           f"({1000 / median_ms:.0f} fps); requestAnimationFrame {raf_fps:.1f} fps; Python's "
           f"StateRenderer (llvmpipe) on the same frame {python_ms:.1f} ms")
-    assert median_ms < 100  # on a loaded two-core CI machine; the target, 33 ms, is reported
+    # the 30 fps target is reported, not asserted: on the shared two-core machine the time
+    # follows the load; the ratio to Python's renderer, measured beside it, does less
+    assert median_ms < 3 * python_ms
 
 
 @pytest.mark.parametrize(("kind", "yaw_deg"), [("front", 0.0), ("three-quarter", 35.0)])

@@ -319,8 +319,12 @@ export async function loadUpdate(model, message, query = "") {
   return await applyUpdate(model, bytes, message.serial, message.url);
 }
 
-// The Model one update file (ArrayBuffer) makes of `model`.
+// The Model one update file (ArrayBuffer) makes of `model`: version `serial`, which must be
+// the next after the model's (models/update.py: update n applies to version n - 1).
 export async function applyUpdate(model, buffer, serial, where = "update") {
+  if (serial !== model.serial + 1)
+    fail(where, `serial: update ${serial} applies to version ${serial - 1}, the model is ` +
+                `version ${model.serial}`);
   const { header, body } = readContainer(buffer, "FWUP", where);
   if (header.format !== 1 || !Array.isArray(header.regions) || !Array.isArray(header.blobs))
     fail(where, "expected format 1 with regions and blobs");
