@@ -249,10 +249,12 @@ export class FaceRenderer {
     this._programs = groups.map((group) => {
       const program = gl.createProgram();
       gl.attachShader(program, this._vertexShader);
-      gl.attachShader(program, this._shader(gl.FRAGMENT_SHADER, fragment(group.areas)));
+      const shader = this._shader(gl.FRAGMENT_SHADER, fragment(group.areas));
+      gl.attachShader(program, shader);
       gl.bindAttribLocation(program, 0, "in_position");
       gl.bindAttribLocation(program, 1, "in_uv");
       gl.linkProgram(program);
+      gl.deleteShader(shader);  // freed with the program
       if (!gl.getProgramParameter(program, gl.LINK_STATUS))
         throw new Error(`program: ${gl.getProgramInfoLog(program)}`);
       gl.useProgram(program);
@@ -327,6 +329,19 @@ export class FaceRenderer {
       gl.drawElements(gl.TRIANGLES, group.count, gl.UNSIGNED_INT, 4 * group.first);
     }
     gl.bindVertexArray(null);
+  }
+
+  // Free the GPU objects (before a renderer for another model takes the canvas's context).
+  release() {
+    const gl = this.gl;
+    this._programs.forEach((g) => gl.deleteProgram(g.program));
+    this._volumes.forEach((t) => gl.deleteTexture(t));
+    gl.deleteTexture(this._texture);
+    gl.deleteShader(this._vertexShader);
+    [this._positions, this._uv, this._indices].forEach((b) => gl.deleteBuffer(b));
+    gl.deleteVertexArray(this._vao);
+    this._programs = [];
+    this._volumes = [];
   }
 
   // -> Uint8Array(height * width * 3), RGB, row 0 = top (for tests; call after render, in
