@@ -18,7 +18,7 @@ import pytest
 from conftest import zip_members
 
 from facewire.models.gltf import read_glb
-from facewire.models.modelfile import PersonModel, load_model
+from facewire.models.modelfile import ModelError, PersonModel, load_model
 from facewire.models.rig import Rig
 from facewire.models.update import ModelUpdate, apply_update
 from facewire.models.webmodel import model_glb, rig_bin, update_bin
@@ -105,8 +105,9 @@ def weights_from_rig_file(data: bytes, positions: np.ndarray) -> tuple[np.ndarra
     return weights, a["tangents"]
 
 
-def test_the_rig_file_gives_the_rigs_weights(model: PersonModel) -> None:
-    rig = Rig(model.mesh)
+@pytest.mark.parametrize("kernel", ["multiquadric", "gaussian"])
+def test_the_rig_file_gives_the_rigs_weights(model: PersonModel, kernel: str) -> None:
+    rig = Rig(model.mesh, kernel=kernel)
     data = rig_bin(model, rig)
     assert len(data) < 40_000
     weights, tangents = weights_from_rig_file(data, model.mesh.vertices)
@@ -166,6 +167,8 @@ def test_the_update_file_makes_the_next_version(model: PersonModel) -> None:
     header = _container(data, b"FWUP")[0]  # only the new state's images travel
     assert len(header["blobs"]) == len(new.parts())
     assert _container(update_bin(version, version), b"FWUP")[0]["regions"] == []
+    with pytest.raises(ModelError, match="not a version of the previous model"):
+        update_bin(model, dataclasses.replace(version, texture=version.texture[:-1]))
 
 
 # ---- the page's modules in real headless Chromium (WebGL2 through SwiftShader) ------------
