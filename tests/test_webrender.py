@@ -294,6 +294,7 @@ def test_the_page_morphs_like_the_rig(page, model: PersonModel) -> None:
         t.base64(new Uint8Array(m.rig.morph(Float32Array.from({uv.ravel().tolist()})).buffer))
         """)).reshape(-1, 3)
     want = rig.morph(rig.from_tangent(uv))
+    print(f"page's morph vs Rig.morph: max {np.abs(got - want).max():.2g} mm")
     assert np.abs(got - want).max() < 1e-3  # mm
     assert np.abs(want - model.mesh.vertices).max() > 3.0  # it did move
 
