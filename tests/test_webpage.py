@@ -1,0 +1,331 @@
+"""The browser receiver's page in real headless Chromium: its packet decoding (packet.js) and
+its playout (playout.js) against the Python definitions (protocol/packet.py,
+receiver/playout.py), and the page itself (index.html, main.js) against a WebSocket server
+that speaks the gateway's contract (docs/DESIGN.md, "Browser receiver").
+
+The modules are loaded from the installed ``facewire.receiver`` web folder through a test page
+of their own (``webpage.PageServer`` extras) that only imports them and turns hex strings into
+bytes; the page's own files are unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from browser import DevTools, find_chromium
+from webpage import PageServer, open_tab
+
+from facewire.protocol.log import read_log
+from facewire.protocol.packet import (
+    FRAME_DTYPE,
+    MAX_SERIAL,
+    PACKET_BYTES,
+    QUANTISERS,
+    RESERVED_FLAGS,
+    VERSION,
+    Flag,
+    PacketError,
+    decode,
+    decode_frames,
+    encode_frames,
+)
+from facewire.receiver.playout import FrameState, Playout, replay_states
+from facewire.sender.pipeline import encode_video
+
+sys.path.insert(0, str(Path(__file__).parent / "reliability"))  # the fuzz tests' corpus
+from packetoracle import Garbage, pack, random_fields  # noqa: E402
+
+TEST_PAGE = """<!doctype html><meta charset="utf-8"><title>modules</title>
+<script type="module">
+import * as packet from "/packet.js";
+import * as playout from "/playout.js";
+const bytes = (hex) => Uint8Array.from(hex.match(/../g) ?? [], (x) => parseInt(x, 16));
+const plain = (s) => ({...s, rotation: Array.from(s.rotation),
+  translation: Array.from(s.translation), residuals: Array.from(s.residuals), q: Array.from(s.q),
+  shade: Array.from(s.shade)});
+window.table = () => ({quantisers: packet.quantiserTable(), flags: packet.Flag,
+  reserved: packet.RESERVED_FLAGS, version: packet.VERSION, bytes: packet.PACKET_BYTES,
+  max_serial: packet.MAX_SERIAL});
+window.decodeAll = (hexes) => hexes.map((hex) => {
+  try {
+    const f = packet.decode(bytes(hex));
+    return {...f, rotation: Array.from(f.rotation), translation: Array.from(f.translation),
+      residuals: Array.from(f.residuals), q: Array.from(f.q), shade: Array.from(f.shade)};
+  } catch (error) {
+    if (error instanceof packet.PacketError) return error.reason;
+    throw error;
+  }
+});
+// receiver.playout.replay_states: a tick clock at rate_hz from the first arrival; before the
+// pop of tick k every packet whose time is at most the tick is pushed (time order, then list
+// order); the states with a slot, until every packet is pushed and every slot played.
+window.replay = (hexes, times, rate, restQ) => {
+  const p = new playout.Playout(rate, {restQ});
+  const order = [...times.keys()].sort((a, b) => times[a] - times[b] || a - b);
+  const start = order.length ? times[order[0]] : 0;
+  const states = [];
+  for (let i = 0, tick = 0; ; tick++) {
+    const now = start + tick / rate;
+    for (; i < order.length && times[order[i]] <= now + 1e-9; i++) {
+      const hex = hexes[order[i]];
+      p.push(hex === null ? null : bytes(hex), times[order[i]]);
+    }
+    const s = p.pop();
+    if (s.seq !== null) states.push(plain(s));
+    if (i === order.length && p.drained) break;
+  }
+  return {states, stats: p.stats};
+};
+// main.js's clock, as events: after each arrival pop while ready; between arrivals pop at
+// each deadline due() that comes first. Each pop is [its time, the state's seq, status].
+window.live = (hexes, times, rate) => {
+  const p = new playout.Playout(rate);
+  const pops = [];
+  const drain = (now) => {
+    for (;;) {
+      const due = p.due();
+      if (!(p.ready || (due !== null && now >= due))) return;
+      const s = p.pop();
+      pops.push([now, s.seq, s.status]);
+    }
+  };
+  for (let i = 0; i < hexes.length; i++) {
+    for (let due = p.due(); due !== null && due < times[i]; due = p.due()) drain(due);
+    p.push(bytes(hexes[i]), times[i]);
+    drain(times[i]);
+  }
+  return {pops, stats: p.stats};
+};
+window.ready = true;
+</script>"""
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DevTools]:
+    chromium = find_chromium()
+    folder = tmp_path_factory.mktemp("chromium")
+    browser = DevTools(chromium, folder / "profile", folder / "chromium.log")
+    yield browser
+    browser.close()
+
+
+@pytest.fixture(scope="module")
+def modules(browser: DevTools) -> Iterator[str]:
+    """A tab with packet.js and playout.js loaded (the test page's functions on window)."""
+    with PageServer({"/test.html": ("text/html; charset=utf-8", TEST_PAGE.encode())}) as server:
+        yield open_tab(browser, f"{server.url}/test.html", "window.ready === true")
+
+
+@pytest.fixture(scope="module")
+def log(person_model: Path, shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """lp_d0.mp4 (78 frames, 25 Hz) through the real sender pipeline with its own model."""
+    path = tmp_path_factory.mktemp("webpage") / "lp_d0.fwlog"
+    encode_video(person_model, shared_data / "video" / "lp_d0.mp4", path)
+    return path
+
+
+def call(browser: DevTools, session: str, function: str, *args: Any) -> Any:
+    """The value of ``function(*args)`` in the tab, arguments passed as JSON."""
+    return browser.evaluate(session, f"{function}(...{json.dumps(args)})")
+
+
+def python_reason(item: bytes) -> str | None:
+    try:
+        decode(item)
+    except PacketError as exc:
+        return exc.reason
+    return None
+
+
+# -- packet.js -------------------------------------------------------------------------------
+
+def test_the_js_packet_table_is_protocol_packets(browser: DevTools, modules: str) -> None:
+    table = call(browser, modules, "table")
+    assert table["quantisers"] == [
+        {"name": q.name, "count": q.count, "bits": q.bits, "lo": q.lo, "step": q.step,
+         "unit": q.unit} for q in QUANTISERS]
+    assert table["flags"] == {flag.name: int(flag) for flag in Flag}
+    assert (table["reserved"], table["version"], table["bytes"], table["max_serial"]) == \
+        (RESERVED_FLAGS, VERSION, PACKET_BYTES, MAX_SERIAL)
+
+
+def test_js_decoding_agrees_with_python_on_a_real_log_and_the_fuzz_corpus(
+        browser: DevTools, modules: str, log: Path) -> None:
+    """Every packet of a real log decodes to Python's values exactly (the quantised values as
+    float32); the fuzz corpus (``packetoracle``: random bytes of any length, bit errors of real
+    packets, cut and extended packets, CRC-right packets with a bad version or reserved flags,
+    CRC-right packets of random fields) gets Python's verdict packet by packet, so the counts
+    by reason match."""
+    real = read_log(log).packets
+    rng = np.random.default_rng(18)
+    garbage = Garbage(rng)
+    near = [p.tobytes() for p in real]
+    corpus = []
+    while len(corpus) < 4000:
+        item = garbage(near)
+        if isinstance(item, (bytes, bytearray, memoryview)):  # what a WebSocket can carry
+            corpus.append(bytes(item))
+    fields = random_fields(rng, 1000, extremes=0.25)
+    fields[:, 0] = np.where(rng.random(1000) < 0.7, VERSION, rng.integers(0, 16, 1000))
+    fields[:, 1] = rng.integers(0, 256, 1000)
+    corpus += [p.tobytes() for p in pack(fields)]
+    items = near + corpus
+
+    got = call(browser, modules, "decodeAll", [item.hex() for item in items])
+
+    want = [python_reason(item) for item in items]
+    assert [g if isinstance(g, str) else None for g in got] == want
+    counts = Counter(g if isinstance(g, str) else "decoded" for g in got[len(near):])
+    assert counts == Counter(w or "decoded" for w in want[len(near):])
+    assert {"size", "version", "crc", "reserved", "decoded"} <= set(counts), counts
+    assert all(w is None for w in want[:len(near)])
+    valid = [i for i, w in enumerate(want) if w is None]
+    frames, _ = decode_frames(np.frombuffer(b"".join(items[i] for i in valid), np.uint8)
+                              .reshape(-1, PACKET_BYTES))
+    js = [got[i] for i in valid]
+    for key in ("seq", "flags", "serial"):
+        assert [g[key] for g in js] == frames[key].tolist(), key
+    for key, shape in (("rotation", (3,)), ("translation", (3,)), ("residuals", (9, 2)),
+                       ("q", (8,)), ("shade", (3,))):
+        values = np.array([g[key] for g in js], np.float64).reshape(-1, *shape)
+        assert np.array_equal(values.astype(np.float32), values), f"{key}: not float32 values"
+        assert np.array_equal(values, frames[key].astype(np.float64)), key
+
+
+# -- playout.js ------------------------------------------------------------------------------
+
+RESTART_SEQ = 20000
+
+def stream(log: Path, seed: int, loss: float) -> tuple[list[bytes | None], np.ndarray, float,
+                                                      np.ndarray]:
+    """A real log's packets made into a longer, harder stream: the log three times over with
+    sequence numbers from 65450 (so they wrap), 30 frames of a lost face (tracking lost, then
+    no face), then a sender that restarts at ``RESTART_SEQ`` for its last 40 packets; arrival
+    times jittered by up to 1.5 slots (reordering). With ``loss`` that fraction is dropped
+    (seeded, never the first), 3 % duplicated, a far stray packet and 40 items of the fuzz
+    corpus (bytes and objects that are no bytes, None here) mixed in. Returns the items, their
+    times, the rate and a rest Q (each region's, as a model's ``Region.rest``)."""
+    recorded = read_log(log)
+    rate = recorded.hello.rate_hz
+    frames, _ = decode_frames(recorded.packets)
+    frames = np.concatenate([frames] * 3)
+    n = len(frames)
+    frames["seq"] = (65450 + np.arange(n)) % 65536
+    frames["seq"][n - 40:] = RESTART_SEQ + np.arange(40)
+    frames["flags"][100:115] = Flag.FACE_PRESENT | Flag.TRACKING_LOST
+    frames["flags"][115:130] = 0
+    packets = [p.tobytes() for p in encode_frames(frames.astype(FRAME_DTYPE))[0]]
+    rng = np.random.default_rng(seed)
+    times = np.arange(n) / rate + 1000.0 + rng.uniform(0, 1.5 / rate, n)
+    times[n - 40:] += 0.5  # the restarted sender's first packet comes half a second later
+    items: list[bytes | None] = list(packets)
+    keep = np.ones(n, bool)
+    if loss:
+        keep[1:] = rng.random(n - 1) >= loss
+        items = [p for p, k in zip(packets, keep) if k]
+        times = times[keep]
+        twice = rng.random(len(items)) < 0.03
+        items += [p for p, t in zip(items, twice) if t]
+        times = np.concatenate([times, times[twice] + rng.uniform(0, 0.1, int(twice.sum()))])
+        far = frames[50:51].copy()
+        far["seq"] = 30000
+        items.append(encode_frames(far)[0][0].tobytes())
+        times = np.append(times, times[60])
+        garbage = Garbage(rng)
+        for _ in range(40):
+            item = garbage(packets)
+            items.append(bytes(item) if isinstance(item, (bytes, bytearray, memoryview))
+                         else None)
+            times = np.append(times, rng.uniform(times.min(), times.max()))
+    model_rest = np.linspace(0.5, 2.0, 8).astype(np.float32)
+    return items, times, rate, model_rest
+
+
+def as_plain(state: FrameState) -> dict[str, Any]:
+    return {"seq": state.seq, "status": state.status, "flags": int(state.flags),
+            "weight": state.weight, "arrival_s": state.arrival_s, "serial": state.serial,
+            "rotation": state.rotation.ravel(), "translation": state.translation,
+            "residuals": state.residuals.ravel(), "q": state.q, "shade": state.shade}
+
+
+@pytest.mark.parametrize("loss", [0.0, 0.3])
+def test_js_playout_gives_pythons_states(browser: DevTools, modules: str, log: Path,
+                                         loss: float) -> None:
+    """The same items at the same arrival times through ``replay_states`` and through
+    playout.js on the same tick clock: the same FrameStates (pose to round-off, expression,
+    statuses, serial, light exactly), and the same counts. Through 30 % loss the page keeps
+    playing: one state per slot of each stream, the lost ones held and eased as Python's."""
+    items, times, rate, rest = stream(log, seed=int(loss * 100), loss=loss)
+    playout = Playout(rate, rest_q=rest)
+    want = [as_plain(s) for s in replay_states(
+        [b"" if i is None else i for i in items], times, rate, playout=playout)]
+    # None stands for an object that is no bytes: corrupt in both (b"" is too, in Python)
+    got = call(browser, modules, "replay", [None if i is None else i.hex() for i in items],
+               times.tolist(), rate, rest.tolist())
+
+    assert got["stats"] == playout.stats
+    assert len(got["states"]) == len(want)
+    for k, (g, w) in enumerate(zip(got["states"], want)):
+        for key in ("seq", "status", "flags", "serial", "arrival_s"):
+            assert g[key] == w[key], (k, key, g[key], w[key])
+        assert g["weight"] == pytest.approx(w["weight"], abs=1e-12), k
+        assert np.allclose(g["rotation"], w["rotation"], rtol=0, atol=1e-12), k
+        for key in ("translation", "residuals", "q", "shade"):
+            assert np.array_equal(np.array(g[key], np.float64),
+                                  np.asarray(w[key], np.float64)), (k, key)
+    statuses = Counter(s["status"] for s in want)
+    assert {"received", "face_lost", "easing"} <= set(statuses), statuses
+    assert any(s["status"] == "face_lost" and s["weight"] == 0 for s in want)  # eased out
+    assert playout.stats["restarts"] == 1 and playout.stats["received"] > 0
+    seqs = [s["seq"] for s in want]
+    restart = next(k for k, seq in enumerate(seqs) if RESTART_SEQ <= seq < RESTART_SEQ + 40)
+    for part in (seqs[:restart], seqs[restart:]):  # every slot of each stream, in order
+        assert np.all(np.diff(np.array(part) - part[0]) % 65536 == 1), part
+    if loss:
+        assert "held" in statuses and playout.stats["corrupt"] == 40
+        assert playout.stats["duplicate"] > 0 and playout.stats["stray"] >= 1
+        concealed = sum(s["arrival_s"] is None for s in want)
+        assert 0.2 * len(want) < concealed < 0.4 * len(want)
+        assert any(s["q"][0] != rest[0] and s["status"] == "easing" for s in want)
+
+
+def test_js_playing_on_arrival_follows_pythons_deadlines(browser: DevTools, modules: str,
+                                                         log: Path) -> None:
+    """main.js's clock (pop while ``ready``, or once ``due()`` has passed) over a lossy, jittered
+    stream: the same pops at the same times as the Python playout's ``ready`` and ``due``."""
+    items, times, rate, _ = stream(log, seed=7, loss=0.3)
+    pairs = sorted((t, i) for t, i in zip(times, items) if i is not None and len(i) == 43)
+    hexes = [i.hex() for _, i in pairs]
+    arrivals = [t for t, _ in pairs]
+    playout = Playout(rate)
+    want: list[list[Any]] = []
+
+    def drain(now: float) -> None:
+        while True:
+            due = playout.due()
+            if not (playout.ready or (due is not None and now >= due)):
+                return
+            state = playout.pop()
+            want.append([now, state.seq, state.status])
+
+    for hexed, t in zip(hexes, arrivals):
+        while (due := playout.due()) is not None and due < t:
+            drain(due)
+        playout.push(bytes.fromhex(hexed), t)
+        drain(t)
+    got = call(browser, modules, "live", hexes, arrivals, rate)
+
+    assert got["stats"] == playout.stats
+    assert [p[1:] for p in got["pops"]] == [p[1:] for p in want]
+    assert np.allclose([p[0] for p in got["pops"]], [p[0] for p in want], rtol=0, atol=1e-9)
+    assert sum(p[2] == "held" for p in want) > 10
+
+
+# -- the page --------------------------------------------------------------------------------
