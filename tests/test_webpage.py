@@ -10,18 +10,28 @@ bytes; the page's own files are unchanged.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import sys
+import threading
+import time
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import asdict
+from http import HTTPStatus
 from pathlib import Path
 from typing import Any
+from urllib.parse import parse_qs
 
 import numpy as np
 import pytest
 from browser import DevTools, find_chromium
-from webpage import PageServer, open_tab
+from webpage import TYPES, PageServer, open_tab, web_dir
+from websockets.asyncio.server import serve
+from websockets.datastructures import Headers
+from websockets.http11 import Response
 
+from facewire.protocol.control import Hello
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import (
     FRAME_DTYPE,
@@ -329,3 +339,159 @@ def test_js_playing_on_arrival_follows_pythons_deadlines(browser: DevTools, modu
 
 
 # -- the page --------------------------------------------------------------------------------
+
+class ContractServer:
+    """A stand-in for ``facewire web`` on loopback that speaks the gateway's contract
+    (docs/DESIGN.md, "Browser receiver"): the page's files at ``/NAME``, ``extra`` paths (model
+    bytes), the WebSocket at ``/stream``, and ``?token=`` required on every request (403
+    otherwise, counted in ``refused``). On connect a client gets ``{"type": "status",
+    "sender": "waiting"}``; the test then ``send``s to every client and may ``drop`` them."""
+
+    def __init__(self, token: str, extra: dict[str, tuple[str, bytes]] | None = None) -> None:
+        self.token, self.extra = token, dict(extra or {})
+        self.clients: list[Any] = []
+        self.connections = 0
+        self.refused: list[str] = []
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self._thread.start()
+
+        async def start() -> Any:
+            return await serve(self._handler, "127.0.0.1", 0, process_request=self._request)
+
+        self._server = self._run(start())
+        self.url = f"http://127.0.0.1:{self._server.sockets[0].getsockname()[1]}"
+
+    def _run(self, coroutine: Any) -> Any:
+        return asyncio.run_coroutine_threadsafe(coroutine, self.loop).result(timeout=10)
+
+    def _request(self, connection: Any, request: Any) -> Response | None:
+        path, _, query = request.path.partition("?")
+        if parse_qs(query).get("token") != [self.token]:
+            self.refused.append(request.path)
+            return connection.respond(HTTPStatus.FORBIDDEN, "token\n")
+        if path == "/stream":
+            return None
+        if path in self.extra:
+            kind, body = self.extra[path]
+        else:
+            file = web_dir() / ("index.html" if path == "/" else path.lstrip("/"))
+            if "/" in path.lstrip("/") or not file.is_file():
+                return connection.respond(HTTPStatus.NOT_FOUND, "not found\n")
+            kind, body = TYPES.get(file.suffix, "application/octet-stream"), file.read_bytes()
+        return Response(200, "OK", Headers({"Content-Type": kind,
+                                            "Content-Length": str(len(body))}), body)
+
+    async def _handler(self, client: Any) -> None:
+        self.clients.append(client)
+        self.connections += 1
+        await client.send(json.dumps({"type": "status", "sender": "waiting",
+                                      "text": "waiting for the sender at tcp://127.0.0.1:5555"}))
+        await client.wait_closed()
+        self.clients.remove(client)
+
+    def send(self, *messages: str | bytes) -> None:
+        async def send_all() -> None:
+            for client in list(self.clients):
+                for message in messages:
+                    await client.send(message)
+        self._run(send_all())
+
+    def drop(self) -> None:
+        async def close_all() -> None:
+            await asyncio.gather(*(client.close() for client in list(self.clients)))
+        self._run(close_all())
+
+    def close(self) -> None:
+        self._server.close()
+        self._run(self._server.wait_closed())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join()
+
+
+def hello_json(hello: Hello, **changes: Any) -> str:
+    return json.dumps({"type": "hello", **asdict(hello), **changes})
+
+
+def wait_for(browser: DevTools, session: str, expression: str, timeout: float = 10.0) -> Any:
+    """The value of ``expression`` once it is truthy in the page."""
+    deadline = time.monotonic() + timeout
+    while not (value := browser.evaluate(session, expression)):
+        assert time.monotonic() < deadline, f"still false after {timeout} s: {expression}"
+        time.sleep(0.05)
+    return value
+
+
+def test_the_page_waits_plays_through_loss_counts_and_reconnects(browser: DevTools,
+                                                                  log: Path) -> None:
+    """The page on a server of the gateway's contract, with a token: it says it waits for the
+    sender; given a Hello and a real log's packets at the stream's rate with 30 % dropped and
+    corrupt ones mixed in, it plays every slot (the lost ones concealed), counts the corrupt
+    packets by Python's reasons, shows kbit/s and loss; it ignores junk text, refuses a Hello
+    of another packet table and says so; when the socket closes it says so and reconnects."""
+    recorded = read_log(log)
+    rate = recorded.hello.rate_hz
+    rng = np.random.default_rng(30)
+    keep = rng.random(len(recorded.packets)) >= 0.3
+    keep[[0, -1]] = True
+    fields = random_fields(rng, 2)
+    fields[0, 0] = 3  # another protocol version, CRC right
+    fields[1, 1] |= 0xC0  # the reserved flag bits, CRC right
+    corrupt = [b"\x20" * 10, recorded.packets[5].tobytes() + b"\x00"] + \
+        [p.tobytes() for p in pack(fields)]
+    corrupt.append(bytes(recorded.packets[9] ^ np.eye(1, 43, 20, dtype=np.uint8)[0]))
+    server = ContractServer("s3cret")
+    try:
+        tab = open_tab(browser, f"{server.url}/?token=s3cret",
+                       "window.facewire !== undefined && "
+                       "window.facewire.status.includes('waiting for the sender')")
+        server.send("not json", json.dumps({"type": "bogus"}),
+                    hello_json(recorded.hello, quantisers=[]))
+        wait_for(browser, tab, "window.facewire.status.includes('sender refused: "
+                               "hello.quantisers')")
+        server.send(json.dumps({"type": "status", "sender": "connected",
+                                "text": "sender tcp://127.0.0.1:5555"}),
+                    hello_json(recorded.hello))
+        wait_for(browser, tab, "window.facewire.hello !== null")
+        sent = kbps = 0
+        start = time.monotonic()
+        for k, packet in enumerate(recorded.packets):
+            if k % 10 == 5 and k // 10 < len(corrupt):
+                server.send(corrupt[k // 10])
+                sent += 1
+            if keep[k]:
+                server.send(packet.tobytes())
+                sent += 1
+            if k == 60:
+                kbps = browser.evaluate(tab, "window.facewire.stats.kbps")
+                panel = browser.evaluate(tab, "document.getElementById('kbps').textContent")
+            time.sleep(max(0.0, start + (k + 1) / rate - time.monotonic()))
+        last = int(decode(recorded.packets[-1].tobytes()).seq)
+        wait_for(browser, tab, f"window.facewire.state !== null && "
+                               f"window.facewire.state.seq === {last}")
+        counts = browser.evaluate(tab, "window.facewire.counts")
+        playout = browser.evaluate(tab, "window.facewire.playout")
+        status = browser.evaluate(tab, "window.facewire.status")
+        loss = browser.evaluate(tab, "document.getElementById('loss').textContent")
+
+        assert counts["packets"] == sent and counts["junk"] == 2 and counts["ignored"] == 0
+        assert counts["corrupt"] == {"size": 2, "version": 1, "crc": 1, "reserved": 1,
+                                     "type": 0}
+        assert Counter(python_reason(c) for c in corrupt) == Counter(
+            {r: n for r, n in counts["corrupt"].items() if n})
+        assert counts["decoded"] == playout["received"] == int(keep.sum())
+        slots = sum(counts["statuses"].values()) + playout["skipped"]
+        assert slots == last - int(decode(recorded.packets[0].tobytes()).seq) + 1
+        assert counts["statuses"]["held"] > 0 and playout["concealed"] == len(keep) - keep.sum()
+        want = 43 * 8 * rate * keep.mean() / 1000
+        assert 0.5 * want < kbps < 2 * want and float(panel) == pytest.approx(kbps, abs=1.5)
+        assert "%" in loss and "sender tcp://127.0.0.1:5555" in status
+        assert "sender refused" not in status
+
+        server.drop()
+        wait_for(browser, tab, "window.facewire.status.includes('reconnecting in')")
+        wait_for(browser, tab, "window.facewire.connected && "
+                               "window.facewire.status.includes('waiting for the sender')")
+        assert server.connections == 2 and not server.refused
+    finally:
+        server.close()

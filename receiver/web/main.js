@@ -28,19 +28,21 @@
  * playout); a model or update that fails to load (ModelError) is refused with a visible
  * message and the last good version stays on screen.
  *
+ * The rendering half (model.js, render.js, views.js) is imported apart when the page starts:
+ * a browser that cannot load it still connects, plays and counts, and says why it shows no
+ * face.
+ *
  * ``window.facewire`` (for tests): ``state`` (the last FrameState played), ``stats`` (stats.js
  * live statistics, refreshed with the panel), ``playout`` (its counts), ``counts`` (messages,
- * packets, bytes, decoded, ignored: packets before a Hello, corrupt by reason, junk, clamped),
+ * packets, bytes, decoded, ignored: packets before a Hello, corrupt by reason, junk, clamped,
+ * statuses: the slots played by playout status),
  * ``status`` (the status line's text), ``model`` ({sha256, held: versions held, shown}),
  * ``hello``, ``connected``.
  */
 
-import {ModelError, loadModel, loadUpdate} from "./model.js";
 import {N_REGIONS, VERSION, sameQuantisers} from "./packet.js";
-import {MAX_RATE_HZ, MIN_RATE_HZ, Playout} from "./playout.js";
-import {FaceRenderer} from "./render.js";
+import {MAX_RATE_HZ, MIN_RATE_HZ, Playout, STATUSES} from "./playout.js";
 import {PageStats} from "./stats.js";
-import {OrbitView} from "./views.js";
 
 const RECONNECT_MIN_S = 0.5;
 const RECONNECT_MAX_S = 30.0;
@@ -75,16 +77,29 @@ function updateBase(message) {
   return /\/model\/([0-9a-f]{64})\/\d+\.upd/.exec(message.url)?.[1] ?? null;
 }
 
-/** A model version's rest Q per packet slot (``receiver.scene.rest_q``): the model's
- * ``restQ`` when it gives one, zeros otherwise. */
+/** The rendering half (model.js, render.js, views.js), loaded apart so that the page still
+ * connects, plays and says what is wrong when it cannot load (a browser without what they
+ * need). */
+async function loadEngine() {
+  const [model, render, views] = await Promise.all([import("./model.js"), import("./render.js"), import("./views.js")]);
+  return {ModelError: model.ModelError, loadModel: model.loadModel, loadUpdate: model.loadUpdate,
+    FaceRenderer: render.FaceRenderer, OrbitView: views.OrbitView};
+}
+
+/** A model version's rest Q per packet slot (``receiver.scene.rest_q``): each region's rest
+ * state (the model's ``restQ``, or its regions' ``rest``), 0 beyond its regions. */
 function restQ(model) {
-  return model.restQ ?? new Float32Array(N_REGIONS);
+  const rest = new Float32Array(N_REGIONS);
+  const given = model.restQ ?? model.regions?.map((region) => region.rest) ?? [];
+  rest.set(Array.from(given).slice(0, N_REGIONS));
+  return rest;
 }
 
 class Page {
   constructor() {
     this.canvas = $("face");
-    this.orbit = new OrbitView(this.canvas);
+    this.engine = null; // loadEngine()'s modules
+    this.orbit = null;
     this.socket = null;
     this.attempts = 0;
     this.hello = null;
@@ -96,14 +111,21 @@ class Page {
     this.updateDelay = UPDATE_RETRY_MIN_S;
     this.updateTimer = null;
     this.shown = null; // the version index rendered last
-    this.work = Promise.resolve(); // model and update loads, one after another
+    this.work = loadEngine().then((engine) => { // then model and update loads, one by one
+      this.engine = engine;
+      this.orbit = new engine.OrbitView(this.canvas);
+      this.setupRenderer();
+    }, (error) => {
+      this.text.engine = `cannot load the renderer: ${cut(error.message ?? error)}`;
+    });
     this.state = null;
     this.lastView = null;
     this.lastPacket = null;
     this.stats = new PageStats();
     this.counts = {messages: 0, packets: 0, bytes: 0, decoded: 0, ignored: 0, junk: 0, clamped: 0,
-      corrupt: {size: 0, version: 0, crc: 0, reserved: 0, type: 0}};
-    this.text = {link: "connecting", sender: "", model: "", problem: ""};
+      corrupt: {size: 0, version: 0, crc: 0, reserved: 0, type: 0},
+      statuses: Object.fromEntries(STATUSES.map((status) => [status, 0]))};
+    this.text = {link: "connecting", sender: "", model: "", problem: "", engine: ""};
     this.live = this.stats.live(now());
     const page = this;
     window.facewire = {
@@ -225,12 +247,13 @@ class Page {
   }
 
   async loadBase(message) {
+    if (this.engine === null) return; // said on the status line already
     if (this.versions.length && this.versions[0].sha256 === message.sha256) return;
     this.text.model = `loading model ${megabytes(Number(message.bytes) || 0)}`;
     this.panel();
     let model;
     try {
-      model = await loadModel(message, query);
+      model = await this.engine.loadModel(message, query);
     } catch (error) {
       this.refused("model refused", error);
       return;
@@ -262,7 +285,7 @@ class Page {
       if (updateBase(message) !== this.versions[0].sha256) return; // of a model still loading
       let model;
       try {
-        model = await loadUpdate(this.versions[serial - 1], message, query);
+        model = await this.engine.loadUpdate(this.versions[serial - 1], message, query);
       } catch (error) {
         this.refused(`model update ${serial} refused`, error);
         clearTimeout(this.updateTimer);
@@ -278,22 +301,22 @@ class Page {
   }
 
   refused(what, error) {
-    const why = error instanceof ModelError ? error.message : `could not load (${error.message ?? error})`;
+    const why = error instanceof this.engine.ModelError ? error.message : `could not load (${error.message ?? error})`;
     const keep = this.versions.length ? `showing the last good one (version ${this.versions.length - 1})` : "no model to show";
     this.text.model = `${what}: ${cut(why)}; ${keep}`;
   }
 
   setupRenderer() {
-    if (this.renderer !== null || this.hello === null || this.versions.length === 0) return;
+    if (this.renderer !== null || this.engine === null || this.hello === null || this.versions.length === 0) return;
     if (this.canvas.dataset.used) { // a canvas keeps its first WebGL context: a fresh one
       const fresh = this.canvas.cloneNode(false);
       this.canvas.replaceWith(fresh);
       this.canvas = fresh;
-      this.orbit = new OrbitView(fresh);
+      this.orbit = new this.engine.OrbitView(fresh);
     }
     this.canvas.dataset.used = "1";
     try {
-      this.renderer = new FaceRenderer(this.canvas, this.versions[0], this.hello);
+      this.renderer = new this.engine.FaceRenderer(this.canvas, this.versions[0], this.hello);
       this.shown = 0;
     } catch (error) {
       this.text.problem = `cannot render: ${cut(error.message ?? error)}`;
@@ -324,6 +347,7 @@ class Page {
       const popped = playout.pop();
       if (popped.seq === null) continue; // a countdown pop plays no slot
       this.stats.slot(now(), popped);
+      this.counts.statuses[popped.status] += 1;
       state = popped;
     }
     if (state !== null) this.state = state;
@@ -346,7 +370,7 @@ class Page {
     this.live = this.stats.live(t);
     const quiet = this.playout !== null && this.lastPacket !== null && t - this.lastPacket > QUIET_S
       ? `no packets for ${(t - this.lastPacket).toFixed(0)} s` : "";
-    const parts = [this.text.link, this.text.sender, quiet, this.text.problem, this.text.model];
+    const parts = [this.text.link, this.text.sender, quiet, this.text.problem, this.text.engine, this.text.model];
     $("status").textContent = parts.filter(Boolean).join(" · ");
     const s = this.live;
     const show = (id, value) => { $(id).textContent = value; };
