@@ -57,7 +57,8 @@ const query = location.search;
 const $ = (id) => document.getElementById(id);
 const now = () => performance.now() / 1000;
 const megabytes = (n) => `${(n / 1e6).toFixed(1)} MB`;
-const cut = (text) => String(text).slice(0, MAX_TEXT_CHARS);
+// a peer's text, or an error naming a URL, shown cut and without this page's query (a token)
+const cut = (text) => (query ? String(text).split(query).join("") : String(text)).slice(0, MAX_TEXT_CHARS);
 
 /** What is wrong with a Hello, or null (protocol/control.py's checks that the page relies on). */
 function helloProblem(hello) {
@@ -346,7 +347,7 @@ class Page {
       if (!(playout.ready || (due !== null && now() >= due))) break;
       const popped = playout.pop();
       if (popped.seq === null) continue; // a countdown pop plays no slot
-      this.stats.slot(now(), popped);
+      this.stats.slot(now(), popped, playout.rateHz);
       this.counts.statuses[popped.status] += 1;
       state = popped;
     }

@@ -6,8 +6,10 @@
  *   kbit/s     = 8 * packet bytes received in the window / 1000 / WINDOW_S
  *   latency    = the median, over the window's frames that played a packet, of the time from
  *                that packet's arrival (its WebSocket message) to its frame rendered, ms
- *   loss %     = 100 * lost / slots, over the slots played in the window (``lost``: slots
- *                concealed, their packet missing; the Python receiver's ``lost``)
+ *   loss %     = 100 * lost / slots, over the slots played in the window, ``lost`` as the
+ *                Python receiver counts it: slots concealed (their packet missing) that a
+ *                played packet follows, so that a sender gone (the head easing to rest, then
+ *                still) loses nothing; a gap longer than MAX_GAP_S ends the stream uncounted
  *   render ms  = the median time of the window's ``FaceRenderer.render`` calls (the page's own
  *                frame time: the morph and the draw submitted, on the page's thread)
  *
@@ -15,6 +17,7 @@
  */
 
 export const WINDOW_S = 1.0;
+export const MAX_GAP_S = 10.0; // receiver/receiver.py
 
 function median(values) {
   if (values.length === 0) return null;
@@ -31,6 +34,7 @@ export class PageStats {
     this.totals = {frames: 0, slots: 0, lost: 0, packets: 0, bytes: 0};
     this._packets = []; // [arrival, bytes]
     this._slots = []; // [time, lost]
+    this._pending = []; // the times of concealed slots no played packet followed yet
     this._frames = []; // [time, latency s | null, render s]
   }
 
@@ -41,13 +45,19 @@ export class PageStats {
     this._packets.push([arrivalS, size]);
   }
 
-  /** A slot was played at ``nowS`` (a FrameState with a seq): concealed when it has no
-   * arrival. */
-  slot(nowS, state) {
-    const lost = state.arrival_s === null;
-    this.totals.slots += 1;
-    this.totals.lost += lost ? 1 : 0;
-    this._slots.push([nowS, lost]);
+  /** A slot was played at ``nowS`` (a FrameState with a seq) at ``rateHz``: concealed when it
+   * has no arrival, counted once a played packet follows. */
+  slot(nowS, state, rateHz) {
+    if (state.arrival_s === null) {
+      this._pending.push(nowS);
+      if (this._pending.length > MAX_GAP_S * rateHz) this._pending = [];
+      return;
+    }
+    for (const t of this._pending) this._slots.push([t, true]);
+    this.totals.slots += this._pending.length + 1;
+    this.totals.lost += this._pending.length;
+    this._pending = [];
+    this._slots.push([nowS, false]);
   }
 
   /** A frame was rendered at ``nowS`` from ``state`` in ``renderS`` seconds. */
