@@ -9,6 +9,7 @@ thread (``serve_gateway``) as ``facewire web`` runs it; the pages are ``websocke
 
 from __future__ import annotations
 
+import base64
 import binascii
 import contextlib
 import dataclasses
@@ -25,6 +26,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from conftest import free_endpoint, start
 from logsender import encoded_log, hello_for
@@ -396,6 +399,46 @@ def test_another_model_holds_the_packets_back_until_the_pages_are_told_of_it(
     # the new sender's first packets: held until its Hello said whose they are (or lost
     # while the gateway's socket connected to the new sender)
     assert 10 + len(packets) - 10 <= summary["forwarded"] + summary["held"] <= 10 + len(packets)
+
+
+def test_the_real_page_in_chromium_plays_what_the_gateway_forwards(
+        person_model: Path, stream: tuple[Hello, list[bytes]], tmp_path: Path) -> None:
+    """The page (receiver/web) in headless Chromium with WebGL2, behind a token, fed by the
+    gateway: it loads the model the gateway serves, decodes every packet forwarded (none of
+    the corrupt ones reach it) and draws a face."""
+    from browser import WEBGL_FLAGS, DevTools, find_chromium
+    from webpage import open_tab
+
+    hello, packets = stream
+    endpoint = free_endpoint()
+    sender = _Sender(endpoint, person_model, hello)
+    gateway = _Gateway(endpoint, tmp_path / "cache", token=TOKEN)
+    browser = DevTools(find_chromium(), tmp_path / "profile", tmp_path / "chromium.log",
+                       WEBGL_FLAGS)
+    try:
+        tab = open_tab(browser, gateway.url, "window.facewire !== undefined && "
+                       "window.facewire.model.held === 1", timeout=60)
+        bad = _corrupt(packets[5])
+        sender.send(packets[:40], rate_hz=30,
+                    between=lambda i: [sender.pub.send(b) for b in bad] if i == 5 else None)
+        counts = "window.facewire.counts"
+        _until(lambda: browser.evaluate(tab, f"{counts}.decoded") == 40, "the page decoded all",
+               timeout=30)
+        assert sum(browser.evaluate(tab, f"{counts}.corrupt").values()) == 0
+        shot = browser.call("Page.captureScreenshot", {"format": "png"}, session=tab)["data"]
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(shot), np.uint8), cv2.IMREAD_COLOR)
+        rect = browser.evaluate(tab, "JSON.stringify(document.querySelector('canvas')"
+                                ".getBoundingClientRect())")
+        box = json.loads(rect)
+        x, y, w, h = (round(box[k]) for k in ("x", "y", "width", "height"))
+        middle = image[y + h // 4:y + 3 * h // 4, x + w // 3:x + 2 * w // 3].astype(int)
+        assert middle.std() > 10 and middle.mean() > 40  # a textured face, not an empty canvas
+    finally:
+        browser.close()
+        summary = gateway.close()
+        sender.close()
+    assert summary["forwarded"] == 40 and summary["corrupt"] == 3
+    assert summary["http_served"] >= 3  # the page, its modules, the model
 
 
 def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(
