@@ -16,6 +16,7 @@ import dataclasses
 import gzip
 import json
 import os
+import shutil
 import signal
 import socket
 import threading
@@ -40,6 +41,7 @@ from facewire.cli import main
 from facewire.models import webmodel
 from facewire.models.modelfile import load_model
 from facewire.protocol.control import Hello, model_chunks
+from facewire.protocol.keys import CurveServer, generate_keys, server_keys
 from facewire.protocol.packet import decode, encode
 from facewire.protocol.shaper import UpdateShaper
 from facewire.protocol.transport import ControlServer, PacketPublisher, control_endpoint
@@ -55,11 +57,12 @@ class _Sender:
     """A real sender's sockets on ``endpoint``: packets published by ``send``, and the control
     thread answering the Hello, the model's chunks and the updates' (``store``)."""
 
-    def __init__(self, endpoint: str, model_path: Path, hello: Hello) -> None:
+    def __init__(self, endpoint: str, model_path: Path, hello: Hello,
+                 curve: CurveServer | None = None) -> None:
         data = model_path.read_bytes()
         self.store = UpdateStore(hello.model_sha256)
-        self.pub = PacketPublisher(endpoint)
-        self.server = ControlServer(control_endpoint(endpoint))
+        self.pub = PacketPublisher(endpoint, curve)
+        self.server = ControlServer(control_endpoint(endpoint), curve)
         self.responder = Responder(self.server, hello, model_chunks(data, hello.model_sha256),
                                    self.store, UpdateShaper(*FAST))
         self.responder.start()
@@ -399,6 +402,27 @@ def test_another_model_holds_the_packets_back_until_the_pages_are_told_of_it(
     # the new sender's first packets: held until its Hello said whose they are (or lost
     # while the gateway's socket connected to the new sender)
     assert 10 + len(packets) - 10 <= summary["forwarded"] + summary["held"] <= 10 + len(packets)
+
+
+def test_with_keys_the_gateway_gets_the_stream_and_the_model_over_curve(
+        person_model: Path, stream: tuple[Hello, list[bytes]], tmp_path: Path) -> None:
+    hello, packets = stream
+    for name in ("sender", "gateway"):
+        generate_keys(tmp_path / name)
+    shutil.copy(tmp_path / "gateway/id.key", tmp_path / "sender/authorized/gateway.key")
+    shutil.copy(tmp_path / "sender/id.key", tmp_path / "gateway/authorized/sender.key")
+    endpoint = free_endpoint()
+    sender = _Sender(endpoint, person_model, hello, server_keys(tmp_path / "sender"))
+    gateway = _Gateway(endpoint, tmp_path / "cache", curve_dir=str(tmp_path / "gateway"))
+    try:
+        page = gateway.page()
+        _until(lambda: "model" in page.kinds(), "the model is announced")
+        sender.send(packets[:10])
+        _until(lambda: len(page.packets) == 10, "the packets")
+        assert page.packets == packets[:10]
+    finally:
+        gateway.close()
+        sender.close()
 
 
 def test_the_real_page_in_chromium_plays_what_the_gateway_forwards(
