@@ -49,6 +49,7 @@ const RECONNECT_MAX_S = 30.0;
 const UPDATE_RETRY_MIN_S = 1.0; // a refused update is asked again, backing off as receiver/updates.py
 const UPDATE_RETRY_MAX_S = 30.0;
 const PANEL_EVERY_MS = 250;
+const TIMED_EVERY = 8; // one drawn frame in 8 is timed until drawn (stats.js's frame time)
 const QUIET_S = 1.0; // no packet for longer: said on the status line (receiver/stats.py)
 const MAX_TEXT_CHARS = 1000; // protocol/control.py: what a peer's text is cut to
 const HEX64 = /^[0-9a-f]{64}$/;
@@ -121,6 +122,8 @@ class Page {
     });
     this.state = null;
     this.lastView = null;
+    this.pixel = new Uint8Array(4);
+    this.drawn = 0;
     this.lastPacket = null;
     this.stats = new PageStats();
     this.counts = {messages: 0, packets: 0, bytes: 0, decoded: 0, ignored: 0, junk: 0, clamped: 0,
@@ -360,8 +363,18 @@ class Page {
     this.follow(this.state.serial);
     const start = performance.now();
     this.renderer.render(this.state, view);
+    this.drawn += 1;
+    const timed = this.drawn % TIMED_EVERY === 0;
+    if (timed) {
+      // one pixel read back waits until the frame is drawn: the whole frame's cost (the GPU's,
+      // or the software renderer's in another process), not only the calls' submission; only
+      // one frame in TIMED_EVERY, since the wait blocks the page's thread (its packets'
+      // arrival times with it)
+      const gl = this.canvas.getContext("webgl2"); // the renderer's: a canvas keeps its context
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, this.pixel);
+    }
     const end = performance.now();
-    if (state !== null) this.stats.frame(end / 1000, state, (end - start) / 1000);
+    if (state !== null) this.stats.frame(end / 1000, state, timed ? (end - start) / 1000 : null);
   }
 
   // -- what the viewer reads ---------------------------------------------------------------
