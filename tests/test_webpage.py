@@ -552,5 +552,20 @@ def test_the_page_draws_the_model_and_keeps_it_when_another_is_corrupt(
         assert counts["statuses"]["received"] > 0.75 * len(recorded.packets), (counts, playout)
         assert stats["frames"] > 0.25 * len(recorded.packets), stats
         assert stats["render_ms"] > 0 and stats["latency_ms"] is not None
+
+        # another Hello (a sender restarted with another camera): a new playout, and a new
+        # renderer on the same canvas (the old one's GPU objects released) draws on
+        camera = {**asdict(recorded.hello.camera), "fx": 600.0, "fy": 600.0}
+        server.send(hello_json(recorded.hello, camera=camera))
+        wait_for(browser, tab, "window.facewire.hello.camera.fx === 600")
+        start = time.monotonic()
+        for k, packet in enumerate(recorded.packets[:30]):
+            server.send(packet.tobytes())
+            time.sleep(max(0.0, start + (k + 1) / rate - time.monotonic()))
+        wait_for(browser, tab, "window.facewire.playout.received === 30")
+        again = browser.evaluate(tab, "window.facewire.stats.frames")
+        assert again > stats["frames"] + 5
+        status = browser.evaluate(tab, "window.facewire.status")
+        assert "error" not in status and "cannot" not in status, status
     finally:
         server.close()

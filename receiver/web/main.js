@@ -238,7 +238,7 @@ class Page {
     this.helloText = text;
     const shown = this.versions[this.shown ?? 0];
     this.playout = new Playout(fields.rate_hz, {restQ: shown === undefined ? null : restQ(shown)});
-    if (renewed && this.renderer !== null) this.renderer = null; // its camera is the old Hello's
+    if (renewed) this.dropRenderer(); // its camera is the old Hello's
     this.setupRenderer();
   }
 
@@ -266,7 +266,7 @@ class Page {
     this.updates = new Map([...this.updates].filter(([, m]) => updateBase(m) === model.sha256));
     this.shown = null;
     this.text.model = `model ${megabytes(Number(message.bytes) || 0)}, version 0`;
-    if (this.renderer !== null) this.renderer = null; // another base model: a new renderer
+    this.dropRenderer(); // another base model: a new renderer
     this.setupRenderer();
     await this.applyUpdates();
   }
@@ -310,15 +310,15 @@ class Page {
     this.text.model = `${what}: ${cut(why)}; ${keep}`;
   }
 
+  /** Free the renderer's GPU objects: the next one takes the canvas's context. */
+  dropRenderer() {
+    if (this.renderer === null) return;
+    this.renderer.release();
+    this.renderer = null;
+  }
+
   setupRenderer() {
     if (this.renderer !== null || this.engine === null || this.hello === null || this.versions.length === 0) return;
-    if (this.canvas.dataset.used) { // a canvas keeps its first WebGL context: a fresh one
-      const fresh = this.canvas.cloneNode(false);
-      this.canvas.replaceWith(fresh);
-      this.canvas = fresh;
-      this.orbit = new this.engine.OrbitView(fresh);
-    }
-    this.canvas.dataset.used = "1";
     try {
       this.renderer = new this.engine.FaceRenderer(this.canvas, this.versions[0], this.hello);
       this.shown = 0;
