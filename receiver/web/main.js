@@ -169,6 +169,7 @@ class Page {
       this.attempts += 1;
       const why = event.reason ? `: ${cut(event.reason)}` : "";
       this.text.link = `connection to the gateway lost (code ${event.code}${why}): reconnecting in ${delay} s`;
+      this.text.sender = ""; // the gateway says again on connecting
       this.panel();
       setTimeout(() => this.connect(), delay * 1000);
     };
@@ -304,9 +305,14 @@ class Page {
     }
   }
 
+  /** Whether the model held is the one the Hello names (another sender's is not drawn). */
+  get matching() {
+    return this.hello !== null && this.versions.length > 0 && this.versions[0].sha256 === this.hello.model_sha256;
+  }
+
   refused(what, error) {
     const why = error instanceof this.engine.ModelError ? error.message : `could not load (${error.message ?? error})`;
-    const keep = this.versions.length ? `showing the last good one (version ${this.versions.length - 1})` : "no model to show";
+    const keep = this.matching ? `showing the last good one (version ${this.versions.length - 1})` : "no model to show";
     this.text.model = `${what}: ${cut(why)}; ${keep}`;
   }
 
@@ -318,7 +324,7 @@ class Page {
   }
 
   setupRenderer() {
-    if (this.renderer !== null || this.engine === null || this.hello === null || this.versions.length === 0) return;
+    if (this.renderer !== null || this.engine === null || !this.matching) return;
     try {
       this.renderer = new this.engine.FaceRenderer(this.canvas, this.versions[0], this.hello);
       this.shown = 0;
