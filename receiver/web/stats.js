@@ -10,14 +10,17 @@
  *                Python receiver counts it: slots concealed (their packet missing) that a
  *                played packet follows, so that a sender gone (the head easing to rest, then
  *                still) loses nothing; a gap longer than MAX_GAP_S ends the stream uncounted
- *   render ms  = the median time of the window's ``FaceRenderer.render`` calls (the page's own
- *                frame time: the morph and the draw submitted, on the page's thread)
+ *   render ms  = the page's own frame time: the median, over the last TIMED_FRAMES timed
+ *                frames (main.js times one in a few), of ``FaceRenderer.render`` (the morph
+ *                and the draw) until the frame is drawn (a pixel read back), so the GPU's (or
+ *                the software renderer's) time is in it
  *
  * and totals since the page opened: frames, slots, lost, packets, bytes.
  */
 
 export const WINDOW_S = 1.0;
 export const MAX_GAP_S = 10.0; // receiver/receiver.py
+export const TIMED_FRAMES = 16;
 
 function median(values) {
   if (values.length === 0) return null;
@@ -35,7 +38,8 @@ export class PageStats {
     this._packets = []; // [arrival, bytes]
     this._slots = []; // [time, lost]
     this._pending = []; // the times of concealed slots no played packet followed yet
-    this._frames = []; // [time, latency s | null, render s]
+    this._frames = []; // [time, latency s | null]
+    this._timed = []; // the last TIMED_FRAMES frame times, s
   }
 
   /** A packet of ``size`` bytes arrived at ``arrivalS``. */
@@ -60,10 +64,15 @@ export class PageStats {
     this._slots.push([nowS, false]);
   }
 
-  /** A frame was rendered at ``nowS`` from ``state`` in ``renderS`` seconds. */
+  /** A frame was rendered at ``nowS`` from ``state``, drawn in ``renderS`` seconds when it was
+   * timed (else null). */
   frame(nowS, state, renderS) {
     this.totals.frames += 1;
-    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s, renderS]);
+    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s]);
+    if (renderS !== null) {
+      this._timed.push(renderS);
+      if (this._timed.length > TIMED_FRAMES) this._timed.shift();
+    }
   }
 
   /** The live statistics as of ``nowS``: fps, kbps, loss_percent, latency_ms, render_ms (null
@@ -78,7 +87,7 @@ export class PageStats {
     const latencies = this._frames.filter(([, latency]) => latency !== null).map(([, latency]) => latency);
     const lost = this._slots.filter(([, l]) => l).length;
     const latency = median(latencies);
-    const render = median(this._frames.map(([, , r]) => r));
+    const render = median(this._timed);
     return {
       fps: round(this._frames.length / WINDOW_S, 1),
       kbps: round(this._packets.reduce((sum, [, n]) => sum + n, 0) * 8 / 1000 / WINDOW_S, 2),
