@@ -175,6 +175,48 @@ def _relay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _web(args: argparse.Namespace) -> int:
+    from facewire.receiver.gateway import DEFAULT_HTTP, parse_http, remote_warning, serve_gateway
+    from facewire.report import report
+
+    http = args.http or DEFAULT_HTTP
+    host, _ = parse_http(http, args.allow_remote)
+    warning = remote_warning(host, args.token)
+    if warning is not None:
+        print(f"facewire web: {warning}", file=sys.stderr)
+
+    def status(t: dict) -> str:
+        return (f"{t['seconds']:7.1f} s  sender {t['sender']}  model {t['model'] or '-'} "
+                f"v{t['version']}  viewers {t['viewers']}  packets {t['forwarded']}  corrupt "
+                f"{t['corrupt']}  dropped {t['dropped']}")
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())  # Ctrl-C, kill: clean stop
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with _StatusLine(status) as line:
+            def say(text: str) -> None:
+                """An event: a line of its own above the status line."""
+                print("\r" + f"facewire web: {text}".ljust(line.width), file=sys.stderr,
+                      flush=True)
+                line.width = 0
+
+            s = serve_gateway(args.connect, http, args.curve_dir, args.token,
+                              args.allow_remote, stop=stop, say=say, status=line,
+                              ready=lambda url: say(f"open {url} (Ctrl-C stops)"))
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    report(s, [f"forwarded {s['forwarded']} packets ({s['corrupt']} corrupt dropped, "
+               f"{s['held']} before a model) in {s['seconds']} s to at most {s['viewers_max']} "
+               f"viewers ({s['viewers_total']} in all; cut off: {s['dropped_junk']} for junk, "
+               f"{s['dropped_slow']} for not reading)",
+               f"model {(s['model_sha256'] or '-')[:16]} version {s['model_serial']}; "
+               f"{s['http_served']} files served, {s['http_refused']} requests refused"],
+           args.json)
+    return 0
+
+
 class _StatusLine:
     """A live status: one line of stderr rewritten in place by each call."""
 
@@ -778,7 +820,7 @@ def _add_bench(sub: Commands) -> None:
 
 
 def _add_tools(sub: Commands) -> None:
-    """``inspect``, ``relay``, ``demo``, ``keys generate`` and ``check``."""
+    """``inspect``, ``relay``, ``web``, ``demo``, ``keys generate`` and ``check``."""
     i = sub.add_parser("inspect", help="summarise a packet log; optionally dump it as CSV")
     i.add_argument("log", help="packet log (.fwlog)")
     i.add_argument("--csv", help="write every frame's decoded fields to this CSV")
@@ -792,6 +834,22 @@ def _add_tools(sub: Commands) -> None:
     x.add_argument("--curve-out", help="server key folder for the receivers' side")
     _add_json(x)
     x.set_defaults(run=_relay)
+
+    w = sub.add_parser("web", help="serve the stream to web browsers: a page that renders "
+                       "the face itself (WebGL2), fed the packets over a WebSocket")
+    w.add_argument("--connect", required=True, help="sender or relay address, e.g. "
+                   "tcp://HOST:5555")
+    w.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
+                   "connect only to the sender whose key is in DIR/authorized")
+    w.add_argument("--http", metavar="HOST:PORT",
+                   help="where to serve the page and the WebSocket (default 127.0.0.1:8080; "
+                   "port 0: any free one)")
+    w.add_argument("--token", help="require ?token=TOKEN on every request (the page's URL "
+                   "carries it)")
+    w.add_argument("--allow-remote", action="store_true", help="serve on an address other "
+                   "than loopback (plain HTTP: unencrypted; use --token)")
+    _add_json(w)
+    w.set_defaults(run=_web)
 
     d = sub.add_parser("demo", help="the embedded default: build, perform, send, receive, render")
     d.add_argument("--source", help="a real video of one person instead of the embedded "

@@ -22,7 +22,10 @@ order::
                              "layers": [k image indices], "mask": image index}, ...]}]}
 
 (``Region`` and ``Area`` of ``models.modelfile``: areas main first; layers (h, w) RGB, row 0
-at v = v1; masks (h, w) grey). The texture's (H, W) is its PNG's.
+at v = v1; masks (h, w) grey). The texture's (H, W) is its PNG's. Beside ``regions``,
+``framing``: ``{"centre": [x, y, z], "field": mm, "fov_deg": deg}``, the head centre and
+field a virtual view aims at (``models.framing.head_field``, ``FOV_DEG``), for the page's
+orbit view.
 
 Rig and update files (``rig_bin``, ``update_bin``): one container
 -----------------------------------------------------------------
@@ -77,6 +80,7 @@ import numpy as np
 
 from facewire.models.archive import png_bytes
 from facewire.models.fields import ModelError
+from facewire.models.framing import FOV_DEG, head_field
 from facewire.models.gltf import BinBuilder, embed_base_colour, glb_bytes, mesh_document
 from facewire.models.modelfile import PersonModel, Region, png_members
 from facewire.models.rig import N_RESIDUALS, Rig, lips_apart
@@ -113,7 +117,9 @@ def model_glb(model: PersonModel) -> bytes:
                           "mask": index[f"{folder}/mask.png"]})
         regions.append({"name": r.name, "opacity": list(r.opacity), "rest": r.rest,
                         "layers": len(r.layers), "areas": areas})
-    doc["extras"] = {"facewire": {"format": FORMAT, "regions": regions}}
+    centre, field = head_field(mesh.vertices[mesh.landmarks].astype(np.float64))
+    doc["extras"] = {"facewire": {"format": FORMAT, "regions": regions, "framing": {
+        "centre": [float(c) for c in centre], "field": field, "fov_deg": FOV_DEG}}}
     return glb_bytes(doc, builder)
 
 

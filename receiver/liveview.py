@@ -40,8 +40,8 @@ authentication, so it binds to ``127.0.0.1`` by default and refuses any host tha
 loopback address (127.0.0.0/8, ::1, localhost) unless ``allow_remote=True`` is passed
 explicitly (then anyone who can reach the port can watch). On loopback it also answers only
 requests whose ``Host`` header names a loopback host (403 otherwise), so a web page that
-rebinds its own domain name to 127.0.0.1 cannot read the stream. A port already in use is a
-``LiveViewError`` naming it.
+rebinds its own domain name to 127.0.0.1 cannot read the stream (``protocol.loopback``). A
+port already in use is a ``LiveViewError`` naming it.
 
 Shutdown. ``close`` (or leaving the ``with`` block) stops the server loop, wakes every
 connection waiting for a frame, shuts the open connections' sockets down (a browser still
@@ -52,7 +52,6 @@ finish and closes the listening socket. Publishing after ``close`` raises ``Valu
 from __future__ import annotations
 
 import errno
-import ipaddress
 import json
 import math
 import numbers
@@ -68,12 +67,12 @@ import cv2
 import numpy as np
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.loopback import host_header_is_loopback, is_loopback
 
 JPEG_QUALITY = 80
 BOUNDARY = "frame"
 CLOSE_WAIT_S = 5.0
 SOCKET_TIMEOUT_S = 10.0  # a connection that neither sends a request nor reads is dropped
-LOOPBACK_NAMES = ("localhost",)
 # Stats keys the page shows as headline numbers: key, label, decimals, unit.
 HEADLINE = (("fps", "fps", 1, ""), ("kbps", "bitrate", 1, " kbit/s"),
             ("loss_pct", "loss", 1, " %"), ("latency_ms", "latency", 0, " ms"))
@@ -81,16 +80,6 @@ HEADLINE = (("fps", "fps", 1, ""), ("kbps", "bitrate", 1, " kbit/s"),
 
 class LiveViewError(FacewireError, OSError):
     """The live view cannot be served (port in use, host refused); the message says why."""
-
-
-def is_loopback(host: str) -> bool:
-    """True for ``localhost`` and for addresses in 127.0.0.0/8 or ::1."""
-    if host.lower() in LOOPBACK_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class LiveView:
@@ -250,12 +239,7 @@ class LiveView:
 
     def _host_allowed(self, header: str | None) -> bool:
         """The request's Host header names a loopback host (always true with allow_remote)."""
-        if not self.loopback_only:
-            return True
-        if not header:
-            return False
-        name = urlsplit(f"//{header}").hostname
-        return name is not None and is_loopback(name)
+        return not self.loopback_only or host_header_is_loopback(header)
 
 
 class _Server(ThreadingHTTPServer):

@@ -114,7 +114,6 @@ import math
 import os
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -128,6 +127,7 @@ from facewire.protocol.transport import PacketSubscriber, control_endpoint
 from facewire.receiver.acquire import ControlChannel, ModelAcquirer, ReceiveError
 from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.output import FrameFolderWriter, VideoWriter
+from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.playout import FrameState, Playout
 from facewire.receiver.scene import StateRenderer, rest_q
 from facewire.receiver.stats import ReceiveStats
@@ -258,73 +258,6 @@ class _End(Exception):
         self.reason = reason
 
 
-class _PacketReader:
-    """The SUB socket's own thread: packets in, stamped with their arrival time. After
-    ``REOPEN_S`` without a packet the socket is opened again: libzmq does not
-    reconnect a socket whose peer broke the protocol (e.g. sent a frame over
-    ``protocol.transport.MAX_PACKET_FRAME``), and a fresh one costs nothing."""
-
-    def __init__(self, open_socket: Callable[[], PacketSubscriber]) -> None:
-        self._open = open_socket
-        self._sub = open_socket()
-        self._queue: deque[tuple[bytes, float]] = deque()
-        self._closing = threading.Event()
-        self.arrived = threading.Event()  # set on each packet queued
-        self.overflow = 0
-        self.last_arrival: float | None = None
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="facewire packets",
-                                        daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        quiet_since = time.monotonic()
-        try:
-            while not self._closing.is_set():
-                data = self._sub.recv(_POLL_MS)
-                if data is None:
-                    if time.monotonic() - quiet_since > REOPEN_S:
-                        self._sub.close()
-                        self._sub = self._open()
-                        quiet_since = time.monotonic()
-                    continue
-                now = quiet_since = time.monotonic()
-                self.last_arrival = now
-                if len(self._queue) >= QUEUE_PACKETS:
-                    self.overflow += 1
-                else:
-                    self._queue.append((data, now))
-                    self.arrived.set()
-        except Exception as exc:  # noqa: BLE001 - reported by take()
-            self.error = exc
-        finally:
-            self._sub.close()
-
-    def take(self) -> tuple[bytes, float] | None:
-        """The oldest queued packet and its arrival time, out of the queue; None if empty."""
-        if self.error is not None:
-            raise ReceiveError(f"packet socket failed: {self.error}") from self.error
-        try:
-            return self._queue.popleft()
-        except IndexError:
-            return None
-
-    def discard(self) -> int:
-        """Empty the queue; how many packets were in it."""
-        count = 0
-        while self.take() is not None:
-            count += 1
-        return count
-
-    def queued(self) -> int:
-        return len(self._queue)
-
-    def close(self) -> None:
-        """Stop the thread and close the socket (what is queued can still be taken)."""
-        self._closing.set()
-        self._thread.join()
-
-
 class _Session:
     """One ``receive`` call: its sockets, model, renderer, playout, output and counts."""
 
@@ -363,7 +296,8 @@ class _Session:
         self.started = time.monotonic()
         # the links to the sender: open from here, closed by run() (at once if one fails)
         with contextlib.ExitStack() as links:
-            self.reader = _PacketReader(lambda: PacketSubscriber(self.connect, self.curve))
+            self.reader = PacketReader(lambda: PacketSubscriber(self.connect, self.curve),
+                                       QUEUE_PACKETS, REOPEN_S)
             links.callback(self.reader.close)
             self.control = ControlChannel(self.control_endpoint, self.curve)
             links.callback(self.control.close)

@@ -119,6 +119,14 @@ class UpdateFetcher:
             self._taken = best
             return self._versions.model(best), best
 
+    def version(self, serial: int) -> PersonModel | None:
+        """Version ``serial`` (0: the model file) if fetched, else None: for a holder that
+        needs each version in turn (``receiver.gateway``), where ``take`` skips to the
+        newest."""
+        with self._lock:
+            return self._versions.model(serial) if 0 <= serial <= self._versions.held \
+                else None
+
     def close(self) -> None:
         self._closing.set()
         self._wake.set()

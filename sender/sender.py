@@ -63,7 +63,6 @@ finished record is on disk, so ``protocol.log.read_log`` reads it), and the sock
 from __future__ import annotations
 
 import hashlib
-import ipaddress
 import os
 import re
 import threading
@@ -79,6 +78,7 @@ from facewire.models.modelfile import ModelFileError, load_model
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
+from facewire.protocol.loopback import is_loopback
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps
 from facewire.protocol.transport import (
     ControlServer,
@@ -103,20 +103,16 @@ Status = Callable[[dict[str, Any]], None]
 def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> str | None:
     """The warning to show when ``bind`` reaches beyond this host without encryption, else None.
 
-    Loopback is ``127.0.0.0/8``, ``::1``, ``localhost`` and the interface ``lo``; anything else
-    (``*``, ``0.0.0.0``, an address, a host or interface name) can be reached from the network.
+    Loopback (``protocol.loopback``) is ``127.0.0.0/8``, ``::1``, ``localhost``, and here the
+    interface ``lo`` too; anything else (``*``, ``0.0.0.0``, an address, a host or interface
+    name) can be reached from the network.
     """
     if curve_dir is not None:
         return None
     match = re.fullmatch(r"tcp://(\[?)(?P<host>[^\]]*)\]?:\S+", bind)
     host = match["host"] if match else bind
-    if host in ("localhost", "lo"):
+    if host == "lo" or is_loopback(host):  # lo: the loopback interface, named as ZeroMQ allows
         return None
-    try:
-        if ipaddress.ip_address(host).is_loopback:
-            return None
-    except ValueError:
-        pass
     return (f"warning: {bind} is reachable from the network and the face stream and the model "
             f"are sent unencrypted; use --curve-dir DIR (facewire keys generate DIR)")
 
