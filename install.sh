@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install facewire on a Debian/Ubuntu machine: the system packages for headless OpenGL (only
-# when missing), a browser for the live-view test when the system's packages have one, then a
+# when missing), a browser for the browser tests when the system's packages have one, then a
 # virtual environment in .venv with facewire and its Python test tools.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -23,12 +23,12 @@ if [ ${#missing[@]} -gt 0 ]; then
   apt_install "${missing[@]}"
 fi
 
-# The browser: only the live-view page test (tests/test_liveview.py) needs one, so it never
+# The browser: only the browser tests (the live view, the browser receiver) need one, so it never
 # stops the install. Debian packages it as chromium; on Ubuntu chromium is a snap (its deb
 # only installs the snap), which a container cannot run, and apt has no candidate for it.
 browser_hint="install.sh: no Chromium could be installed with apt (on Ubuntu chromium is a \
-snap, which a container cannot run). The live-view browser test skips without one (and fails \
-under FACEWIRE_REQUIRE_REAL_DATA=1). To run it, put a Chromium or Chrome on PATH as chromium \
+snap, which a container cannot run). The browser tests skip without one (and fail \
+under FACEWIRE_REQUIRE_REAL_DATA=1). To run them, put a Chromium or Chrome on PATH as chromium \
 or chromium-browser: e.g. snap install chromium outside a container."
 
 browser_candidate() {  # the version apt would install as chromium, or nothing
@@ -48,7 +48,7 @@ install_browser() {
     echo "$browser_hint"
     return 0
   fi
-  echo "install.sh: installing chromium $candidate for the live-view browser test"
+  echo "install.sh: installing chromium $candidate for the browser tests"
   apt_install chromium || echo "$browser_hint"
 }
 
