@@ -193,7 +193,7 @@ def _playing(chain: Chain) -> dict[str, Any]:
 
 def test_the_page_waits_for_the_sender_then_plays_its_stream(chain: Chain) -> None:
     assert chain.waiting.startswith("waiting for the sender")
-    stats = _playing(chain)
+    print(f"playing: {_playing(chain)}")
     status = chain.js("window.facewire.status")
     assert "sender connected" in status or "the sender is connected" in status, status
     assert "waiting" not in status and "refused" not in status, status

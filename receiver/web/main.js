@@ -368,10 +368,28 @@ class Page {
     if (state === null && viewText === this.lastView) return; // nothing new to draw
     this.lastView = viewText;
     this.follow(this.state.serial);
-    const start = performance.now();
+    const start = now();
     this.renderer.render(this.state, view);
-    const end = performance.now();
-    if (state !== null) this.stats.frame(end / 1000, state, (end - start) / 1000);
+    if (state !== null) this.drawn(this.renderer.gl, start, state);
+  }
+
+  /** Count a frame once the GPU has drawn it: the render call only submits the draw (a software
+   * GPU draws in the browser's GPU process, long after it returns), so a fence put after it is
+   * polled, never waited on, every millisecond or so; the frame time and the latency end there. */
+  drawn(gl, start, state) {
+    const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+    gl.flush();
+    const poll = () => {
+      const status = gl.isContextLost() ? gl.WAIT_FAILED : gl.clientWaitSync(fence, 0, 0);
+      if (status === gl.TIMEOUT_EXPIRED) {
+        setTimeout(poll, 1);
+        return;
+      }
+      gl.deleteSync(fence);
+      const end = now();
+      if (status !== gl.WAIT_FAILED) this.stats.frame(end, state, end - start);
+    };
+    setTimeout(poll, 0);
   }
 
   // -- what the viewer reads ---------------------------------------------------------------

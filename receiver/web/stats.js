@@ -5,13 +5,13 @@
  *   fps        = frames rendered in the window / WINDOW_S
  *   kbit/s     = 8 * packet bytes received in the window / 1000 / WINDOW_S
  *   latency    = the median, over the window's frames that played a packet, of the time from
- *                that packet's arrival (its WebSocket message) to its frame rendered, ms
+ *                that packet's arrival (its WebSocket message) to its frame drawn, ms
  *   loss %     = 100 * lost / slots, over the slots played in the window, ``lost`` as the
  *                Python receiver counts it: slots concealed (their packet missing) that a
  *                played packet follows, so that a sender gone (the head easing to rest, then
  *                still) loses nothing; a gap longer than MAX_GAP_S ends the stream uncounted
- *   render ms  = the median time of the window's ``FaceRenderer.render`` calls (the page's own
- *                frame time: the morph and the draw submitted, on the page's thread)
+ *   render ms  = the median frame time of the window's frames: from the ``FaceRenderer.render``
+ *                call until the GPU has drawn it (main.js: a fence after the draw, polled)
  *
  * and totals since the page opened: frames, slots, lost, packets, bytes.
  */
@@ -60,7 +60,7 @@ export class PageStats {
     this._slots.push([nowS, false]);
   }
 
-  /** A frame was rendered at ``nowS`` from ``state`` in ``renderS`` seconds. */
+  /** A frame of ``state`` was drawn at ``nowS``, ``renderS`` seconds after its render call. */
   frame(nowS, state, renderS) {
     this.totals.frames += 1;
     this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s, renderS]);
