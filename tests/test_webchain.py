@@ -285,6 +285,10 @@ def test_the_page_shows_what_python_renders_of_the_same_packets(chain: Chain) ->
           f"{np.round(ssim, 4)}, mean {np.mean(ssim):.4f} (seq {states[worst]['seq']}: {side})")
     assert np.mean(ssim) >= 0.97, (ssim, side)
     assert all(c.mean() > 5 for c in canvases)  # a face drawn
+    others = [_face_ssim(rig, chain.hello, python[i], canvases[i], theirs[j])
+              for i in range(FRAMES) for j in range(FRAMES) if i != j]
+    print(f"face SSIM of the page's slots against Python's other slots: {np.round(others, 4)}")
+    assert np.mean(others) < np.mean(ssim) - 0.02  # the measure tells the slots apart
 
 
 def test_a_model_update_mid_session_reaches_the_page_without_a_reload(chain: Chain) -> None:
