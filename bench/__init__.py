@@ -1,4 +1,4 @@
 """Benchmarks behind ``facewire bench``: bandwidth (``bandwidth``), speed (``speed``, its live
 part ``loopback``), quality (``quality``, with ``geometry``, ``fidelity``, ``reference`` and
-``qplot``) on the tuning or evaluation clips (``clips``); and ``facewire inspect``
-(``inspect``)."""
+``qplot``) on the tuning or evaluation clips (``clips``), fan-out (``fanout``, its viewer
+processes ``viewers``); and ``facewire inspect`` (``inspect``)."""

@@ -546,6 +546,17 @@ def _bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_fanout(args: argparse.Namespace) -> int:
+    from facewire.bench.fanout import DEFAULT_VIEWERS, fanout
+    from facewire.report import report
+
+    report(*fanout(args.model, args.source, args.viewers or DEFAULT_VIEWERS, args.seconds,
+                   args.log, status=lambda line: print(f"bench fanout: {line}",
+                                                       file=sys.stderr, flush=True)),
+           args.json)
+    return 0
+
+
 def _encode(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.pipeline import encode_video
@@ -747,8 +758,10 @@ def _add_encode_replay(sub: Commands) -> None:
 
 
 def _add_bench(sub: Commands) -> None:
-    """``bench bandwidth``, ``bench speed``, ``bench quality`` and ``bench reproductions``."""
-    b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality, reproductions")
+    """``bench bandwidth``, ``bench speed``, ``bench quality``, ``bench fanout`` and ``bench
+    reproductions``."""
+    b = sub.add_parser("bench", help="benchmarks: bandwidth, speed, quality, fanout, "
+                       "reproductions")
     bsub = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
     bb = bsub.add_parser("bandwidth", help="payload, wire and IP bit rates of a packet log "
                          "(exit 1 when its worst 1-s payload is >= 12 kbit/s)")
@@ -779,6 +792,18 @@ def _add_bench(sub: Commands) -> None:
     _add_json(bq)
     bq.add_argument("--plot", help="write a plot of fidelity over time (.png)")
     bq.set_defaults(run=_bench_quality)
+    bf = bsub.add_parser("fanout", help="one sender through a relay to N WebSocket viewers (via "
+                         "facewire web) and N ZeroMQ subscribers: delivery, latency, CPU")
+    bf.add_argument("--model", required=True, help="person model (.fwm)")
+    fsrc = bf.add_mutually_exclusive_group(required=True)
+    fsrc.add_argument("--source", help="video file, encoded with the model into the stream")
+    fsrc.add_argument("--log", help="packet log (.fwlog) of the model, sent instead")
+    bf.add_argument("--viewers", type=int, action="append", metavar="N",
+                    help="viewers of each kind in a run (repeatable; default 10, 100, 1000)")
+    bf.add_argument("--seconds", type=float, default=10.0, metavar="S",
+                    help="each run's measured window (default 10)")
+    _add_json(bf)
+    bf.set_defaults(run=_bench_fanout)
     br = bsub.add_parser("reproductions", help="issue 16's reproductions (occluded mouth, no "
                          "open mouth, fast head motion): models built and scored, one table")
     br.add_argument("--data", required=True, help="the shared data folder (holds video/)")

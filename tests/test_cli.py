@@ -22,7 +22,7 @@ from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 FACEWIRE = str(Path(sys.executable).with_name("facewire"))
 CONTRACT = ["model", "send", "receive", "encode", "replay", "bench", "inspect", "relay", "demo",
-            "keys"]
+            "keys", "web"]
 REGIONS = ("forehead", "brow_furrow", "eyelid_right", "eyelid_left", "eyeball_right",
            "eyeball_left", "mouth")
 
@@ -57,7 +57,7 @@ def test_help_lists_the_contract() -> None:
     for command in CONTRACT:
         assert command in out.stdout
     for nested in (("model", "build", "info", "export"), ("bench", "bandwidth", "speed",
-                                                            "quality"), ("keys", "generate")):
+                                                            "quality", "fanout"), ("keys", "generate")):
         sub = run(nested[0], "--help")
         assert all(word in sub.stdout for word in nested[1:])
 

@@ -9,12 +9,14 @@ thread (``serve_gateway``) as ``facewire web`` runs it; the pages are ``websocke
 
 from __future__ import annotations
 
+import base64
 import binascii
 import contextlib
 import dataclasses
 import gzip
 import json
 import os
+import shutil
 import signal
 import socket
 import threading
@@ -25,6 +27,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from conftest import free_endpoint, start
 from logsender import encoded_log, hello_for
@@ -37,6 +41,7 @@ from facewire.cli import main
 from facewire.models import webmodel
 from facewire.models.modelfile import load_model
 from facewire.protocol.control import Hello, model_chunks
+from facewire.protocol.keys import CurveServer, generate_keys, server_keys
 from facewire.protocol.packet import decode, encode
 from facewire.protocol.shaper import UpdateShaper
 from facewire.protocol.transport import ControlServer, PacketPublisher, control_endpoint
@@ -52,11 +57,12 @@ class _Sender:
     """A real sender's sockets on ``endpoint``: packets published by ``send``, and the control
     thread answering the Hello, the model's chunks and the updates' (``store``)."""
 
-    def __init__(self, endpoint: str, model_path: Path, hello: Hello) -> None:
+    def __init__(self, endpoint: str, model_path: Path, hello: Hello,
+                 curve: CurveServer | None = None) -> None:
         data = model_path.read_bytes()
         self.store = UpdateStore(hello.model_sha256)
-        self.pub = PacketPublisher(endpoint)
-        self.server = ControlServer(control_endpoint(endpoint))
+        self.pub = PacketPublisher(endpoint, curve)
+        self.server = ControlServer(control_endpoint(endpoint), curve)
         self.responder = Responder(self.server, hello, model_chunks(data, hello.model_sha256),
                                    self.store, UpdateShaper(*FAST))
         self.responder.start()
@@ -396,6 +402,67 @@ def test_another_model_holds_the_packets_back_until_the_pages_are_told_of_it(
     # the new sender's first packets: held until its Hello said whose they are (or lost
     # while the gateway's socket connected to the new sender)
     assert 10 + len(packets) - 10 <= summary["forwarded"] + summary["held"] <= 10 + len(packets)
+
+
+def test_with_keys_the_gateway_gets_the_stream_and_the_model_over_curve(
+        person_model: Path, stream: tuple[Hello, list[bytes]], tmp_path: Path) -> None:
+    hello, packets = stream
+    for name in ("sender", "gateway"):
+        generate_keys(tmp_path / name)
+    shutil.copy(tmp_path / "gateway/id.key", tmp_path / "sender/authorized/gateway.key")
+    shutil.copy(tmp_path / "sender/id.key", tmp_path / "gateway/authorized/sender.key")
+    endpoint = free_endpoint()
+    sender = _Sender(endpoint, person_model, hello, server_keys(tmp_path / "sender"))
+    gateway = _Gateway(endpoint, tmp_path / "cache", curve_dir=str(tmp_path / "gateway"))
+    try:
+        page = gateway.page()
+        _until(lambda: "model" in page.kinds(), "the model is announced")
+        sender.send(packets[:10])
+        _until(lambda: len(page.packets) == 10, "the packets")
+        assert page.packets == packets[:10]
+    finally:
+        gateway.close()
+        sender.close()
+
+
+def test_the_real_page_in_chromium_plays_what_the_gateway_forwards(
+        person_model: Path, stream: tuple[Hello, list[bytes]], tmp_path: Path) -> None:
+    """The page (receiver/web) in headless Chromium with WebGL2, behind a token, fed by the
+    gateway: it loads the model the gateway serves, decodes every packet forwarded (none of
+    the corrupt ones reach it) and draws a face."""
+    from browser import WEBGL_FLAGS, DevTools, find_chromium
+    from webpage import open_tab
+
+    hello, packets = stream
+    endpoint = free_endpoint()
+    sender = _Sender(endpoint, person_model, hello)
+    gateway = _Gateway(endpoint, tmp_path / "cache", token=TOKEN)
+    browser = DevTools(find_chromium(), tmp_path / "profile", tmp_path / "chromium.log",
+                       WEBGL_FLAGS)
+    try:
+        tab = open_tab(browser, gateway.url, "window.facewire !== undefined && "
+                       "window.facewire.model.held === 1", timeout=60)
+        bad = _corrupt(packets[5])
+        sender.send(packets[:40], rate_hz=30,
+                    between=lambda i: [sender.pub.send(b) for b in bad] if i == 5 else None)
+        counts = "window.facewire.counts"
+        _until(lambda: browser.evaluate(tab, f"{counts}.decoded") == 40, "the page decoded all",
+               timeout=30)
+        assert sum(browser.evaluate(tab, f"{counts}.corrupt").values()) == 0
+        shot = browser.call("Page.captureScreenshot", {"format": "png"}, session=tab)["data"]
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(shot), np.uint8), cv2.IMREAD_COLOR)
+        rect = browser.evaluate(tab, "JSON.stringify(document.querySelector('canvas')"
+                                ".getBoundingClientRect())")
+        box = json.loads(rect)
+        x, y, w, h = (round(box[k]) for k in ("x", "y", "width", "height"))
+        middle = image[y + h // 4:y + 3 * h // 4, x + w // 3:x + 2 * w // 3].astype(int)
+        assert middle.std() > 10 and middle.mean() > 40  # a textured face, not an empty canvas
+    finally:
+        browser.close()
+        summary = gateway.close()
+        sender.close()
+    assert summary["forwarded"] == 40 and summary["corrupt"] == 3
+    assert summary["http_served"] >= 3  # the page, its modules, the model
 
 
 def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(

@@ -25,12 +25,13 @@ from urllib.parse import parse_qs
 
 import numpy as np
 import pytest
-from browser import DevTools, find_chromium
+from browser import WEBGL_FLAGS, DevTools, find_chromium
 from webpage import TYPES, PageServer, open_tab, web_dir
 from websockets.asyncio.server import serve
 from websockets.datastructures import Headers
 from websockets.http11 import Response
 
+from facewire.models.modelfile import load_model
 from facewire.protocol.control import Hello
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import (
@@ -121,7 +122,7 @@ window.ready = true;
 def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DevTools]:
     chromium = find_chromium()
     folder = tmp_path_factory.mktemp("chromium")
-    browser = DevTools(chromium, folder / "profile", folder / "chromium.log")
+    browser = DevTools(chromium, folder / "profile", folder / "chromium.log", WEBGL_FLAGS)
     yield browser
     browser.close()
 
@@ -466,13 +467,11 @@ def test_the_page_waits_plays_through_loss_counts_and_reconnects(browser: DevToo
                 kbps = browser.evaluate(tab, "window.facewire.stats.kbps")
                 panel = browser.evaluate(tab, "document.getElementById('kbps').textContent")
             time.sleep(max(0.0, start + (k + 1) / rate - time.monotonic()))
-        last = int(decode(recorded.packets[-1].tobytes()).seq)
-        wait_for(browser, tab, f"window.facewire.state !== null && "
-                               f"window.facewire.state.seq === {last}")
-        counts = browser.evaluate(tab, "window.facewire.counts")
-        playout = browser.evaluate(tab, "window.facewire.playout")
-        status = browser.evaluate(tab, "window.facewire.status")
-        loss = browser.evaluate(tab, "document.getElementById('loss').textContent")
+        wait_for(browser, tab, "(({counts: c, playout: p}) => c.statuses.received + p.late + "
+                               f"p.discarded === {keep.sum()})(window.facewire)")
+        counts, playout, status, loss = browser.evaluate(tab, """[window.facewire.counts,
+            window.facewire.playout, window.facewire.status,
+            document.getElementById('loss').textContent]""")
 
         assert counts["packets"] == sent and counts["junk"] == 2 and counts["ignored"] == 0
         assert counts["corrupt"] == {"size": 2, "version": 1, "crc": 1, "reserved": 1,
@@ -480,9 +479,11 @@ def test_the_page_waits_plays_through_loss_counts_and_reconnects(browser: DevToo
         assert Counter(python_reason(c) for c in corrupt) == Counter(
             {r: n for r, n in counts["corrupt"].items() if n})
         assert counts["decoded"] == playout["received"] == int(keep.sum())
-        slots = sum(counts["statuses"].values()) + playout["skipped"]
-        assert slots == last - int(decode(recorded.packets[0].tobytes()).seq) + 1
-        assert counts["statuses"]["held"] > 0 and playout["concealed"] == len(keep) - keep.sum()
+        # every packet played (a few may come too late on a loaded machine: they are counted
+        # late), the missing ones concealed, and the slots after the last packet once they are
+        # due (the sender is gone)
+        assert counts["statuses"]["received"] >= 0.9 * keep.sum(), (counts, playout)
+        assert playout["concealed"] >= len(keep) - keep.sum() and counts["statuses"]["held"] > 0
         want = 43 * 8 * rate * keep.mean() / 1000
         assert 0.5 * want < kbps < 2 * want and float(panel) == pytest.approx(kbps, abs=1.5)
         assert "%" in loss and "sender tcp://127.0.0.1:5555" in status
@@ -493,5 +494,78 @@ def test_the_page_waits_plays_through_loss_counts_and_reconnects(browser: DevToo
         wait_for(browser, tab, "window.facewire.connected && "
                                "window.facewire.status.includes('waiting for the sender')")
         assert server.connections == 2 and not server.refused
+    finally:
+        server.close()
+
+
+def test_the_page_draws_the_model_and_keeps_it_when_another_is_corrupt(
+        browser: DevTools, log: Path, person_model: Path) -> None:
+    """With the rendering half (model.js, render.js, views.js) and the model's browser bytes
+    (``models.webmodel``): the page loads a real model, draws nearly every slot of a real log
+    at its rate, and when told of a corrupt model, then of a corrupt update, refuses each with
+    a visible line, keeps the last good version on screen and keeps drawing."""
+    webmodel = pytest.importorskip("facewire.models.webmodel",
+                                   reason="the model's browser bytes (branch fmt) not merged")
+    if not (web_dir() / "render.js").is_file():
+        pytest.skip("the page's renderer (render.js, branch fmt) not merged")
+    model = load_model(person_model)
+    sha, bad = model.sha256, "0" * 64
+    extra = {f"/model/{sha}.glb": ("model/gltf-binary", webmodel.model_glb(model)),
+             f"/model/{sha}.rig": ("application/octet-stream", webmodel.rig_bin(model)),
+             f"/model/{bad}.glb": ("model/gltf-binary", b"glTF" + bytes(range(256)) * 4),
+             f"/model/{bad}.rig": ("application/octet-stream", webmodel.rig_bin(model)),
+             f"/model/{sha}/1.upd": ("application/octet-stream", b"FWUP" + b"\xff" * 64)}
+    recorded = read_log(log)
+    rate = recorded.hello.rate_hz
+    server = ContractServer("k", extra)
+    try:
+        tab = open_tab(browser, f"{server.url}/?token=k",
+                       "window.facewire !== undefined && window.facewire.connected")
+        server.send(hello_json(recorded.hello), json.dumps(
+            {"type": "model", "sha256": sha, "glb": f"/model/{sha}.glb",
+             "rig": f"/model/{sha}.rig", "bytes": len(extra[f"/model/{sha}.glb"][1])}))
+        wait_for(browser, tab, f"window.facewire.model.sha256 === '{sha}'", timeout=30)
+        start = time.monotonic()
+        for k, packet in enumerate(recorded.packets):
+            server.send(packet.tobytes())
+            if k == 20:
+                server.send(json.dumps({"type": "model", "sha256": bad,
+                                        "glb": f"/model/{bad}.glb",
+                                        "rig": f"/model/{bad}.rig", "bytes": 1028}))
+            if k == 45:
+                refused_model = browser.evaluate(tab, "window.facewire.status")
+                server.send(json.dumps({"type": "update", "serial": 1,
+                                        "url": f"/model/{sha}/1.upd", "bytes": 68}))
+            time.sleep(max(0.0, start + (k + 1) / rate - time.monotonic()))
+        n = len(recorded.packets)  # each played, or dropped late or at a restart
+        wait_for(browser, tab, "(({counts: c, playout: p}) => c.statuses.received + p.late + "
+                               f"p.discarded === {n})(window.facewire)")
+        stats, status, counts, playout = browser.evaluate(tab, """[window.facewire.stats,
+            window.facewire.status, window.facewire.counts, window.facewire.playout]""")
+
+        assert "model refused: " in refused_model and \
+            "showing the last good one (version 0)" in refused_model
+        assert "model update 1 refused: " in status and "showing the last good one" in status
+        assert browser.evaluate(tab, "window.facewire.model") == {"sha256": sha, "held": 1,
+                                                                  "shown": 0}
+        print(f"page drawing a real log at {rate:g} Hz: {stats}; {playout}")
+        assert counts["statuses"]["received"] > 0.75 * len(recorded.packets), (counts, playout)
+        assert stats["frames"] > 0.25 * len(recorded.packets), stats
+        assert stats["render_ms"] > 0 and stats["latency_ms"] is not None
+
+        # another Hello (a sender restarted with another camera): a new playout, and a new
+        # renderer on the same canvas (the old one's GPU objects released) draws on
+        camera = {**asdict(recorded.hello.camera), "fx": 600.0, "fy": 600.0}
+        server.send(hello_json(recorded.hello, camera=camera))
+        wait_for(browser, tab, "window.facewire.hello.camera.fx === 600")
+        start = time.monotonic()
+        for k, packet in enumerate(recorded.packets[:30]):
+            server.send(packet.tobytes())
+            time.sleep(max(0.0, start + (k + 1) / rate - time.monotonic()))
+        wait_for(browser, tab, "window.facewire.playout.received === 30")
+        again = browser.evaluate(tab, "window.facewire.stats.frames")
+        assert again > stats["frames"] + 5
+        status = browser.evaluate(tab, "window.facewire.status")
+        assert "error" not in status and "cannot" not in status, status
     finally:
         server.close()

@@ -52,6 +52,7 @@ const RECONNECT_MAX_S = 30.0;
 const UPDATE_RETRY_MIN_S = 1.0; // a refused update is asked again, backing off as receiver/updates.py
 const UPDATE_RETRY_MAX_S = 30.0;
 const PANEL_EVERY_MS = 250;
+const TIMED_EVERY = 8; // one drawn frame in 8 is timed until drawn (stats.js's frame time)
 const QUIET_S = 1.0; // no packet for longer: said on the status line (receiver/stats.py)
 const MAX_TEXT_CHARS = 1000; // protocol/control.py: what a peer's text is cut to
 const HEX64 = /^[0-9a-f]{64}$/;
@@ -125,6 +126,8 @@ class Page {
     });
     this.state = null;
     this.lastView = null;
+    this.pixel = new Uint8Array(4);
+    this.drawn = 0;
     this.lastPacket = null;
     this.stats = new PageStats();
     this.counts = {messages: 0, packets: 0, bytes: 0, decoded: 0, ignored: 0, junk: 0, clamped: 0,
@@ -176,6 +179,7 @@ class Page {
       this.attempts += 1;
       const why = event.reason ? `: ${cut(event.reason)}` : "";
       this.text.link = `connection to the gateway lost (code ${event.code}${why}): reconnecting in ${delay} s`;
+      this.text.sender = ""; // the gateway says again on connecting
       this.panel();
       setTimeout(() => this.connect(), delay * 1000);
     };
@@ -245,7 +249,7 @@ class Page {
     this.helloText = text;
     const shown = this.versions[this.shown ?? 0];
     this.playout = new Playout(fields.rate_hz, {restQ: shown === undefined ? null : restQ(shown)});
-    if (renewed && this.renderer !== null) this.renderer = null; // its camera is the old Hello's
+    if (renewed) this.dropRenderer(); // its camera is the old Hello's
     this.setupRenderer();
   }
 
@@ -273,7 +277,7 @@ class Page {
     this.updates = new Map([...this.updates].filter(([, m]) => updateBase(m) === model.sha256));
     this.shown = null;
     this.text.model = `model ${megabytes(Number(message.bytes) || 0)}, version 0`;
-    if (this.renderer !== null) this.renderer = null; // another base model: a new renderer
+    this.dropRenderer(); // another base model: a new renderer
     this.setupRenderer();
     await this.applyUpdates();
   }
@@ -311,21 +315,26 @@ class Page {
     }
   }
 
+  /** Whether the model held is the one the Hello names (another sender's is not drawn). */
+  get matching() {
+    return this.hello !== null && this.versions.length > 0 && this.versions[0].sha256 === this.hello.model_sha256;
+  }
+
   refused(what, error) {
     const why = error instanceof this.engine.ModelError ? error.message : `could not load (${error.message ?? error})`;
-    const keep = this.versions.length ? `showing the last good one (version ${this.versions.length - 1})` : "no model to show";
+    const keep = this.matching ? `showing the last good one (version ${this.versions.length - 1})` : "no model to show";
     this.text.model = `${what}: ${cut(why)}; ${keep}`;
   }
 
+  /** Free the renderer's GPU objects: the next one takes the canvas's context. */
+  dropRenderer() {
+    if (this.renderer === null) return;
+    this.renderer.release();
+    this.renderer = null;
+  }
+
   setupRenderer() {
-    if (this.renderer !== null || this.engine === null || this.hello === null || this.versions.length === 0) return;
-    if (this.canvas.dataset.used) { // a canvas keeps its first WebGL context: a fresh one
-      const fresh = this.canvas.cloneNode(false);
-      this.canvas.replaceWith(fresh);
-      this.canvas = fresh;
-      this.orbit = new this.engine.OrbitView(fresh);
-    }
-    this.canvas.dataset.used = "1";
+    if (this.renderer !== null || this.engine === null || !this.matching) return;
     try {
       this.renderer = new this.engine.FaceRenderer(this.canvas, this.versions[0], this.hello);
       this.shown = 0;
@@ -368,28 +377,20 @@ class Page {
     if (state === null && viewText === this.lastView) return; // nothing new to draw
     this.lastView = viewText;
     this.follow(this.state.serial);
-    const start = now();
+    const start = performance.now();
     this.renderer.render(this.state, view);
-    if (state !== null) this.drawn(this.renderer.gl, start, state);
-  }
-
-  /** Count a frame once the GPU has drawn it: the render call only submits the draw (a software
-   * GPU draws in the browser's GPU process, long after it returns), so a fence put after it is
-   * polled, never waited on, every millisecond or so; the frame time and the latency end there. */
-  drawn(gl, start, state) {
-    const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
-    gl.flush();
-    const poll = () => {
-      const status = gl.isContextLost() ? gl.WAIT_FAILED : gl.clientWaitSync(fence, 0, 0);
-      if (status === gl.TIMEOUT_EXPIRED) {
-        setTimeout(poll, 1);
-        return;
-      }
-      gl.deleteSync(fence);
-      const end = now();
-      if (status !== gl.WAIT_FAILED) this.stats.frame(end, state, end - start);
-    };
-    setTimeout(poll, 0);
+    this.drawn += 1;
+    const timed = this.drawn % TIMED_EVERY === 0;
+    if (timed) {
+      // one pixel read back waits until the frame is drawn: the whole frame's cost (the GPU's,
+      // or the software renderer's in another process), not only the calls' submission; only
+      // one frame in TIMED_EVERY, since the wait blocks the page's thread (its packets'
+      // arrival times with it)
+      const gl = this.canvas.getContext("webgl2"); // the renderer's: a canvas keeps its context
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, this.pixel);
+    }
+    const end = performance.now();
+    if (state !== null) this.stats.frame(end / 1000, state, timed ? (end - start) / 1000 : null);
   }
 
   // -- what the viewer reads ---------------------------------------------------------------

@@ -5,19 +5,22 @@
  *   fps        = frames rendered in the window / WINDOW_S
  *   kbit/s     = 8 * packet bytes received in the window / 1000 / WINDOW_S
  *   latency    = the median, over the window's frames that played a packet, of the time from
- *                that packet's arrival (its WebSocket message) to its frame drawn, ms
+ *                that packet's arrival (its WebSocket message) to its frame rendered, ms
  *   loss %     = 100 * lost / slots, over the slots played in the window, ``lost`` as the
  *                Python receiver counts it: slots concealed (their packet missing) that a
  *                played packet follows, so that a sender gone (the head easing to rest, then
  *                still) loses nothing; a gap longer than MAX_GAP_S ends the stream uncounted
- *   render ms  = the median frame time of the window's frames: from the ``FaceRenderer.render``
- *                call until the GPU has drawn it (main.js: a fence after the draw, polled)
+ *   render ms  = the page's own frame time: the median, over the last TIMED_FRAMES timed
+ *                frames (main.js times one in a few), of ``FaceRenderer.render`` (the morph
+ *                and the draw) until the frame is drawn (a pixel read back), so the GPU's (or
+ *                the software renderer's) time is in it
  *
  * and totals since the page opened: frames, slots, lost, packets, bytes.
  */
 
 export const WINDOW_S = 1.0;
 export const MAX_GAP_S = 10.0; // receiver/receiver.py
+export const TIMED_FRAMES = 16;
 
 function median(values) {
   if (values.length === 0) return null;
@@ -35,7 +38,8 @@ export class PageStats {
     this._packets = []; // [arrival, bytes]
     this._slots = []; // [time, lost]
     this._pending = []; // the times of concealed slots no played packet followed yet
-    this._frames = []; // [time, latency s | null, render s]
+    this._frames = []; // [time, latency s | null]
+    this._timed = []; // the last TIMED_FRAMES frame times, s
   }
 
   /** A packet of ``size`` bytes arrived at ``arrivalS``. */
@@ -60,10 +64,15 @@ export class PageStats {
     this._slots.push([nowS, false]);
   }
 
-  /** A frame of ``state`` was drawn at ``nowS``, ``renderS`` seconds after its render call. */
+  /** A frame was rendered at ``nowS`` from ``state``, drawn in ``renderS`` seconds when it was
+   * timed (else null). */
   frame(nowS, state, renderS) {
     this.totals.frames += 1;
-    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s, renderS]);
+    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s]);
+    if (renderS !== null) {
+      this._timed.push(renderS);
+      if (this._timed.length > TIMED_FRAMES) this._timed.shift();
+    }
   }
 
   /** The live statistics as of ``nowS``: fps, kbps, loss_percent, latency_ms, render_ms (null
@@ -78,7 +87,7 @@ export class PageStats {
     const latencies = this._frames.filter(([, latency]) => latency !== null).map(([, latency]) => latency);
     const lost = this._slots.filter(([, l]) => l).length;
     const latency = median(latencies);
-    const render = median(this._frames.map(([, , r]) => r));
+    const render = median(this._timed);
     return {
       fps: round(this._frames.length / WINDOW_S, 1),
       kbps: round(this._packets.reduce((sum, [, n]) => sum + n, 0) * 8 / 1000 / WINDOW_S, 2),
