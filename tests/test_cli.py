@@ -56,8 +56,8 @@ def test_help_lists_the_contract() -> None:
     assert out.returncode == 0
     for command in CONTRACT:
         assert command in out.stdout
-    for nested in (("model", "build", "info", "export"), ("bench", "bandwidth", "speed",
-                                                            "quality", "fanout"), ("keys", "generate")):
+    for nested in (("model", "build", "info", "export"),
+                   ("bench", "bandwidth", "speed", "quality", "fanout"), ("keys", "generate")):
         sub = run(nested[0], "--help")
         assert all(word in sub.stdout for word in nested[1:])
 

@@ -37,7 +37,10 @@
  * packets, bytes, decoded, ignored: packets before a Hello, corrupt by reason, junk, clamped,
  * statuses: the slots played by playout status),
  * ``status`` (the status line's text), ``model`` ({sha256, held: versions held, shown}),
- * ``hello``, ``connected``.
+ * ``hello``, ``connected``; ``paused`` (settable): while true the clock neither pops nor draws
+ * and the panel is not refreshed (packets are still taken in), so that the canvas, the panel and
+ * ``state`` show one slot together (a test's screenshot); set false, the playout's skip rule
+ * catches up.
  */
 
 import {N_REGIONS, VERSION, sameQuantisers} from "./packet.js";
@@ -113,6 +116,7 @@ class Page {
     this.updateDelay = UPDATE_RETRY_MIN_S;
     this.updateTimer = null;
     this.shown = null; // the version index rendered last
+    this.paused = false; // window.facewire.paused
     this.work = loadEngine().then((engine) => { // then model and update loads, one by one
       this.engine = engine;
       this.orbit = new engine.OrbitView(this.canvas);
@@ -143,6 +147,12 @@ class Page {
       },
       get hello() { return page.hello; },
       get connected() { return page.socket !== null && page.socket.readyState === WebSocket.OPEN; },
+      get paused() { return page.paused; },
+      set paused(on) {
+        page.paused = false;
+        page.panel(); // the panel of the slot on the canvas
+        page.paused = Boolean(on);
+      },
     };
     this.frame = this.frame.bind(this);
     requestAnimationFrame(this.frame);
@@ -349,7 +359,7 @@ class Page {
   frame() {
     requestAnimationFrame(this.frame);
     const playout = this.playout;
-    if (playout === null) return;
+    if (playout === null || this.paused) return;
     let state = null;
     for (let pops = 0; pops <= playout.window; pops++) {
       const due = playout.due();
@@ -386,6 +396,7 @@ class Page {
   // -- what the viewer reads ---------------------------------------------------------------
 
   panel() {
+    if (this.paused) return;
     const t = now();
     this.live = this.stats.live(t);
     const quiet = this.playout !== null && this.lastPacket !== null && t - this.lastPacket > QUIET_S
