@@ -26,12 +26,15 @@ from urllib.parse import parse_qs
 import numpy as np
 import pytest
 from browser import WEBGL_FLAGS, DevTools, find_chromium
+from sessionlog import learned_update
 from webpage import TYPES, PageServer, open_tab, web_dir
 from websockets.asyncio.server import serve
 from websockets.datastructures import Headers
 from websockets.http11 import Response
 
+from facewire.models import webmodel
 from facewire.models.modelfile import load_model
+from facewire.models.update import apply_update
 from facewire.protocol.control import Hello
 from facewire.protocol.log import read_log
 from facewire.protocol.packet import (
@@ -503,18 +506,17 @@ def test_the_page_draws_the_model_and_keeps_it_when_another_is_corrupt(
     """With the rendering half (model.js, render.js, views.js) and the model's browser bytes
     (``models.webmodel``): the page loads a real model, draws nearly every slot of a real log
     at its rate, and when told of a corrupt model, then of a corrupt update, refuses each with
-    a visible line, keeps the last good version on screen and keeps drawing."""
-    webmodel = pytest.importorskip("facewire.models.webmodel",
-                                   reason="the model's browser bytes (branch fmt) not merged")
-    if not (web_dir() / "render.js").is_file():
-        pytest.skip("the page's renderer (render.js, branch fmt) not merged")
+    a visible line, keeps the last good version on screen and keeps drawing; the same model
+    announced again starts its versions anew."""
     model = load_model(person_model)
     sha, bad = model.sha256, "0" * 64
     extra = {f"/model/{sha}.glb": ("model/gltf-binary", webmodel.model_glb(model)),
              f"/model/{sha}.rig": ("application/octet-stream", webmodel.rig_bin(model)),
              f"/model/{bad}.glb": ("model/gltf-binary", b"glTF" + bytes(range(256)) * 4),
              f"/model/{bad}.rig": ("application/octet-stream", webmodel.rig_bin(model)),
-             f"/model/{sha}/1.upd": ("application/octet-stream", b"FWUP" + b"\xff" * 64)}
+             f"/model/{sha}/1.upd": ("application/octet-stream", b"FWUP" + b"\xff" * 64),
+             f"/model/{sha}/11.upd": ("application/octet-stream", webmodel.update_bin(
+                 model, apply_update(model, learned_update(model, "mouth", 1, sha))))}
     recorded = read_log(log)
     rate = recorded.hello.rate_hz
     server = ContractServer("k", extra)
@@ -567,5 +569,18 @@ def test_the_page_draws_the_model_and_keeps_it_when_another_is_corrupt(
         assert again > stats["frames"] + 5
         status = browser.evaluate(tab, "window.facewire.status")
         assert "error" not in status and "cannot" not in status, status
+
+        # a good update 1 is taken; the same model announced again (a new session of it, as
+        # after a sender's restart) takes the page back to version 0, and that session's own
+        # update 1 is taken again
+        good = json.dumps({"type": "update", "serial": 1, "url": f"/model/{sha}/11.upd",
+                           "bytes": len(extra[f"/model/{sha}/11.upd"][1])})
+        server.send(good)
+        wait_for(browser, tab, "window.facewire.model.held === 2", timeout=30)
+        server.send(json.dumps({"type": "model", "sha256": sha, "glb": f"/model/{sha}.glb",
+                                "rig": f"/model/{sha}.rig", "bytes": 1}))
+        wait_for(browser, tab, "window.facewire.model.held === 1", timeout=30)
+        server.send(good)
+        wait_for(browser, tab, "window.facewire.model.held === 2", timeout=30)
     finally:
         server.close()

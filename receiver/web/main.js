@@ -201,7 +201,12 @@ class Page {
     const type = message !== null && typeof message === "object" ? message.type : undefined;
     if (type === "status") this.status(message);
     else if (type === "hello") this.adopt(message);
-    else if (type === "model") this.enqueue(() => this.loadBase(message));
+    else if (type === "model") {
+      // the updates that follow are of the session this message starts (the gateway sends
+      // the model again, from version 0, when a sender restarts a session of the same model)
+      this.updates = new Map();
+      this.enqueue(() => this.loadBase(message));
+    }
     else if (type === "update") this.update(message);
     else this.counts.junk += 1;
   }
@@ -263,7 +268,14 @@ class Page {
 
   async loadBase(message) {
     if (this.engine === null) return; // said on the status line already
-    if (this.versions.length && this.versions[0].sha256 === message.sha256) return;
+    if (this.versions.length && this.versions[0].sha256 === message.sha256) {
+      // a new session of the model held: back to its file (version 0), then its own updates
+      this.versions = [this.versions[0]];
+      this.shown = null;
+      this.text.model = `model ${megabytes(Number(message.bytes) || 0)}, version 0`;
+      await this.applyUpdates();
+      return;
+    }
     this.text.model = `loading model ${megabytes(Number(message.bytes) || 0)}`;
     this.panel();
     let model;
