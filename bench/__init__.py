@@ -1,4 +1,5 @@
 """Benchmarks behind ``facewire bench``: bandwidth (``bandwidth``), speed (``speed``, its live
 part ``loopback``), quality (``quality``, with ``geometry``, ``fidelity``, ``reference`` and
 ``qplot``) on the tuning or evaluation clips (``clips``), fan-out (``fanout``, its viewer
-processes ``viewers``); and ``facewire inspect`` (``inspect``)."""
+processes ``viewers`` and its page run ``pageview``, in headless Chromium driven by
+``chromium``); and ``facewire inspect`` (``inspect``)."""

@@ -35,9 +35,18 @@ includes the relay's hop, the gateway's (WebSocket) and the viewer process's own
 on a machine whose cores the viewers share with the relay and the gateway. ``cpu_percent``
 is CPU seconds per wall second of the window, in percent of one core.
 
+Then, unless ``page`` is false, the page run (``bench.pageview``): no viewer but one headless
+Chromium showing the gateway's own page (``http://127.0.0.1:PORT/``) for ``PAGE_SECONDS``
+(or ``seconds`` if shorter), so that its frame rate is the page's rather than that of a
+machine busy with a thousand viewer clients; its ``page`` object holds the frames drawn per
+second, the page's own frame time, latency and loss, the canvas size. Without Chromium on
+PATH ``page`` is null and the reason is given (a status line and a report line): the
+fan-out runs do not need it, and CI installs it.
+
 Targets (issue 18), judged at the largest N: WebSocket, nothing lost, p95 <= 50 ms, the
 gateway below one core; ZeroMQ, nothing lost, p95 <= 20 ms. They inform: a miss is reported,
-not an error (the machine is shared).
+not an error (the machine is shared). The page: >= 30 fps at 640 x 480, judged on its frame
+time (``bench.pageview``).
 """
 
 from __future__ import annotations
@@ -60,6 +69,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from facewire.bench.chromium import ChromiumMissing
+from facewire.bench.pageview import measure_page
 from facewire.bench.viewers import raise_fd_limit
 from facewire.protocol.control import model_chunks
 from facewire.protocol.errors import FacewireError
@@ -85,6 +96,7 @@ JOIN_TIMEOUT_S = 120.0
 STOP_TIMEOUT_S = 30.0
 GATEWAY_TIMEOUT_S = 60.0
 PAUSE_S = 3.0  # between runs: the server lets the last run's connections go
+PAGE_SECONDS = 5.0  # the page run's window, at most
 KINDS = ("websocket", "zmq")
 TARGETS = {"websocket": {"lost": 0, "latency_ms_p95": 50.0, "cpu_percent": 100.0},
            "zmq": {"lost": 0, "latency_ms_p95": 20.0}}
@@ -348,7 +360,7 @@ def _read_inputs(model_path: str | os.PathLike[str], source: str | os.PathLike[s
 def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | None = None,
                    viewers: Sequence[int] = DEFAULT_VIEWERS, seconds: float = DEFAULT_SECONDS,
                    log_path: str | os.PathLike[str] | None = None,
-                   status: Status = lambda _: None) -> dict[str, Any]:
+                   status: Status = lambda _: None, page: bool = True) -> dict[str, Any]:
     """Fan one sender out to each N of ``viewers`` over WebSocket and over ZeroMQ (module
     docstring).
 
@@ -359,11 +371,14 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
         seconds: each run's measured window, s, in (0, ``MAX_SECONDS``].
         log_path: a packet log of the model to send instead of encoding ``source``.
         status: called with a line of progress.
+        page: whether to make the page run (module docstring).
 
     Returns:
         ``runs``: every run (``measure_run``), in order; ``websocket`` and ``zmq``: the
         ``RESULT_KEYS`` of the largest N's runs; ``targets``: per kind, ``met`` and the
-        thresholds; ``rate_hz``, ``seconds``, ``log_packets``.
+        thresholds; ``rate_hz``, ``seconds``, ``log_packets``; ``page``: the page run's
+        ``bench.pageview.measure_page`` result, or None (not asked for, or no Chromium:
+        ``page_skipped`` says why).
 
     Raises:
         FanoutError: a bad argument, a log of another model, or a part that failed.
@@ -403,9 +418,22 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
             runs.append(measure_run(kind, n, target, measured.popen.pid, sender, seconds,
                                     folder))
             status(format_run(runs[-1]))
+        page_result: dict[str, Any] | None = None
+        skipped = None if page else "not asked for (--no-page)"
+        if page:
+            time.sleep(PAUSE_S)
+            page_seconds = min(seconds, PAGE_SECONDS)
+            status(f"page: the gateway's page in headless Chromium, {page_seconds:g} s")
+            gateway.check()
+            try:
+                page_result = measure_page(f"http://127.0.0.1:{port}/", page_seconds, folder)
+                status(format_page(page_result))
+            except ChromiumMissing as missing:
+                skipped = str(missing)
+                status(f"page: skipped: {skipped}")
     largest = {kind: next(r for r in reversed(runs) if r["kind"] == kind) for kind in KINDS}
     return {"runs": runs, "rate_hz": log.hello.rate_hz, "seconds": seconds,
-            "log_packets": len(log.frames),
+            "log_packets": len(log.frames), "page": page_result, "page_skipped": skipped,
             **{kind: {k: largest[kind][k] for k in RESULT_KEYS} for kind in KINDS},
             "targets": {kind: {"viewers": largest[kind]["viewers"], **TARGETS[kind],
                                "met": _met(largest[kind])} for kind in KINDS}}
@@ -417,6 +445,13 @@ def _met(run: dict[str, Any]) -> bool:
     return (run["lost"] <= target["lost"] and p95 is not None
             and p95 <= target["latency_ms_p95"]
             and run["cpu_percent"] < target.get("cpu_percent", math.inf))
+
+
+def format_page(page: dict[str, Any]) -> str:
+    """The page run in one line."""
+    return (f"page {page['width']} x {page['height']}: {page['fps']} fps drawn, frame time "
+            f"{page['frame_ms_median']} ms (median), latency {page['latency_ms']} ms, loss "
+            f"{page['loss_pct']} % over {page['seconds']} s")
 
 
 def format_run(run: dict[str, Any]) -> str:
@@ -436,10 +471,11 @@ HEADER = (f"{'kind':<9} {'N':>6} {'expected':>8} {'delivered':>10} {'lost':>6} {
 def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | None = None,
            viewers: Sequence[int] = DEFAULT_VIEWERS, seconds: float = DEFAULT_SECONDS,
            log_path: str | os.PathLike[str] | None = None,
-           status: Status = lambda _: None) -> tuple[dict[str, Any], list[str]]:
-    """Run ``measure_fanout``: its result and the report's lines (the table, then the
-    targets: a miss informs, it is no failure)."""
-    result = measure_fanout(model_path, source, viewers, seconds, log_path, status)
+           status: Status = lambda _: None, page: bool = True
+           ) -> tuple[dict[str, Any], list[str]]:
+    """Run ``measure_fanout``: its result and the report's lines (the table, the page run,
+    then the targets: a miss informs, it is no failure)."""
+    result = measure_fanout(model_path, source, viewers, seconds, log_path, status, page)
     lines = [f"{result['rate_hz']:g} Hz; each run {seconds:g} s; expected is per viewer; "
              f"cpu, rss and wait (ready to run, waiting for a core): the gateway (websocket), "
              f"the relay (zmq); viewers %, v wait %: the viewer processes'", HEADER,
@@ -449,4 +485,11 @@ def fanout(model_path: str | os.PathLike[str], source: str | os.PathLike[str] | 
             f", below {t['cpu_percent']:g} % of a core" if "cpu_percent" in t else "")
         lines.append(f"target {kind} at N={t['viewers']} ({limits}): "
                      f"{'met' if t['met'] else 'MISSED'}")
+    if (shown := result["page"]) is None:
+        lines.append(f"page: none ({result['page_skipped']})")
+    else:
+        lines.insert(-len(result["targets"]), format_page(shown))
+        lines.append(f"target page at {shown['width']}x{shown['height']} >= "
+                     f"{shown['target_fps']:g} fps (1000 / its frame time): "
+                     f"{'met' if shown['met'] else 'MISSED'}")
     return result, lines

@@ -552,7 +552,8 @@ def _bench_fanout(args: argparse.Namespace) -> int:
 
     report(*fanout(args.model, args.source, args.viewers or DEFAULT_VIEWERS, args.seconds,
                    args.log, status=lambda line: print(f"bench fanout: {line}",
-                                                       file=sys.stderr, flush=True)),
+                                                       file=sys.stderr, flush=True),
+                   page=not args.no_page),
            args.json)
     return 0
 
@@ -802,6 +803,9 @@ def _add_bench(sub: Commands) -> None:
                     help="viewers of each kind in a run (repeatable; default 10, 100, 1000)")
     bf.add_argument("--seconds", type=float, default=10.0, metavar="S",
                     help="each run's measured window (default 10)")
+    bf.add_argument("--no-page", action="store_true",
+                    help="skip the page run (the gateway's page in headless Chromium: its "
+                         "frame rate at 640x480; made by default, skipped without Chromium)")
     _add_json(bf)
     bf.set_defaults(run=_bench_fanout)
     br = bsub.add_parser("reproductions", help="issue 16's reproductions (occluded mouth, no "

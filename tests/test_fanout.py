@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from browser import find_chromium
 from logsender import encoded_log
 
 from facewire.bench.fanout import RESULT_KEYS, FanoutError, fanout, measure_fanout
@@ -43,7 +44,20 @@ def test_five_websocket_and_five_zmq_viewers_get_every_packet(person_model: Path
         assert summary["delivered"] == VIEWERS * run["expected"] and summary["lost"] == 0, run
         assert 0 < summary["latency_ms_median"] <= summary["latency_ms_p95"] < 1000, run
         assert 0 <= summary["cpu_percent"] < 200 and 10 < summary["rss_mb"] < 2000, run
-    assert len(table) == 2 + 2 + 2 and any("zmq" in line for line in lines)
+    assert any("zmq" in line for line in lines)
+    # the page run: the gateway's page in headless Chromium played the stream (its numbers
+    # are measured, not judged here: no timing threshold)
+    find_chromium()
+    page = result["page"]
+    assert page is not None and result["page_skipped"] is None, result["page_skipped"]
+    assert (page["width"], page["height"]) == (640, 480), page
+    assert 0 < page["fps"] <= 1.5 * rate and page["frames"] > 0, page
+    assert page["frame_ms_median"] is not None and page["frame_ms_median"] > 0, page
+    assert page["latency_ms"] is not None and page["latency_ms"] >= 0, page
+    assert page["loss_pct"] is not None and 0 <= page["loss_pct"] <= 100, page
+    assert isinstance(page["met"], bool) and page["target_fps"] == 30
+    assert len(table) == 2 + 2 + 1 + 3 and table[-1].startswith("target page at 640x480")
+    assert any(line.startswith("page 640 x 480:") for line in table), table
 
 
 def test_a_log_of_another_model_is_refused_naming_it(generic_model: Path,

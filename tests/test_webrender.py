@@ -414,63 +414,6 @@ def test_corrupt_files_are_refused_and_the_model_kept(page) -> None:
     assert serial == 0  # the model it was applied to is untouched
 
 
-def test_the_page_renders_at_30_fps(page, model: PersonModel, states) -> None:
-    """The render call (morph, upload, draw) until drawn (a one-pixel read waits for it) at
-    640 x 480, and frames through requestAnimationFrame over a second (the browser drawing
-    and presenting them); Python's renderer on the same frame for the ratio (the machine's
-    load changes both)."""
-    from facewire.receiver.scene import StateRenderer
-
-    browser, session = page
-    browser.call("Page.bringToFront", {}, session)
-    hello, played = states
-    _page_frames(browser, session, hello, [])
-    timing = _evaluate(browser, session, f"""(async () => {{
-        const r = window.r;
-        r.setModel(m);
-        const s = t.state({json.dumps(_state_json(played[len(played) // 2]))});
-        const pixel = new Uint8Array(4);  // reading one waits for the frame to be drawn
-        for (let i = 0; i < 5; i++) {{
-          r.render(s);
-          r.gl.readPixels(0, 0, 1, 1, r.gl.RGBA, r.gl.UNSIGNED_BYTE, pixel);
-        }}
-        const times = [];
-        for (let i = 0; i < 30; i++) {{
-          const start = performance.now();
-          r.render(s);
-          r.gl.readPixels(0, 0, 1, 1, r.gl.RGBA, r.gl.UNSIGNED_BYTE, pixel);
-          times.push(performance.now() - start);
-        }}
-        times.sort((a, b) => a - b);
-        let frames = 0;
-        const start = performance.now();
-        await new Promise((done) => {{
-          const frame = () => {{
-            r.render(s);
-            frames++;
-            if (performance.now() - start < 1000) requestAnimationFrame(frame); else done();
-          }};
-          requestAnimationFrame(frame);
-        }});
-        return [times[15], frames * 1000 / (performance.now() - start)];
-        }})()""")
-    median_ms, raf_fps = timing
-    state = played[len(played) // 2]
-    with StateRenderer(model, WIDTH, HEIGHT, hello.camera) as python:
-        for _ in range(5):
-            python.render(state)
-        python.render_seconds.clear()
-        for _ in range(30):
-            python.render(state)
-        python_ms = 1000 * float(np.median(python.render_seconds))
-    print(f"page at {WIDTH} x {HEIGHT}: render until drawn, median {median_ms:.1f} ms "
-          f"({1000 / median_ms:.0f} fps); requestAnimationFrame {raf_fps:.1f} fps; Python's "
-          f"StateRenderer (llvmpipe) on the same frame {python_ms:.1f} ms")
-    # the 30 fps target is reported, not asserted: on the shared two-core machine the time
-    # follows the load; the ratio to Python's renderer, measured beside it, does less
-    assert median_ms < 4 * python_ms
-
-
 @pytest.mark.parametrize(("kind", "yaw_deg"), [("front", 0.0), ("three-quarter", 35.0)])
 def test_the_orbit_view_is_pythons_virtual_view(page, model: PersonModel, states, kind: str,
                                                 yaw_deg: float) -> None:

@@ -2,20 +2,22 @@
 
 ``PageServer`` serves the page's files (``facewire.receiver``'s ``web/`` folder) at ``/NAME``
 and any extra ``{path: (content type, bytes)}`` the test gives (a test page, a model), on
-127.0.0.1 and a free port, from a thread; ``open_tab`` opens a URL in a ``browser.DevTools``
-Chromium and waits until ``ready`` (a JavaScript expression) is true.
+127.0.0.1 and a free port, from a thread; ``open_tab`` (``facewire.bench.chromium``'s,
+re-exported) opens a URL in a ``DevTools`` Chromium and waits until ``ready`` (a JavaScript
+expression) is true.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from browser import DevTools
+from facewire.bench.chromium import open_tab
+
+__all__ = ["PageServer", "open_tab", "web_dir"]
 
 TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
          ".css": "text/css; charset=utf-8"}
@@ -70,22 +72,3 @@ class PageServer:
 
     def __exit__(self, *_: object) -> None:
         self.close()
-
-
-def open_tab(browser: DevTools, url: str, ready: str = "true", timeout: float = 30.0) -> str:
-    """Open ``url`` in a new tab of ``browser``; its DevTools session id once the expression
-    ``ready`` evaluates true there (``TimeoutError`` naming the last value otherwise)."""
-    target = browser.call("Target.createTarget", {"url": url})["targetId"]
-    session = browser.call("Target.attachToTarget", {"targetId": target, "flatten": True})[
-        "sessionId"]
-    deadline = time.monotonic() + timeout
-    value: Any = None
-    while time.monotonic() < deadline:
-        try:
-            value = browser.evaluate(session, ready)
-        except RuntimeError as error:  # the page's scripts are still loading
-            value = error
-        if value is True:
-            return session
-        time.sleep(0.1)
-    raise TimeoutError(f"{url}: {ready} still not true after {timeout} s (last: {value!r})")
