@@ -2,4 +2,5 @@
 part ``loopback``), quality (``quality``, with ``geometry``, ``fidelity``, ``reference`` and
 ``qplot``) on the tuning or evaluation clips (``clips``), fan-out (``fanout``, its viewer
 processes ``viewers`` and its page run ``pageview``, in headless Chromium driven by
-``chromium``); and ``facewire inspect`` (``inspect``)."""
+``chromium``); a process's CPU and memory from ``/proc`` (``procfs``); and ``facewire
+inspect`` (``inspect``)."""

@@ -71,6 +71,7 @@ import numpy as np
 
 from facewire.bench.chromium import ChromiumMissing
 from facewire.bench.pageview import measure_page
+from facewire.bench.procfs import cpu_seconds, rss_mb, wait_seconds
 from facewire.bench.viewers import raise_fd_limit
 from facewire.protocol.control import model_chunks
 from facewire.protocol.errors import FacewireError
@@ -211,39 +212,6 @@ class _Process:
             except subprocess.TimeoutExpired:
                 self.popen.kill()
                 self.popen.wait()
-
-
-def _proc(pid: int, name: str) -> str:
-    try:
-        return Path(f"/proc/{pid}/{name}").read_text()
-    except OSError:
-        raise FanoutError(f"process {pid} (measured) has gone") from None
-
-
-def cpu_seconds(pid: int) -> float:
-    """User plus system CPU time of a process (all its threads), s (``/proc/PID/stat``)."""
-    fields = _proc(pid, "stat").rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def wait_seconds(pid: int) -> float:
-    """Time the threads of a process spent ready to run but waiting for a core, s (the run
-    queue delay, second field of each ``/proc/PID/task/TID/schedstat``)."""
-    total = 0
-    for task in Path(f"/proc/{pid}/task").glob("*/schedstat"):
-        try:
-            total += int(task.read_text().split()[1])
-        except (OSError, IndexError, ValueError):
-            continue  # a thread that ended meanwhile
-    return total / 1e9
-
-
-def rss_mb(pid: int) -> float:
-    """The resident set size of a process, MB (``VmRSS`` of ``/proc/PID/status``)."""
-    for line in _proc(pid, "status").splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise FanoutError(f"/proc/{pid}/status: no VmRSS")
 
 
 def _free_port() -> int:

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from facewire.bench.procfs import ProcessGone, rss_mb
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.log import read_log
 from facewire.protocol.transport import free_loopback_endpoint
@@ -178,14 +179,11 @@ def _memory(name: str, samples: list[tuple[float, float]], warm: float) -> dict[
 
 
 def _rss_mb(pid: int) -> float:
-    """The resident set size of a process, MB (``VmRSS``); nan when it has gone."""
+    """The resident set size of a process, MB; nan when it has gone."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
+        return rss_mb(pid)
+    except ProcessGone:
+        return float("nan")
 
 
 def _stop(sender: subprocess.Popen) -> None:

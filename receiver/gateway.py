@@ -393,9 +393,7 @@ class Gateway:
             self.error = exc
 
     def _send_packet(self, data: bytes) -> None:
-        # a page whose connection broke is not written to until websockets hears of it (a
-        # write to a closed transport makes asyncio log "socket.send() raised exception")
-        broadcast([v for v in self.viewers if not v.transport.is_closing()], data)
+        broadcast(self.viewers, data)
         self.counts["forwarded"] += 1
         self.counts["forwarded_bytes"] += len(data)
 

@@ -327,7 +327,7 @@ def _page_frames(browser, session: str, hello, states: list, model_expr: str = "
 def _face_ssim(rig: Rig, hello, state, a: np.ndarray, b: np.ndarray) -> float:
     """Grey SSIM of two RGB renderings over the face (bench.fidelity's box and mask of the
     state's projected landmarks)."""
-    from bench.fidelity import face_box, face_mask, gray_ssim
+    from facewire.bench.fidelity import face_box, face_mask, gray_ssim
     from facewire.receiver.views import sender_view
 
     camera = sender_view(hello.camera, state.rotation, state.translation, WIDTH, HEIGHT)
@@ -436,7 +436,7 @@ def test_the_orbit_view_is_pythons_virtual_view(page, model: PersonModel, states
     ours = np.frombuffer(base64.b64decode(text), np.uint8).reshape(HEIGHT, WIDTH, 3)
     with StateRenderer(model, WIDTH, HEIGHT, hello.camera, view=kind) as python:
         theirs = python.render(state)
-    from bench.fidelity import gray_ssim
+    from facewire.bench.fidelity import gray_ssim
     face = theirs.max(axis=2) > 0
     assert 0.05 < face.mean() < 0.9
     assert gray_ssim(ours[..., ::-1], theirs[..., ::-1], face) >= 0.97
