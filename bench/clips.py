@@ -7,7 +7,11 @@ tracker's settings (``sender.tracker``) and the rig's phantoms (``models.rig``,
 ``../shared/data/video`` (their docstrings name them). A figure measured on those clips says
 how well the tuning fits them, not how well the system works; ``EVALUATION_CLIPS`` are the
 clips no tuning has looked at, kept for judging: lp_d9 (glasses, raised brows, smile, cheek
-puff), lp_d19 (glasses, smile) and openface_lighting (strong lighting changes). Tune only on
+puff), lp_d19 (glasses, smile), openface_lighting (strong lighting changes), lp_d8 (frowns,
+mouth shapes), three talking heads of the HDTF kind (hdtf_radio34, hdtf_aoc, retalk_2) and
+aniportrait_ref (a talking woman). The tuning set holds the clips whose material the
+enrollment's reproductions are cut from (real hands: mediapipe_selfie, latentsync_demo2;
+glasses on a moving head: retalk_5; strong emotion: retalk_4; eye work: lp_d7). Tune only on
 the first set; a test fails when the system's code names a clip of the second.
 
 Protocol of an evaluation (``split_frames``): the person model is built from the clip's first
@@ -23,8 +27,11 @@ from __future__ import annotations
 
 TUNING_CLIPS = ("lp_d0.mp4", "lp_d3.mp4", "lp_d14.mp4", "lp_d18.mp4", "hdtf_katiehill.mp4",
                 "openface_default.wmv", "openface_gaze.avi", "openface_multi_face.avi",
-                "hamilton_short.mp4")
-EVALUATION_CLIPS = ("lp_d9.mp4", "lp_d19.mp4", "openface_lighting.wmv")
+                "hamilton_short.mp4", "lp_d7.mp4", "obama_speaking.mp4", "hdtf_edmarkey.mp4",
+                "hdtf_radio2.mp4", "retalk_1.mp4", "retalk_4.mp4", "retalk_5.mp4",
+                "mediapipe_selfie.mp4", "latentsync_demo2.mp4")
+EVALUATION_CLIPS = ("lp_d9.mp4", "lp_d19.mp4", "openface_lighting.wmv", "lp_d8.mp4",
+                    "hdtf_radio34.mp4", "hdtf_aoc.mp4", "retalk_2.mp4", "aniportrait_ref.mp4")
 ENROLL_FRACTION = 0.4
 
 
