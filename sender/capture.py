@@ -2,9 +2,11 @@
 
 ``open_source(spec)`` reads the ``--source`` option:
 
-- ``camera:N``: OpenCV device N. Frames are stamped with ``time.monotonic()`` when read,
-  relative to the first frame. A camera cannot be slowed down, so pacing drops frames: a
-  frame is kept when it falls in a new slot of the target rate (see ``RateLimiter``).
+- ``camera:N``: OpenCV device N, its frames as the device delivers them (OpenCV's device
+  back-ends, V4L2 on Linux, report no rotation). Frames are stamped with
+  ``time.monotonic()`` when read, relative to the first frame. A camera cannot be slowed
+  down, so pacing drops frames: a frame is kept when it falls in a new slot of the target
+  rate (see ``RateLimiter``).
 - a folder: its ``.png``, ``.jpg``, ``.jpeg`` and ``.bmp`` files in natural name order
   (``2.png`` before ``10.png``), frame ``i`` at time ``i / rate_hz``. An image that cannot
   be decoded is skipped and counted (``Source.skipped``, names in ``Source.skipped_names``);
@@ -12,7 +14,8 @@
   first readable image's size (an error names the odd one out).
 - anything else: a video file, decoded by ``models.infra.video.read_frames`` with the file's own
   timestamps and rate (``rate_hz`` does not apply to a file; its ``Source.rate_hz`` is the
-  container's). A file without a frame, or whose frame count (when the container gives
+  container's), upright (its display rotation applied; ``Source.width`` and ``height`` are
+  the upright size). A file without a frame, or whose frame count (when the container gives
   one) ``frames`` selects none of, is refused when opened.
 
 Files and folders run as fast as the consumer pulls unless ``pace=True``; then each frame is

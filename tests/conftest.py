@@ -77,12 +77,21 @@ def person_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) ->
     return path
 
 
-def write_video(path: Path, images: list[np.ndarray], rate: int = 25) -> Path:
-    """Encode (H, W, 3) uint8 BGR images as a real H.264 file with PyAV."""
+def write_video(path: Path, images: list[np.ndarray], rate: int = 25, rotation: int = 0) -> Path:
+    """Encode (H, W, 3) uint8 BGR images as a real H.264 file with PyAV.
+
+    ``rotation`` (degrees counter-clockwise) goes in the stream's display matrix, as a phone
+    writes it; when it is a multiple of 90 the images, given upright, are stored turned by
+    ``-rotation`` (sideways for 90 and 270), so that the matrix stands them upright again.
+    """
+    if rotation % 90 == 0:
+        images = [np.ascontiguousarray(np.rot90(image, -(rotation // 90))) for image in images]
     h, w = images[0].shape[:2]
     with av.open(str(path), "w") as container:
         stream = container.add_stream("libx264", rate=rate)
         stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        if rotation:
+            stream.set_display_rotation(rotation)
         for image in images:
             for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
                 container.mux(packet)

@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 from conftest import write_video
 
-from facewire.models.infra.video import VideoError, VideoFrame, frame_range, read_frames, video_info
+from facewire.models.infra.video import (
+    VideoError,
+    VideoFrame,
+    frame_range,
+    quarter_turns,
+    read_frames,
+    video_info,
+)
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +157,85 @@ def test_decoded_once_past_its_budget_decodes_again(small_video: Path,
         again = [f.index for f in read_frames(small_video, slice(3, 8))]
         assert len(opened) == 2
     assert held == list(range(5)) and again == list(range(3, 8))
+
+
+# Rotation: a real clip (obama_speaking.mp4, 512x388: not square, so a quarter turn shows in
+# the size) stored turned, with a display matrix saying how to stand it upright.
+
+CLIP_FRAMES = slice(0, 8)
+
+
+@pytest.fixture(scope="module")
+def clip(shared_data: Path) -> list[np.ndarray]:
+    return [f.image.copy() for f in read_frames(shared_data / "video" / "obama_speaking.mp4",
+                                                CLIP_FRAMES)]
+
+
+@pytest.mark.parametrize("rotation", [90, 180, 270, -90])
+def test_a_rotated_file_reads_upright(clip: list[np.ndarray], tmp_path: Path,
+                                      rotation: int) -> None:
+    upright = write_video(tmp_path / "upright.mp4", clip)
+    turned = write_video(tmp_path / "turned.mp4", clip, rotation=rotation)
+    with av.open(str(turned)) as container:  # what is stored: the turned pixels, the matrix
+        stream = container.streams.video[0]
+        first = next(container.decode(stream))
+        assert first.rotation % 360 == rotation % 360
+        stored = first.to_ndarray(format="bgr24")
+    quarter = rotation % 180 == 90
+    assert stored.shape[:2] == ((512, 388) if quarter else (388, 512))
+    info = video_info(turned)
+    assert (info.width, info.height, info.frames) == (512, 388, len(clip))
+    assert info.rotation == rotation % 360
+    frames = list(read_frames(turned))
+    assert [f.index for f in frames] == list(range(len(clip)))
+    reference = list(read_frames(upright))
+    for f, g, original in zip(frames, reference, clip, strict=True):
+        assert f.image.shape == original.shape
+        # equal to the upright original up to codec noise (both sides encoded once)
+        assert np.abs(f.image.astype(int) - original).mean() < 3
+        assert np.abs(f.image.astype(int) - g.image).mean() < 3
+    if not quarter:  # the stored half-turned image is far from the upright one: not a no-op
+        assert np.abs(stored.astype(int) - clip[0]).mean() > 20
+    tail = list(read_frames(turned, slice(5, None)))  # a range not from 0 is turned too
+    assert [f.index for f in tail] == [5, 6, 7] and tail[0].image.shape == (388, 512, 3)
+
+
+def test_a_rotate_tag_reads_upright(clip: list[np.ndarray], tmp_path: Path) -> None:
+    """Older files say ``rotate`` (degrees clockwise) in the stream's tags; Matroska keeps
+    the tag (as ``ROTATE``)."""
+    path = tmp_path / "tagged.mkv"
+    stored = [np.ascontiguousarray(np.rot90(image, 1)) for image in clip]  # ccw on disk
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=25)
+        stream.width, stream.height, stream.pix_fmt = 388, 512, "yuv420p"
+        stream.metadata["rotate"] = "90"  # turn clockwise to show
+        for image in stored:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    info = video_info(path)
+    assert (info.width, info.height, info.rotation) == (512, 388, 270)
+    frames = [f.image for f in read_frames(path)]
+    assert len(frames) == len(clip)
+    for image, original in zip(frames, clip, strict=True):
+        assert np.abs(image.astype(int) - original).mean() < 3
+
+
+def test_a_rotation_not_a_multiple_of_90_is_refused(clip: list[np.ndarray],
+                                                    tmp_path: Path) -> None:
+    path = write_video(tmp_path / "tilted.mp4", clip[:3], rotation=45)
+    for read in (video_info, lambda p: list(read_frames(p)), lambda p: list(read_frames(
+            p, slice(1, 2)))):
+        with pytest.raises(VideoError) as err:
+            read(path)
+        message = str(err.value)
+        assert "\n" not in message
+        assert str(path) in message and "45 degrees" in message and "display matrix" in message
+    # a rotate tag, in the words the file used
+    assert quarter_turns("a.mkv", 0, "270") == 1 and quarter_turns("a.mkv", 0, "-90") == 1
+    assert quarter_turns("a.mkv", -90, "30") == 3  # the display matrix wins
+    for tag in ("30", "sideways", "nan", "inf"):
+        with pytest.raises(VideoError, match=f"a.mkv: rotation '{tag}' \\(rotate tag\\) is not "
+                                             "a multiple of 90 degrees"):
+            quarter_turns("a.mkv", 0, tag)

@@ -1,8 +1,21 @@
 """Reading video files frame by frame with PyAV (FFmpeg): any container and codec it knows.
 
 Frames come out as (H, W, 3) uint8 BGR arrays (OpenCV's order, which dlib and cv2 expect),
-with their index in the file and their presentation time in seconds. ``frame_range`` parses
-the ``--frames A:B`` option (Python slice semantics, B exclusive, either side optional).
+upright, with their index in the file and their presentation time in seconds. ``frame_range``
+parses the ``--frames A:B`` option (Python slice semantics, B exclusive, either side optional).
+
+Rotation. A phone stores its frames as the sensor sees them (a portrait video as a sideways
+landscape image) and says how to show them: the stream's display matrix (ISO/IEC 14496-12
+``tkhd`` matrix; FFmpeg attaches it to every decoded frame, PyAV's ``VideoFrame.rotation``, the
+angle in degrees by which it turns the stored image counter-clockwise, in [-180, 180]) or, in
+files from older tools, a ``rotate`` stream tag (any case: Matroska writes ``ROTATE``; degrees
+clockwise, ``rotate = -rotation``).
+The display matrix wins when both are there. A file's rotation is read once, from its first
+frame, and applied to every frame: ``upright = rot90(stored, k)`` (counter-clockwise quarter
+turns, ``k = rotation / 90 mod 4``, ``cv2.rotate``), so a 90 or 270 degree file's frames are
+(W, H) of the (H, W) stored. ``video_info`` reports the upright size. A rotation that is not a
+multiple of 90 degrees is refused (``VideoError`` naming the file and the angle). A matrix's
+mirroring (a flip) is not read.
 
 Decoding once (``decoded_once``). A model build reads the same frames in several passes
 (tracking, the base texture's views, the appearance step, the layers' frames, the
@@ -22,11 +35,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
 
 from facewire.protocol.errors import FacewireError
 
 CACHE_BYTES = 1024**3
+
+# cv2.rotate's code for k counter-clockwise quarter turns (k = 1, 2, 3)
+_QUARTER_TURNS = {1: cv2.ROTATE_90_COUNTERCLOCKWISE, 2: cv2.ROTATE_180,
+                  3: cv2.ROTATE_90_CLOCKWISE}
 
 
 class VideoError(FacewireError, ValueError):
@@ -44,12 +62,15 @@ class VideoFrame:
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """What the container says: size, nominal rate, and frame count (0 when unknown)."""
+    """What the container says: the upright frames' size, nominal rate, frame count (0 when
+    unknown) and the rotation applied to stand them upright (degrees counter-clockwise: 0, 90,
+    180 or 270; module docstring)."""
 
     width: int
     height: int
     rate_hz: float
     frames: int
+    rotation: int
 
 
 def frame_range(text: str | None) -> slice:
@@ -88,12 +109,66 @@ def frames_in_range(frames: slice, count: int) -> int | None:
 
 
 def video_info(path: str | os.PathLike[str]) -> VideoInfo:
-    """Size, rate and frame count of a video file."""
-    with _open(Path(path)) as container:
+    """Upright size, rate, frame count and rotation of a video file (decodes its first frame,
+    which carries the display matrix).
+
+    Raises:
+        VideoError: as ``read_frames``; a rotation that is not a multiple of 90 degrees.
+    """
+    path = Path(path)
+    with _open(path) as container:
         stream = container.streams.video[0]
         rate = float(stream.average_rate or stream.guessed_rate or 30)
-        return VideoInfo(stream.codec_context.width, stream.codec_context.height, rate,
-                         int(stream.frames or 0))
+        try:
+            first = next(container.decode(stream), None)
+        except av.FFmpegError as exc:
+            raise VideoError(f"{path}: cannot decode its first frame: {exc}") from None
+        turns = quarter_turns(path, 0 if first is None else first.rotation,
+                              _rotate_tag(stream))
+        width, height = stream.codec_context.width, stream.codec_context.height
+        if turns % 2:
+            width, height = height, width
+        return VideoInfo(width, height, rate, int(stream.frames or 0), 90 * turns)
+
+
+def quarter_turns(path: str | os.PathLike[str], rotation: float, rotate_tag: str | None = None
+                  ) -> int:
+    """The counter-clockwise quarter turns k (0..3) that stand a file's frames upright.
+
+    Args:
+        path: the file, for the error message.
+        rotation: the display matrix's angle, degrees counter-clockwise (``VideoFrame.rotation``;
+            0 when the file has none).
+        rotate_tag: the stream's ``rotate`` tag (degrees clockwise), used when ``rotation``
+            is 0; None when absent.
+
+    Raises:
+        VideoError: the angle (or the tag) is not a multiple of 90 degrees.
+    """
+    source, degrees = "display matrix", float(rotation)
+    if not degrees and rotate_tag is not None:
+        source = "rotate tag"
+        try:
+            degrees = -float(rotate_tag)
+        except ValueError:
+            degrees = float("nan")
+    if not (np.isfinite(degrees) and degrees % 90 == 0):
+        shown = repr(rotate_tag) if source == "rotate tag" else f"{degrees:g} degrees"
+        raise VideoError(f"{path}: rotation {shown} ({source}) is not a multiple of 90 degrees; "
+                         f"frames are stood upright by quarter turns only")
+    return int(degrees // 90) % 4
+
+
+def _rotate_tag(stream: av.video.stream.VideoStream) -> str | None:
+    """The stream's ``rotate`` tag, its key in any case; None when absent."""
+    return next((value for key, value in stream.metadata.items() if key.lower() == "rotate"),
+                None)
+
+
+def upright(image: np.ndarray, turns: int) -> np.ndarray:
+    """``image`` (H, W, C) turned ``turns`` quarter turns counter-clockwise (0..3): itself for
+    0, else a new (W, H, C) array (odd turns) or (H, W, C) one (a half turn)."""
+    return image if not turns else cv2.rotate(image, _QUARTER_TURNS[turns])
 
 
 @dataclass
@@ -169,15 +244,17 @@ def _decode(path: Path, frames: slice) -> Iterator[VideoFrame]:
         stream.thread_type = "AUTO"
         base = float(stream.time_base) if stream.time_base else 0.0
         rate = float(stream.average_rate or stream.guessed_rate or 30)
-        index = -1
+        index, turns = -1, 0
         try:
             for index, frame in enumerate(container.decode(stream)):
                 if frames.stop is not None and index >= frames.stop:
                     break
+                if not index:
+                    turns = quarter_turns(path, frame.rotation, _rotate_tag(stream))
                 if index < frames.start:
                     continue
                 time = frame.pts * base if frame.pts is not None and base else index / rate
-                yield VideoFrame(index, time, frame.to_ndarray(format="bgr24"))
+                yield VideoFrame(index, time, upright(frame.to_ndarray(format="bgr24"), turns))
         except av.FFmpegError as exc:
             raise VideoError(f"{path}: cannot decode it after {index + 1} frames: {exc}") from None
 
