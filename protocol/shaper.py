@@ -109,9 +109,17 @@ class UpdateShaper:
             state.sent.popleft()
         return due
 
-    def peers(self) -> int:
-        """Receivers being shaped (their window not empty or their bucket not full)."""
-        return len(self._peers)
+    def peers(self, first: Hashable | None = None) -> int:
+        """Receivers being shaped (their window not empty or their bucket not full); with
+        ``first``, only those named by a tuple that starts with it (the receivers of one
+        connection, ``sender.responder``)."""
+        if first is None:
+            return len(self._peers)
+        return sum(isinstance(p, tuple) and p[:1] == (first,) for p in self._peers)
+
+    def shaped(self, peer: Hashable) -> bool:
+        """Whether ``peer`` is being shaped (as of the last ``schedule``)."""
+        return peer in self._peers
 
     def _forget(self, now: float) -> None:
         """Drop the receivers whose window is empty and bucket full again by ``now``."""
