@@ -167,10 +167,12 @@ def _size(text: str | None) -> tuple[int, int] | None:
 
 def _relay(args: argparse.Namespace) -> int:
     from facewire.protocol.relay import relay
-    from facewire.protocol.transport import check_plaintext, unencrypted_warning
+    from facewire.protocol.transport import check_plaintext, control_endpoint, unencrypted_warning
     from facewire.report import report
 
-    check_plaintext(args.out, args.curve_out, args.insecure)  # one line, before the banner
+    for endpoint in (args.inp, args.out):  # refused in one line, before the banner
+        control_endpoint(endpoint)
+    check_plaintext(args.out, args.curve_out, args.insecure)
     warning = unencrypted_warning(args.out, args.curve_out) if args.insecure else None
     if warning is not None:
         print(f"facewire relay: {warning}", file=sys.stderr)

@@ -28,8 +28,9 @@ downstream side. The relay decrypts and re-encrypts, so it must be trusted with 
 Every socket has the transport's bounds (``protocol.transport``): frames over
 ``MAX_PACKET_FRAME`` on the packet sockets, over ``MAX_REQUEST_FRAME`` on the ROUTER (it reads
 requests) and over ``MAX_CONTROL_FRAME`` on the DEALER (it reads replies) are refused at their
-header, and the ROUTER holds at most ``SERVER_HWM`` messages per receiver each way, so a
-receiver that never reads holds at most that many replies here. Without ``curve_out``, ``out``
+header, and the ROUTER holds at most ``REPLY_HWM`` messages per receiver each way, so a
+receiver that never reads holds at most that many replies here (each a copy of what the
+sender sent; a receiver asks one at a time). Without ``curve_out``, ``out``
 must be a loopback address unless ``insecure`` (``protocol.transport.check_plaintext``).
 
 Stopping (``stop`` set, or Ctrl-C): each loop is asked for its statistics and then to
@@ -56,7 +57,6 @@ from facewire.protocol.transport import (
     MAX_PACKET_FRAME,
     MAX_REQUEST_FRAME,
     PACKET_HWM,
-    SERVER_HWM,
     TransportError,
     check_plaintext,
     control_endpoint,
@@ -65,6 +65,7 @@ from facewire.protocol.transport import (
 WAIT_S = 0.1
 STATISTICS_TIMEOUT_MS = 2000
 _COUNTER = struct.Struct("=Q")  # libzmq sends its counters as native uint64
+REPLY_HWM = 8  # replies held per receiver: copies, 256 KiB each at most
 SUBSCRIBE_ALL = b"\x01"  # a subscription message (ZMTP 3.0) to every topic
 
 
@@ -220,7 +221,7 @@ def relay(inp: str, out: str, stop: threading.Event | None = None,
             auth.configure_curve(domain="*", location=str(server.authorized))
         sockets = [_socket(context, kind, hwm, limit) for kind, hwm, limit in (
             (zmq.XSUB, PACKET_HWM, MAX_PACKET_FRAME), (zmq.XPUB, PACKET_HWM, MAX_PACKET_FRAME),
-            (zmq.ROUTER, SERVER_HWM, MAX_REQUEST_FRAME),
+            (zmq.ROUTER, REPLY_HWM, MAX_REQUEST_FRAME),
             (zmq.DEALER, CONTROL_HWM, MAX_CONTROL_FRAME))]
         for socket in sockets:
             stack.callback(socket.close, linger=0)

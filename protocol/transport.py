@@ -30,9 +30,10 @@ frames, and without CURVE it can send anything. So every socket that reads from 
   a receiver's control socket is opened anew after the timeout
   (``receiver.acquire.ControlChannel``); a receiver's packet socket stays silent until it is
   opened anew;
-- holds few messages per peer: ``SERVER_HWM`` each way on the sender's control socket, so a
-  peer that asks for model chunks and never reads holds at most that many replies (the
-  chunks go out zero-copy, ``ControlServer.reply``: a held reply shares the model's bytes).
+- holds at most ``CONTROL_HWM`` messages per peer each way on the sender's control socket,
+  and the model chunks among its replies go out zero-copy (``ControlServer.reply``), so a
+  peer that asks for chunks and never reads holds replies that share the model's bytes (a few
+  hundred bytes of bookkeeping each) rather than a copy of 256 KiB each.
 
 What libzmq cannot bound, only authentication can: the number of frames of one message (a
 message is delivered whole, and until its last frame its frames pile up unseen), and the
@@ -78,7 +79,6 @@ from facewire.protocol.loopback import is_loopback
 
 PACKET_HWM = 100
 CONTROL_HWM = 1000
-SERVER_HWM = 8
 MAX_PACKET_FRAME = 1024
 MAX_REQUEST_FRAME = 1024
 MAX_CONTROL_FRAME = MAX_MESSAGE_BYTES + 64
@@ -115,7 +115,7 @@ def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> 
     """The warning to show when ``bind`` reaches beyond this host without CURVE, else None."""
     if curve_dir is not None or endpoint_is_loopback(bind):
         return None
-    return (f"WARNING: {bind} is reachable from the network without encryption: anyone who "
+    return (f"WARNING: {bind} is reachable from the network and unencrypted: anyone who "
             f"can reach it reads the face stream and the model, and can make this process "
             f"allocate memory without bound (one ZeroMQ message of endless frames); use "
             f"--curve-dir DIR (facewire keys generate DIR)")
@@ -247,7 +247,7 @@ class ControlServer(_Socket):
     """The sender's control socket (ROUTER, bound): requests in, one reply each."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
-        super().__init__(zmq.ROUTER, SERVER_HWM, MAX_REQUEST_FRAME, bound=True)
+        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_REQUEST_FRAME, bound=True)
         self.endpoint = self._serve(endpoint, curve)
 
     def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
@@ -270,7 +270,7 @@ class ControlServer(_Socket):
     def reply(self, peer: tuple[bytes, ...], message: Message | bytes) -> None:
         """Send a reply (or its bytes, ``encode_message``'s) along ``peer``'s envelope, without
         copying them: a reply held for a peer that does not read shares its bytes. Dropped
-        when the peer already has ``SERVER_HWM`` replies waiting, or has gone."""
+        when the peer already has ``CONTROL_HWM`` replies waiting, or has gone."""
         data = message if isinstance(message, bytes) else encode_message(message)
         try:
             self.socket.send_multipart([*peer, b"", data], zmq.NOBLOCK, copy=False)

@@ -32,7 +32,7 @@ either gets an ``Error`` at once. A connection's update traffic is so at most th
 receivers' (a relay serving more is slowed, not refused for long).
 
 Model chunks are encoded once and sent zero-copy (``ControlServer.reply``): a peer that asks
-for chunks and never reads holds at most ``protocol.transport.SERVER_HWM`` replies, each
+for chunks and never reads holds at most ``protocol.transport.CONTROL_HWM`` replies, each
 sharing the chunk's bytes.
 
 The frame loop never waits for this thread: it runs on its own, with its own socket, and the
