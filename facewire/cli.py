@@ -71,8 +71,8 @@ def _rate(text: str) -> float:
 
 def _send(args: argparse.Namespace) -> int:
     from facewire.protocol.rate import over_budget_warning
-    from facewire.report import report
     from facewire.protocol.transport import unencrypted_warning
+    from facewire.report import report
     from facewire.sender.sender import send
 
     for warning in (unencrypted_warning(args.bind, args.curve_dir) if args.insecure else None,

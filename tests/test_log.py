@@ -15,8 +15,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from facewire.protocol.control import Camera, Hello, encode_message
 from facewire.protocol import log as log_module
+from facewire.protocol.control import Camera, Hello, encode_message
 from facewire.protocol.log import CHECK_FACTOR, RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 

@@ -8,19 +8,21 @@ The attackers are real sockets: pyzmq's own, or raw TCP speaking ZMTP by hand (`
 to send what libzmq never would (a frame header declaring 1 GiB, one message of endless
 frames, requests from a peer that never reads its replies).
 
-Each attack (``Attack.run``) first reads the process's resident memory and thread count
-(the most over ``BASELINE_S``), then runs with a normal client (a ``PacketSubscriber``) receiving packets alongside (for at
-least ``CLIENT_S``), sampling both every 20 ms; once the attacking peer has left, it waits up to ``GIVE_BACK_S`` for the
-memory to come back within ``BACK_MB`` of where it was. It asserts that the memory rose by at
-most ``MAX_RISE_MB``, the threads by at most ``MAX_THREADS``, that the memory was given back,
-that the client kept receiving packets, and (at the end of the module, ``Facewire.summary``)
-that the process printed no traceback and stopped cleanly. Each attack's figures are printed
-(``pytest -s`` shows them). Under CURVE a peer that has not finished its handshake costs at
-most ``CURVE_PER_CONNECTION_MB`` per connection.
+Each attack (``Attack.run``) first reads the process's resident memory and thread count (the
+most over ``BASELINE_S``), then runs with a normal client (a ``PacketSubscriber``) receiving
+packets alongside (for at least ``CLIENT_S``), sampling both every 20 ms; once the attacking
+peer has left, it waits up to ``GIVE_BACK_S`` for the memory to come back within ``BACK_MB``
+of where it was. It asserts that the memory rose by at most ``MAX_RISE_MB``, the threads by
+at most ``MAX_THREADS``, that the memory was given back, that the client kept receiving
+packets, and (at the end of the module, ``Facewire.summary``) that the process printed no
+traceback and stopped cleanly. Each attack's figures are printed (``pytest -s`` shows them).
+Under CURVE a peer that has not finished its handshake costs at most
+``CURVE_PER_CONNECTION_MB`` per connection.
 
-A refused start is checked too: a sender or relay that would listen without CURVE beyond
-loopback stops with one line unless ``--insecure`` is given (libzmq bounds a frame's size, not
-the number of frames of one message).
+What libzmq cannot bound without CURVE (one message of endless frames, distinct
+subscriptions: ``protocol.transport``) is attacked only before a CURVE handshake here: a
+sender or relay that would listen without CURVE beyond loopback stops with one line unless
+``--insecure`` is given (``test_plaintext_beyond_loopback_needs_insecure``).
 """
 
 from __future__ import annotations
@@ -301,7 +303,8 @@ def test_curve_handshakes_cost_little(curve_sender: tuple[Facewire, str],
 
 def test_a_long_subscription(sender: tuple[Facewire, str]) -> None:
     process, at = sender
-    Attack("2 MiB subscription", process, at).run(subscriptions(_port(at), [b"x" * (2 << 20)])).check()
+    Attack("2 MiB subscription", process, at).run(
+        subscriptions(_port(at), [b"x" * (2 << 20)])).check()
 
 
 def test_model_chunks_never_read(sender: tuple[Facewire, str]) -> None:
