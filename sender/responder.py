@@ -187,9 +187,11 @@ class Responder:
                     f"{len(self._held)} in all) are waiting")
         if self._held_on[connection] >= MAX_HELD_PER_CONNECTION:
             return f"{self._held_on[connection]} requests of this connection are waiting"
+        self.shaper.forget(time.monotonic())
         if not self.shaper.shaped(peer) and \
                 self.shaper.peers(connection) >= MAX_RECEIVERS_PER_CONNECTION:
-            return f"{MAX_RECEIVERS_PER_CONNECTION} receivers of this connection are waiting"
+            return (f"{MAX_RECEIVERS_PER_CONNECTION} receivers of this connection are being "
+                    f"shaped")
         return None
 
     def _send_due(self) -> None:
