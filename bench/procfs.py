@@ -6,6 +6,7 @@
 - Run-queue wait: the time its threads were ready to run but waiting for a core, the second
   field of each ``/proc/PID/task/TID/schedstat``, ns.
 - Resident memory: ``VmRSS`` of ``/proc/PID/status``, kB.
+- Threads: ``Threads`` of ``/proc/PID/status``.
 """
 
 from __future__ import annotations
@@ -46,7 +47,17 @@ def wait_seconds(pid: int) -> float:
 
 def rss_mb(pid: int) -> float:
     """The resident set size of a process, MB."""
+    return int(_status(pid, "VmRSS")) / 1024
+
+
+def thread_count(pid: int) -> int:
+    """The threads of a process."""
+    return int(_status(pid, "Threads"))
+
+
+def _status(pid: int, key: str) -> str:
+    """The first word of line ``key`` of ``/proc/PID/status``."""
     for line in _read(pid, "status").splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise ProcessGone(f"/proc/{pid}/status: no VmRSS")
+        if line.startswith(f"{key}:"):
+            return line.split()[1]
+    raise ProcessGone(f"/proc/{pid}/status: no {key}")

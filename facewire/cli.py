@@ -71,10 +71,11 @@ def _rate(text: str) -> float:
 
 def _send(args: argparse.Namespace) -> int:
     from facewire.protocol.rate import over_budget_warning
+    from facewire.protocol.transport import unencrypted_warning
     from facewire.report import report
-    from facewire.sender.sender import send, unencrypted_warning
+    from facewire.sender.sender import send
 
-    for warning in (unencrypted_warning(args.bind, args.curve_dir),
+    for warning in (unencrypted_warning(args.bind, args.curve_dir) if args.insecure else None,
                     over_budget_warning(args.rate)):
         if warning is not None:
             print(f"facewire send: {warning}", file=sys.stderr)
@@ -92,7 +93,8 @@ def _send(args: argparse.Namespace) -> int:
 
     with _StatusLine(status) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
-                 status=line, loop=args.loop, learn=not args.no_learn)
+                 status=line, loop=args.loop, learn=not args.no_learn,
+                 insecure=args.insecure)
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
@@ -165,11 +167,19 @@ def _size(text: str | None) -> tuple[int, int] | None:
 
 def _relay(args: argparse.Namespace) -> int:
     from facewire.protocol.relay import relay
+    from facewire.protocol.transport import check_plaintext, control_endpoint, unencrypted_warning
     from facewire.report import report
 
+    for endpoint in (args.inp, args.out):  # refused in one line, before the banner
+        control_endpoint(endpoint)
+    check_plaintext(args.out, args.curve_out, args.insecure)
+    warning = unencrypted_warning(args.out, args.curve_out) if args.insecure else None
+    if warning is not None:
+        print(f"facewire relay: {warning}", file=sys.stderr)
     print(f"facewire relay: {args.inp} -> {args.out} (control on the next ports); Ctrl-C "
           f"stops", file=sys.stderr)
-    s = relay(args.inp, args.out, curve_in=args.curve_in, curve_out=args.curve_out)
+    s = relay(args.inp, args.out, curve_in=args.curve_in, curve_out=args.curve_out,
+              insecure=args.insecure)
     report(s, [f"relayed {s['packets']} packets and {s['reply_bytes']} bytes of control "
                f"replies in {s['seconds']} s; stopped: {s['stopped']}"], args.json)
     return 0
@@ -682,6 +692,12 @@ def _add_model(sub: Commands) -> None:
     m.set_defaults(run=_model_export)
 
 
+def _add_insecure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--insecure", action="store_true", help="listen beyond loopback "
+                        "without CURVE all the same: unencrypted, and any peer can make the "
+                        "process grow without bound")
+
+
 def _add_send_receive(sub: Commands) -> None:
     """``send`` (camera host) and ``receive`` (render host)."""
     s = sub.add_parser("send", help="track a face and publish packets (camera host)")
@@ -695,6 +711,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "until Ctrl-C (long runs, benchmarks)")
     s.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "encrypt, and admit only the receivers in DIR/authorized")
+    _add_insecure(s)
     _add_no_learn(s)
     _add_json(s)
     s.set_defaults(run=_send)
@@ -836,6 +853,7 @@ def _add_tools(sub: Commands) -> None:
     x.add_argument("--out", required=True, help="address receivers connect to")
     x.add_argument("--curve-in", help="client key folder for the link to the sender")
     x.add_argument("--curve-out", help="server key folder for the receivers' side")
+    _add_insecure(x)
     _add_json(x)
     x.set_defaults(run=_relay)
 

@@ -325,13 +325,14 @@ def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
 
     The bytes go to a temporary file in the same folder, are flushed to disk, and only then
     renamed over ``path``: a crash leaves either the old file or the new one, never half of
-    one. Raises ``ModelFileError`` naming the file if it cannot be written.
+    one. The file is created readable by its owner only (0600: it holds a person's face).
+    Raises ``ModelFileError`` naming the file if it cannot be written.
     """
     if not isinstance(model, PersonModel):
         raise TypeError(f"save_model: expected a PersonModel, got {type_name(model)}")
     data = _encode(model)
     try:
-        write_atomically(path, data)
+        write_atomically(path, data, 0o600)
     except OSError as e:
         raise ModelFileError(f"{os.fspath(path)}: cannot write ({e})") from e
     return hashlib.sha256(data).hexdigest()

@@ -144,19 +144,10 @@ def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
     k = old.layers.shape[0]
     rest = old.rest
     if update.replaces is not None:
-        if update.replaces >= k:
-            raise ModelError(f"update {update.serial}: replaces: {update.replaces} is past the "
-                             f"region's {k} states")
-        if update.replaces == round(old.rest):
-            raise ModelError(f"update {update.serial}: replaces: state {update.replaces} is "
-                             f"the rest state")
         rest -= update.replaces < rest
     elif k >= MAX_LEARNED_LAYERS:
         raise ModelError(f"update {update.serial}: region {update.region!r} already has "
                          f"{k} states, at most {MAX_LEARNED_LAYERS}")
-    if update.position > len(keep):
-        raise ModelError(f"update {update.serial}: position: {update.position} is past the "
-                         f"region's {len(keep)} kept states")
     rest += update.position <= rest
     parts = old.parts()
     if len(update.layers) != len(parts):
@@ -182,13 +173,29 @@ def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
 
 
 def _neighbours(model: PersonModel, update: ModelUpdate) -> tuple[Region, list[int]]:
-    """The update's region in ``model`` and the indices of the states it keeps."""
+    """The update's region in ``model`` and the indices of the states it keeps (never none:
+    the rest state is kept).
+
+    Raises ``ModelError`` naming the field: an unknown region, a replaced state that is past
+    the region's or is its rest state, a position past the kept states.
+    """
     names = [r.name for r in model.regions]
     if update.region not in names:
         raise ModelError(f"update {update.serial}: region: {update.region!r} is not a region "
                          f"of the model")
     region = model.regions[names.index(update.region)]
-    keep = [j for j in range(region.layers.shape[0]) if j != update.replaces]
+    k = region.layers.shape[0]
+    if update.replaces is not None:
+        if update.replaces >= k:
+            raise ModelError(f"update {update.serial}: replaces: {update.replaces} is past the "
+                             f"region's {k} states")
+        if update.replaces == round(region.rest):
+            raise ModelError(f"update {update.serial}: replaces: state {update.replaces} is "
+                             f"the rest state")
+    keep = [j for j in range(k) if j != update.replaces]
+    if update.position > len(keep):
+        raise ModelError(f"update {update.serial}: position: {update.position} is past the "
+                         f"region's {len(keep)} kept states")
     return region, keep
 
 

@@ -44,14 +44,17 @@ class CurveClient:
 def generate_keys(folder: str | os.PathLike[str], name: str = "id") -> tuple[Path, Path]:
     """Make a key pair ``folder/name.key`` and ``folder/name.key_secret``, and ``authorized/``.
 
-    Refuses to overwrite an existing pair.
+    Refuses to overwrite an existing pair. The secret key's file is created readable by its
+    owner only (0600) before the key is written into it.
     """
     folder = Path(folder)
-    if (folder / f"{name}.key_secret").exists():
-        raise KeyFileError(f"{folder / (name + '.key_secret')}: already exists; not overwriting")
+    secret_path = folder / f"{name}.key_secret"
     (folder / "authorized").mkdir(parents=True, exist_ok=True)
+    try:  # created 0600 before the key is written into it (pyzmq keeps an existing file's mode)
+        os.close(os.open(secret_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except FileExistsError:
+        raise KeyFileError(f"{secret_path}: already exists; not overwriting") from None
     public, secret = zmq.auth.create_certificates(folder, name)
-    os.chmod(secret, 0o600)
     return Path(public), Path(secret)
 
 

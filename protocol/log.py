@@ -36,7 +36,12 @@ serial and length are in range, it fits in the file, its CRC-32 matches and its 
 finite (a CRC-32 that matches by chance at a wrong offset has odds of 1 in 2**32). After a
 bad record it re-synchronises by searching forward byte by byte for the next intact one
 (trying only the offsets whose byte after the time is a packet's first byte or the update
-tag), so inserted or deleted bytes cost only the records they touch. It reports what was
+tag), so inserted or deleted bytes cost only the records they touch. Reading is linear in the
+file's size whatever it holds: an update record's head can be forged every few bytes, each
+declaring a body that reaches far ahead, so the bytes hashed to check update records are at
+most ``CHECK_FACTOR`` times the file's size (plus one largest update); past that budget an
+update head is taken for unusable bytes (no honest log comes near it: each of its bytes is
+hashed once). It reports what was
 lost: a run of unusable bytes that begins with an update record's head (tag, serial and
 length in range) holds one lost update record of that length (or the rest of the run,
 whichever is shorter); the rest of the run counts as its length in packet records, rounded,
@@ -84,6 +89,7 @@ FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)
 MAX_HELLO_BYTES = 64 * 1024
 MAX_LOG_BYTES = 2 * 1024**3
+CHECK_FACTOR = 4
 UPDATE_TAG = ord("U")
 _HEAD = struct.Struct(">8sHHI")
 _TIME = struct.Struct(">d")
@@ -288,6 +294,7 @@ class _Records:
         self.updates: list[tuple[float, int, bytes, int]] = []
         self.lost = 0
         self.lost_updates = 0
+        self._budget = CHECK_FACTOR * len(data) + MAX_UPDATE_BYTES  # bytes hashed (docstring)
 
     def scan(self, start: int) -> None:
         offset = gap_start = start
@@ -312,8 +319,11 @@ class _Records:
                 return 0
             time, serial, length = head
             body_end = offset + _UPDATE_HEAD.size + length
-            if body_end + _CRC.size > len(data) or not math.isfinite(time) or zlib.crc32(
-                    data[offset:body_end]) != _CRC.unpack_from(data, body_end)[0]:
+            if body_end + _CRC.size > len(data) or not math.isfinite(time) \
+                    or body_end - offset > self._budget:
+                return 0
+            self._budget -= body_end - offset
+            if zlib.crc32(data[offset:body_end]) != _CRC.unpack_from(data, body_end)[0]:
                 return 0
             self.updates.append((time, serial, data[offset + _UPDATE_HEAD.size:body_end],
                                  len(self.packets)))

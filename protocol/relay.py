@@ -1,13 +1,17 @@
-"""The relay (``facewire relay --in tcp://SENDER:P --out tcp://*:Q``): ZeroMQ's own proxies.
+"""The relay (``facewire relay --in tcp://SENDER:P --out tcp://*:Q``): packets and control.
 
-Two ``zmq.proxy_steerable`` loops, each on its own thread:
+Two loops, each on its own thread:
 
-- packets: an XSUB socket connected to the sender's packet endpoint ``inp``, an XPUB socket
-  bound at ``out``. Receivers subscribe at the relay, the relay subscribes upstream, and
-  every packet from the sender is fanned out to every receiver (one stream upstream
-  however many receivers there are). Several senders can be relayed by several relays
-  into one hub the same way.
-- control: a ROUTER socket bound at ``control_endpoint(out)`` (port + 1), a DEALER socket
+- packets (``_packets``): an XSUB socket connected to the sender's packet endpoint ``inp``,
+  subscribed to everything once, and an XPUB socket bound at ``out`` with manual
+  subscriptions (``XPUB_MANUAL``, ``_admit``: a receiver's subscription to everything is
+  taken, any other dropped), so what receivers subscribe to never travels upstream: the
+  sender sees the relay's one subscription. (libzmq still keeps each peer's subscriptions
+  here, ``protocol.transport``.) Every packet from the sender is fanned out to every receiver (one
+  stream upstream however many receivers there are). Several senders can be relayed by
+  several relays into one hub the same way.
+- control (``zmq.proxy_steerable``): a ROUTER socket bound at ``control_endpoint(out)``
+  (port + 1), a DEALER socket
   connected to ``control_endpoint(inp)``. A receiver's request gains the ROUTER's routing
   identity on the way in, the sender's ``ControlServer`` replies along that envelope, and
   the ROUTER returns the reply to the receiver: receivers behind a relay fetch the Hello
@@ -21,11 +25,15 @@ Keys: ``curve_in`` is a client key folder (the relay's pair, and the sender's pu
 key folder (the relay's pair, and the receivers it admits in ``authorized/``) for the
 downstream side. The relay decrypts and re-encrypts, so it must be trusted with the stream.
 
-Every socket refuses frames over the transport's limits (``protocol.transport``: a packet
-socket ``MAX_PACKET_FRAME``, a control socket ``MAX_CONTROL_FRAME``), so a peer cannot make the
-relay buffer what a frame header declares.
+Every socket has the transport's bounds (``protocol.transport``): frames over
+``MAX_PACKET_FRAME`` on the packet sockets, over ``MAX_REQUEST_FRAME`` on the ROUTER (it reads
+requests) and over ``MAX_CONTROL_FRAME`` on the DEALER (it reads replies) are refused at their
+header, and the ROUTER holds at most ``REPLY_HWM`` messages per receiver each way, so a
+receiver that never reads holds at most that many replies here (each a copy of what the
+sender sent; a receiver asks one at a time). Without ``curve_out``, ``out``
+must be a loopback address unless ``insecure`` (``protocol.transport.check_plaintext``).
 
-Stopping (``stop`` set, or Ctrl-C): each proxy is asked for its statistics and then to
+Stopping (``stop`` set, or Ctrl-C): each loop is asked for its statistics and then to
 terminate over its inproc control socket (``STATISTICS``, ``TERMINATE``), the threads are
 joined and the sockets closed.
 """
@@ -47,27 +55,32 @@ from facewire.protocol.transport import (
     CONTROL_HWM,
     MAX_CONTROL_FRAME,
     MAX_PACKET_FRAME,
+    MAX_REQUEST_FRAME,
     PACKET_HWM,
     TransportError,
+    check_plaintext,
     control_endpoint,
 )
 
 WAIT_S = 0.1
 STATISTICS_TIMEOUT_MS = 2000
 _COUNTER = struct.Struct("=Q")  # libzmq sends its counters as native uint64
+REPLY_HWM = 8  # replies held per receiver: copies, 256 KiB each at most
+SUBSCRIBE_ALL = b"\x01"  # a subscription message (ZMTP 3.0) to every topic
 
 
 class _Proxy:
-    """``zmq.proxy_steerable(frontend, backend)`` on a thread, steered over inproc PAIRs."""
+    """``loop(frontend, backend, None, steered)`` on a thread (``zmq.proxy_steerable`` or
+    ``_packets``), steered over inproc PAIRs."""
 
     def __init__(self, context: zmq.Context, name: str, frontend: zmq.Socket,
-                 backend: zmq.Socket) -> None:
+                 backend: zmq.Socket, loop: Any = zmq.proxy_steerable) -> None:
         address = f"inproc://facewire-relay-{name}-{id(self)}"
         self._steer = context.socket(zmq.PAIR)
         self._steer.bind(address)
         self._steered = context.socket(zmq.PAIR)
         self._steered.connect(address)
-        self._thread = threading.Thread(target=zmq.proxy_steerable, name=f"relay-{name}",
+        self._thread = threading.Thread(target=loop, name=f"relay-{name}",
                                         args=(frontend, backend, None, self._steered),
                                         daemon=True)
         self._thread.start()
@@ -84,6 +97,54 @@ class _Proxy:
         self._steer.close(linger=0)
         self._steered.close(linger=0)
         return stats
+
+
+def _admit(xpub: zmq.Socket) -> int:
+    """Take the subscriptions waiting on the XPUB (never blocks): a receiver that subscribes
+    to every topic (``SUBSCRIBE_ALL``) gets the packets from now on; any other subscription
+    message is dropped. Returns the messages taken."""
+    taken = 0
+    while True:
+        try:
+            message = xpub.recv(zmq.NOBLOCK)
+        except zmq.Again:
+            return taken
+        taken += 1
+        if message == SUBSCRIBE_ALL:
+            xpub.subscribe(b"")  # for the receiver that sent it
+
+
+def _packets(xsub: zmq.Socket, xpub: zmq.Socket, _: None, steered: zmq.Socket) -> None:
+    """The packet loop: packets from ``xsub`` out on ``xpub``, subscriptions at ``xpub``
+    admitted (``_admit``), until ``TERMINATE`` on ``steered``; ``STATISTICS``
+    answers with ``_Proxy.stop``'s 8 counters (packets in the frontend's, subscription
+    messages in the backend's)."""
+    counts = [0] * 8
+    xsub.send(SUBSCRIBE_ALL)
+    poller = zmq.Poller()
+    for socket in (xsub, xpub, steered):
+        poller.register(socket, zmq.POLLIN)
+    while True:
+        ready = dict(poller.poll())
+        if xpub in ready:
+            counts[4] += _admit(xpub)
+        if xsub in ready:
+            while True:
+                try:
+                    packet = xsub.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                counts[0] += 1
+                try:
+                    xpub.send(packet, zmq.NOBLOCK)
+                except zmq.Again:
+                    pass
+        if steered in ready:
+            command = steered.recv()
+            if command == b"TERMINATE":
+                return
+            if command == b"STATISTICS":
+                steered.send_multipart([_COUNTER.pack(n) for n in counts])
 
 
 def _socket(context: zmq.Context, kind: int, hwm: int, max_frame: int) -> zmq.Socket:
@@ -119,7 +180,8 @@ def _connect(socket: zmq.Socket, endpoint: str, curve: CurveClient | None) -> No
 
 def relay(inp: str, out: str, stop: threading.Event | None = None,
           curve_in: str | os.PathLike[str] | None = None,
-          curve_out: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+          curve_out: str | os.PathLike[str] | None = None, insecure: bool = False
+          ) -> dict[str, Any]:
     """Relay one sender's packets and control requests until ``stop`` is set or Ctrl-C.
 
     Args:
@@ -128,9 +190,10 @@ def relay(inp: str, out: str, stop: threading.Event | None = None,
         stop: set it (from another thread) to stop.
         curve_in: client key folder for the link to the sender, or None (plain).
         curve_out: server key folder for the receivers' side, or None (plain).
+        insecure: listen at ``out`` without ``curve_out`` beyond loopback all the same.
 
     Returns:
-        libzmq's proxy counters: ``packets`` (from the sender), ``subscriptions`` (subscribe
+        the loops' counters: ``packets`` (from the sender), ``subscriptions`` (subscribe
         and unsubscribe messages from receivers), ``request_parts`` and ``reply_parts``
         (control message parts from receivers and from the sender: a request or reply is 3,
         routing identity, empty delimiter and body), ``reply_bytes`` (their size: the Hellos
@@ -138,10 +201,12 @@ def relay(inp: str, out: str, stop: threading.Event | None = None,
         ``interrupt``).
 
     Raises:
-        TransportError: a bad endpoint or a port in use.
+        TransportError: a bad endpoint, a port in use, or ``out`` beyond loopback without
+            ``curve_out`` or ``insecure``.
         KeyFileError: a missing or malformed key folder.
     """
     control_in, control_out = control_endpoint(inp), control_endpoint(out)
+    check_plaintext(out, curve_out, insecure)
     client = client_keys(curve_in) if curve_in is not None else None
     server = server_keys(curve_out) if curve_out is not None else None
     stop = stop if stop is not None else threading.Event()
@@ -156,16 +221,17 @@ def relay(inp: str, out: str, stop: threading.Event | None = None,
             auth.configure_curve(domain="*", location=str(server.authorized))
         sockets = [_socket(context, kind, hwm, limit) for kind, hwm, limit in (
             (zmq.XSUB, PACKET_HWM, MAX_PACKET_FRAME), (zmq.XPUB, PACKET_HWM, MAX_PACKET_FRAME),
-            (zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME),
+            (zmq.ROUTER, REPLY_HWM, MAX_REQUEST_FRAME),
             (zmq.DEALER, CONTROL_HWM, MAX_CONTROL_FRAME))]
         for socket in sockets:
             stack.callback(socket.close, linger=0)
         xsub, xpub, router, dealer = sockets
+        xpub.setsockopt(zmq.XPUB_MANUAL, 1)
         _bind(xpub, out, server)
         _bind(router, control_out, server)
         _connect(xsub, inp, client)
         _connect(dealer, control_in, client)
-        packets = _Proxy(context, "packets", xsub, xpub)
+        packets = _Proxy(context, "packets", xsub, xpub, _packets)
         control = _Proxy(context, "control", router, dealer)
         stopped = "stop"
         try:

@@ -88,7 +88,7 @@ class UpdateShaper:
         if not 0 < size <= min(self.window_bytes, self.depth):
             raise ValueError(f"update message of {size} bytes: the shaper sends 1 to "
                              f"{int(min(self.window_bytes, self.depth))}")
-        self._forget(now)
+        self.forget(now)
         state = self._peers.get(peer)
         if state is None:
             state = self._peers[peer] = _Peer(deque(), self.depth, now)
@@ -109,11 +109,20 @@ class UpdateShaper:
             state.sent.popleft()
         return due
 
-    def peers(self) -> int:
-        """Receivers being shaped (their window not empty or their bucket not full)."""
-        return len(self._peers)
+    def peers(self, first: Hashable | None = None) -> int:
+        """Receivers being shaped (their window not empty or their bucket not full, as of the
+        last ``schedule`` or ``forget``); with
+        ``first``, only those named by a tuple that starts with it (the receivers of one
+        connection, ``sender.responder``)."""
+        if first is None:
+            return len(self._peers)
+        return sum(isinstance(p, tuple) and p[:1] == (first,) for p in self._peers)
 
-    def _forget(self, now: float) -> None:
+    def shaped(self, peer: Hashable) -> bool:
+        """Whether ``peer`` is being shaped (as of the last ``schedule`` or ``forget``)."""
+        return peer in self._peers
+
+    def forget(self, now: float) -> None:
         """Drop the receivers whose window is empty and bucket full again by ``now``."""
         for peer, state in list(self._peers.items()):
             if state.at + self.window_s <= now and \

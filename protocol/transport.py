@@ -12,19 +12,36 @@ peers connected to a bound socket (the sender's receiver count).
 The control endpoint is the packet endpoint's port plus one (``control_endpoint``), so one
 address names a sender.
 
-Size limits: every socket that reads from the network refuses a frame larger than its
-protocol allows, at the frame's header and before allocating it (libzmq's ``MAXMSGSIZE``):
-``MAX_PACKET_FRAME`` bytes on a receiver's packet socket (a packet is 43 bytes),
-``MAX_CONTROL_FRAME`` on both ends of the control channel (a control message is at most
-``protocol.control.MAX_MESSAGE_BYTES``; both limits leave room for CURVE's 33 bytes of
-per-message overhead). A peer that sends a larger frame, or only declares one in a frame
-header, is disconnected at that header; without the limits, a peer could make the other side
-allocate whatever a frame header declares. libzmq takes the oversized frame for a protocol
-error, after which the socket that *connected* does not connect to that address again
-(libzmq issue 4196): a bound socket (the sender's) just loses that peer, which is free to
-connect again; a receiver's control socket is opened anew after the timeout
-(``receiver.acquire.ControlChannel``); a receiver's packet socket stays silent until it is
-opened anew.
+Bounds before authentication (docs/DESIGN.md, the threat model). A peer is anyone who can
+open a TCP connection; before its CURVE handshake is done it can still send a greeting and
+frames, and without CURVE it can send anything. So every socket that reads from the network:
+
+- refuses a frame larger than its protocol allows, at the frame's header and before
+  allocating it (libzmq's ``MAXMSGSIZE``, a limit per frame, handshake commands included):
+  ``MAX_PACKET_FRAME`` bytes on the packet sockets (a packet is 43 bytes; the sender's packet
+  socket reads only subscriptions), ``MAX_REQUEST_FRAME`` on the sender's control socket (a
+  request is under 200 bytes), ``MAX_CONTROL_FRAME`` on the sockets that read replies (a
+  reply is at most ``protocol.control.MAX_MESSAGE_BYTES``); all leave room for CURVE's 33
+  bytes of per-message overhead and its handshake commands (the largest, INITIATE, is about
+  300 bytes). A peer that sends a larger frame, or only declares one in a frame header, is
+  disconnected at that header. libzmq takes the oversized frame for a protocol error, after
+  which the socket that *connected* does not connect to that address again (libzmq issue
+  4196): a bound socket (the sender's) just loses that peer, which is free to connect again;
+  a receiver's control socket is opened anew after the timeout
+  (``receiver.acquire.ControlChannel``); a receiver's packet socket stays silent until it is
+  opened anew;
+- holds at most ``CONTROL_HWM`` messages per peer each way on the sender's control socket,
+  and the model chunks among its replies go out zero-copy (``ControlServer.reply``), so a
+  peer that asks for chunks and never reads holds replies that share the model's bytes (a few
+  hundred bytes of bookkeeping each) rather than a copy of 256 KiB each.
+
+What libzmq cannot bound, only authentication can: the number of frames of one message (a
+message is delivered whole, and until its last frame its frames pile up unseen), and the
+subscriptions a PUB or XPUB socket keeps (a trie of every distinct topic each peer sent, up
+to its frame limit each: libzmq 4.3 keeps that trie even with ``XPUB_MANUAL``). Before its
+CURVE handshake is done a peer can send neither, so a socket without CURVE is bound only to
+loopback unless the user says otherwise (``check_plaintext``; ``unencrypted_warning`` is the
+loud warning then).
 
 With CURVE (``protocol.keys``) every socket is encrypted; the sender's authenticator (pyzmq's
 own ``ThreadAuthenticator``) admits only clients whose public keys are in its authorised
@@ -44,6 +61,7 @@ MESSAGE command (2-byte header, 8-byte name, 8-byte nonce, 16-byte MAC, 1 flags 
 
 from __future__ import annotations
 
+import os
 import random
 import re
 import socket
@@ -57,10 +75,12 @@ import zmq.utils.monitor
 from facewire.protocol.control import MAX_MESSAGE_BYTES, Message, decode_message, encode_message
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, CurveServer
+from facewire.protocol.loopback import is_loopback
 
 PACKET_HWM = 100
 CONTROL_HWM = 1000
 MAX_PACKET_FRAME = 1024
+MAX_REQUEST_FRAME = 1024
 MAX_CONTROL_FRAME = MAX_MESSAGE_BYTES + 64
 MAX_HOPS = 8
 WIRE_OVERHEAD = {"plain": 2, "curve": 35}
@@ -80,6 +100,38 @@ def control_endpoint(endpoint: str) -> str:
     if not 0 < port < 65535:
         raise TransportError(f"{endpoint!r}: port must be in 1..65534")
     return f"tcp://{m['host']}:{port + 1}"
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """True when a bind address stays on this host: a loopback host (``protocol.loopback``) or
+    the interface ``lo``; anything else (``*``, ``0.0.0.0``, an address, a host or interface
+    name) can be reached from the network."""
+    match = re.fullmatch(r"tcp://(\[?)(?P<host>[^\]]*)\]?:\S+", endpoint)
+    host = match["host"] if match else endpoint
+    return host == "lo" or is_loopback(host)  # lo: the loopback interface, as ZeroMQ allows
+
+
+def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> str | None:
+    """The warning to show when ``bind`` reaches beyond this host without CURVE, else None."""
+    if curve_dir is not None or endpoint_is_loopback(bind):
+        return None
+    return (f"WARNING: {bind} is reachable from the network and unencrypted: anyone who "
+            f"can reach it reads the face stream and the model, and can make this process "
+            f"allocate memory without bound (one ZeroMQ message of endless frames); use "
+            f"--curve-dir DIR (facewire keys generate DIR)")
+
+
+def check_plaintext(bind: str, curve_dir: str | os.PathLike[str] | None, insecure: bool
+                    ) -> None:
+    """Refuse to listen without CURVE beyond loopback unless ``insecure`` (module docstring).
+
+    Raises:
+        TransportError: ``bind`` reaches the network, without keys and without ``insecure``.
+    """
+    if not insecure and unencrypted_warning(bind, curve_dir) is not None:
+        raise TransportError(f"{bind}: refusing to listen beyond loopback without encryption "
+                             f"(any peer could make this process grow without bound); use "
+                             f"--curve-dir DIR, or --insecure to accept that")
 
 
 def free_loopback_endpoint() -> str:
@@ -165,7 +217,7 @@ class PacketPublisher(_Socket):
     """The sender's packet socket (PUB, bound)."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
-        super().__init__(zmq.PUB, PACKET_HWM, bound=True)
+        super().__init__(zmq.PUB, PACKET_HWM, MAX_PACKET_FRAME, bound=True)
         self.endpoint = self._serve(endpoint, curve)
 
     def send(self, packet: bytes) -> None:
@@ -195,7 +247,7 @@ class ControlServer(_Socket):
     """The sender's control socket (ROUTER, bound): requests in, one reply each."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
-        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_CONTROL_FRAME, bound=True)
+        super().__init__(zmq.ROUTER, CONTROL_HWM, MAX_REQUEST_FRAME, bound=True)
         self.endpoint = self._serve(endpoint, curve)
 
     def recv(self, timeout_ms: int) -> tuple[tuple[bytes, ...], bytes] | None:
@@ -215,9 +267,13 @@ class ControlServer(_Socket):
             return None
         return tuple(parts[:hops]), parts[-1]
 
-    def reply(self, peer: tuple[bytes, ...], message: Message) -> None:
+    def reply(self, peer: tuple[bytes, ...], message: Message | bytes) -> None:
+        """Send a reply (or its bytes, ``encode_message``'s) along ``peer``'s envelope, without
+        copying them: a reply held for a peer that does not read shares its bytes. Dropped
+        when the peer already has ``CONTROL_HWM`` replies waiting, or has gone."""
+        data = message if isinstance(message, bytes) else encode_message(message)
         try:
-            self.socket.send_multipart([*peer, b"", encode_message(message)], zmq.NOBLOCK)
+            self.socket.send_multipart([*peer, b"", data], zmq.NOBLOCK, copy=False)
         except zmq.Again:
             pass
 

@@ -18,7 +18,9 @@ never queue behind it:
 3. the session's versions (``models.update.ModelVersions``, the one holder of versions that
    replay uses too) decode it against the version it applies to (the receiver's model
    n - 1; bounded sizes, shapes, finiteness, the region's layers, no decompression bomb),
-   else refused with one line naming the field (``updates_refused``, ``stuck``). A refused
+   else refused with one line naming the field (``updates_refused``, ``stuck``); any other
+   exception while decoding or applying it is refused the same way (counted, one line, the
+   thread goes on: a bug met on a peer's bytes must not end the fetching). A refused
    update is fetched again after ``RETRY_S``, doubling with each refusal up to
    ``MAX_RETRY_S``; meanwhile the receiver stays at version n - 1 and says so (the renderer
    keeps rendering, its Q clamped to the layers it holds);
@@ -151,22 +153,23 @@ class UpdateFetcher:
                 self._wake.clear()
                 continue
             serial = self.fetched + 1
-            data = self._fetch(serial)
-            if data is None:  # the sender did not answer, or we are closing
-                self._closing.wait(RETRY_S)
-                continue
             try:
+                data = self._fetch(serial)
+                if data is None:  # the sender did not answer, or we are closing
+                    self._closing.wait(RETRY_S)
+                    continue
                 if not data:
                     raise UpdateError(f"update {serial}: its chunks do not hash to the "
                                       f"sha256 they name")
                 with self._lock:
                     [update] = self._versions.add(serial, data, where=f"update {serial}")
-            except UpdateError as exc:
+            except Exception as exc:  # noqa: BLE001 - any failure on a peer's bytes: refused
                 self.counts["updates_refused"] += 1
                 failures += 1
                 wait = min(RETRY_S * 2 ** (failures - 1), MAX_RETRY_S)
-                self.stuck = f"{exc}"
-                self.say(f"{exc}: refused ({failures} times), fetching it again in "
+                self.stuck = str(exc) if isinstance(exc, UpdateError) else \
+                    f"update {serial}: {type(exc).__name__}: {exc}"
+                self.say(f"{self.stuck}: refused ({failures} times), fetching it again in "
                          f"{wait:.0f} s; staying at model version {serial - 1}")
                 self._closing.wait(wait)
                 continue

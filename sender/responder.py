@@ -22,6 +22,19 @@ a lost reply can let a receiver's traffic exceed the limits (by a window, or the
 depth). At most ``MAX_HELD_PER_PEER`` replies are held for one receiver (a receiver asks for
 one chunk at a time) and ``MAX_HELD`` in all; a request beyond that gets an ``Error`` at once.
 
+A routing envelope is what its sender says it is, but its first identity is the TCP
+connection's (libzmq's ROUTER puts it there; only a relay adds more), so a peer that forges
+relay hops on one connection is bounded per connection too: at most
+``MAX_RECEIVERS_PER_CONNECTION`` receivers of one connection are shaped at once (a receiver
+stays shaped until its window is empty and its bucket full again, ``protocol.shaper``), and
+at most ``MAX_HELD_PER_CONNECTION`` replies are held for one connection; a request beyond
+either gets an ``Error`` at once. A connection's update traffic is so at most that many
+receivers' (a relay serving more is slowed, not refused for long).
+
+Model chunks are encoded once and sent zero-copy (``ControlServer.reply``): a peer that asks
+for chunks and never reads holds at most ``protocol.transport.CONTROL_HWM`` replies, each
+sharing the chunk's bytes.
+
 The frame loop never waits for this thread: it runs on its own, with its own socket, and the
 packets go out on the PUB socket; held replies delay only the update traffic.
 
@@ -59,6 +72,8 @@ from facewire.sender.updates import UpdateStore
 POLL_MS = 100
 MAX_HELD_PER_PEER = 4
 MAX_HELD = 1024
+MAX_HELD_PER_CONNECTION = 64
+MAX_RECEIVERS_PER_CONNECTION = 16
 
 Peer = tuple[bytes, ...]
 
@@ -123,6 +138,8 @@ class Responder:
                                      "update_bytes", "errors"), 0)
         self._held: list[tuple[float, int, Peer, UpdateChunk, int]] = []
         self._held_by: Counter[Peer] = Counter()
+        self._held_on: Counter[bytes] = Counter()  # held replies per connection
+        self._encoded = {chunk.index: encode_message(chunk) for chunk in chunks}
         self._order = itertools.count()
         self._done = threading.Event()
         self.thread = threading.Thread(target=self._run, name="facewire-control", daemon=True)
@@ -147,20 +164,35 @@ class Responder:
     def _answer(self, peer: Peer, raw: bytes) -> None:
         reply = answer_request(raw, self.hello, self.chunks, self.updates)
         if isinstance(reply, UpdateChunk):
-            if self._held_by[peer] >= MAX_HELD_PER_PEER or len(self._held) >= MAX_HELD:
-                reply = Error(f"update_request: {self._held_by[peer]} of this receiver's "
-                              f"requests (and {len(self._held)} in all) are waiting; ask "
-                              f"one at a time")
-            else:
+            refusal = self._refusal(peer)
+            if refusal is None:
                 size = len(encode_message(reply))
                 due = self.shaper.schedule(peer, size, time.monotonic())
                 heapq.heappush(self._held, (due, next(self._order), peer, reply, size))
                 self._held_by[peer] += 1
+                self._held_on[peer[0]] += 1
                 return
+            reply = Error(f"update_request: {refusal}; ask one at a time")
         key = {Hello: "hello_requests", ModelChunk: "chunk_requests"}.get(type(reply),
                                                                            "errors")
         self.counts[key] += 1
-        self.server.reply(peer, reply)
+        self.server.reply(peer, self._encoded[reply.index] if isinstance(reply, ModelChunk)
+                          else reply)
+
+    def _refusal(self, peer: Peer) -> str | None:
+        """Why an update reply for ``peer`` may not be held now (module docstring), or None."""
+        connection = peer[0]
+        if self._held_by[peer] >= MAX_HELD_PER_PEER or len(self._held) >= MAX_HELD:
+            return (f"{self._held_by[peer]} of this receiver's requests (and "
+                    f"{len(self._held)} in all) are waiting")
+        if self._held_on[connection] >= MAX_HELD_PER_CONNECTION:
+            return f"{self._held_on[connection]} requests of this connection are waiting"
+        self.shaper.forget(time.monotonic())
+        if not self.shaper.shaped(peer) and \
+                self.shaper.peers(connection) >= MAX_RECEIVERS_PER_CONNECTION:
+            return (f"{MAX_RECEIVERS_PER_CONNECTION} receivers of this connection are being "
+                    f"shaped")
+        return None
 
     def _send_due(self) -> None:
         now = time.monotonic()
@@ -169,6 +201,9 @@ class Responder:
             self._held_by[peer] -= 1
             if not self._held_by[peer]:
                 del self._held_by[peer]
+            self._held_on[peer[0]] -= 1
+            if not self._held_on[peer[0]]:
+                del self._held_on[peer[0]]
             self.server.reply(peer, reply)
             self.counts["update_requests"] += 1
             self.counts["update_bytes"] += size

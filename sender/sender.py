@@ -52,8 +52,10 @@ a relay counts as one, a peer still in its handshake counts too.
 
 Encryption: with a key folder, both sockets are CURVE servers admitting only the receivers
 in ``DIR/authorized`` (``protocol.keys``), each with its own authenticator (and so its own
-ZeroMQ context: ``protocol.transport``). Without keys, binding to anything
-but loopback sends the face stream in the clear: ``unencrypted_warning`` says so.
+ZeroMQ context: ``protocol.transport``). Without keys, binding to anything but loopback
+would send the face stream in the clear and let any peer grow the process without bound (one
+message of endless frames: ``protocol.transport``), so it is refused unless ``insecure``,
+and then ``protocol.transport.unencrypted_warning`` says so loudly.
 
 Stopping: the source ends (a file, unless ``loop``), ``stop`` is set, or Ctrl-C
 (KeyboardInterrupt, caught): the control thread is stopped and joined, the log closed (every
@@ -64,7 +66,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -78,13 +79,14 @@ from facewire.models.modelfile import ModelFileError, load_model
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
-from facewire.protocol.loopback import is_loopback
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps
 from facewire.protocol.transport import (
     ControlServer,
     PacketPublisher,
     PeerCounter,
+    check_plaintext,
     control_endpoint,
+    unencrypted_warning,
 )
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
@@ -98,23 +100,6 @@ CONTROL_POLL_MS = 100
 MAX_LAG_S = 0.5
 
 Status = Callable[[dict[str, Any]], None]
-
-
-def unencrypted_warning(bind: str, curve_dir: str | os.PathLike[str] | None) -> str | None:
-    """The warning to show when ``bind`` reaches beyond this host without encryption, else None.
-
-    Loopback (``protocol.loopback``) is ``127.0.0.0/8``, ``::1``, ``localhost``, and here the
-    interface ``lo`` too; anything else (``*``, ``0.0.0.0``, an address, a host or interface
-    name) can be reached from the network.
-    """
-    if curve_dir is not None:
-        return None
-    match = re.fullmatch(r"tcp://(\[?)(?P<host>[^\]]*)\]?:\S+", bind)
-    host = match["host"] if match else bind
-    if host == "lo" or is_loopback(host):  # lo: the loopback interface, named as ZeroMQ allows
-        return None
-    return (f"warning: {bind} is reachable from the network and the face stream and the model "
-            f"are sent unencrypted; use --curve-dir DIR (facewire keys generate DIR)")
 
 
 def _read_model(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
@@ -189,7 +174,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
          frames: slice = slice(0, None), start: threading.Event | None = None,
-         learn: bool = True, updates: UpdateStore | None = None) -> dict[str, Any]:
+         learn: bool = True, updates: UpdateStore | None = None,
+         insecure: bool = False) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -214,6 +200,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         updates: the session's model updates as served to receivers, or None for a store of
             the sender's own; the updates the pipeline learns are published into it, and
             others may be from any thread (``UpdateStore.publish_update``).
+        insecure: listen without CURVE beyond loopback all the same (module docstring).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -229,13 +216,15 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
 
     Raises:
         ValueError: rate out of range, or a frame range with a step.
-        TransportError: a bad endpoint or a port in use.
+        TransportError: a bad endpoint, a port in use, or beyond loopback without keys or
+            ``insecure``.
         ModelFileError, KeyFileError: a missing or invalid model or key folder (named).
         LogError: the log cannot be written (named).
         CaptureError: no such camera, an unreadable or empty video (named).
     """
     _check_rate(rate_hz)
     control_at = control_endpoint(bind)
+    check_plaintext(bind, curve_dir, insecure)
     stop = stop if stop is not None else threading.Event()
     report = status if status is not None else (lambda _: None)
     model, data = _read_model(model_path)

@@ -42,6 +42,7 @@ def test_build_info_export(built, capsys):
     assert (summary["vertices"], summary["triangles"]) == (len(head.vertices),
                                                            len(head.triangles))
     assert summary["bytes"] == out.stat().st_size
+    assert out.stat().st_mode & 0o777 == 0o600  # a person's face: the owner's only
     assert summary["face_frames"] >= 70
     model = load_model(out)
     assert model.sha256 == summary["sha256"]

@@ -106,6 +106,7 @@ def test_keys_generate(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "k/id.key").is_file() and (tmp_path / "k/id.key_secret").is_file()
     assert (tmp_path / "k/authorized").is_dir()
+    assert (tmp_path / "k/id.key_secret").stat().st_mode & 0o777 == 0o600
     again = run("keys", "generate", str(tmp_path / "k"))
     assert again.returncode == 2 and "already exists" in again.stderr
 

@@ -15,8 +15,9 @@ import msgpack
 import numpy as np
 import pytest
 
+from facewire.protocol import log as log_module
 from facewire.protocol.control import Camera, Hello, encode_message
-from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
+from facewire.protocol.log import CHECK_FACTOR, RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 HELLO = Hello("0f" * 32, 4096, 30.0, Camera(500.0, 500.0, 320.0, 240.0, 640, 480),
@@ -135,6 +136,36 @@ def test_a_version_1_log_is_refused_naming_the_version(tmp_path: Path, packet_by
     with pytest.raises(LogError, match=message) as err:
         read_log(path)
     assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
+
+
+def test_forged_update_heads_cost_a_bounded_number_of_bytes_hashed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """4000 forged update heads in 1 MiB (issue 26 item 12), each declaring a body that
+    reaches almost to the end of that MiB, then 30 packet records: at most ``CHECK_FACTOR``
+    times the file is hashed (each head hashing its body would be about 2000 times), and the
+    packets after the heads are read."""
+    region = 1 << 20
+    heads = b"".join(struct.pack(">dBHI", 1.0, ord("U"), 1, region - 15 * i - 15 - 4 - 64)
+                     for i in range(4000))
+    path = tmp_path / "forged.fwlog"
+    _write(path, 0)
+    header = path.stat().st_size
+    _write(tmp_path / "tail.fwlog", 30)
+    with path.open("ab") as f:
+        f.write(heads + bytes(region - len(heads)))
+        f.write((tmp_path / "tail.fwlog").read_bytes()[header:])
+    hashed = [0]
+    crc32 = zlib.crc32
+
+    def counting(data: bytes, value: int = 0) -> int:
+        hashed[0] += len(data)
+        return crc32(data, value)
+
+    monkeypatch.setattr(log_module.zlib, "crc32", counting)
+    log = read_log(path)
+    assert len(log.times) == 30
+    assert CHECK_FACTOR <= 8  # the bound below: linear, with a small factor
+    assert hashed[0] <= 8 * path.stat().st_size + 2 * region, hashed[0]
 
 
 def test_missing_file(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 from pathlib import Path
 
@@ -153,3 +154,22 @@ def test_malformed_update_bytes_are_refused_naming_the_field(person_model: Path,
 def test_bytes_that_are_no_update_are_refused(person_model: Path, data: bytes) -> None:
     with pytest.raises(UpdateError):
         decode_update(data, load_model(person_model), BASE)
+
+
+def test_replacing_the_only_state_of_a_region_is_refused_naming_the_field(
+        person_model: Path) -> None:
+    """A region of one state: an update that replaces it is an ``UpdateError`` (it was an
+    IndexError, which killed a receiver's update fetcher)."""
+    model = load_model(person_model)
+    r = _region(model, "mouth")
+    one = dataclasses.replace(r, layers=r.layers[:1], templates=r.templates[:1],
+                              opacity=r.opacity[:1], rest=0.0,
+                              areas=tuple(dataclasses.replace(a, layers=a.layers[:1])
+                                          for a in r.areas))
+    single = dataclasses.replace(model, regions=tuple(one if x.name == "mouth" else x
+                                                      for x in model.regions))
+    fields = _fields(encode_update(_learned(model, "mouth"), model))
+    for replaces, position in ((0, 0), (0, 1), (1, 0)):
+        fields.update(replaces=replaces, position=position)
+        with pytest.raises(UpdateError, match="update 9: .*replaces"):
+            decode_update(msgpack.packb(fields, use_bin_type=True), single, BASE, "update 9")

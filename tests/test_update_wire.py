@@ -36,7 +36,12 @@ from facewire.protocol.transport import ControlClient, ControlServer, control_en
 from facewire.receiver.playout import FrameState
 from facewire.receiver.scene import StateRenderer
 from facewire.receiver.updates import UpdateFetcher
-from facewire.sender.responder import MAX_HELD_PER_PEER, Responder, answer_request
+from facewire.sender.responder import (
+    MAX_HELD_PER_PEER,
+    MAX_RECEIVERS_PER_CONNECTION,
+    Responder,
+    answer_request,
+)
 from facewire.sender.updates import UpdateStore
 
 SIZE = (160, 120)
@@ -183,3 +188,36 @@ def test_a_receiver_asking_too_many_chunks_at_once_is_told_to_ask_one_at_a_time(
     assert [r.index for r in replies if isinstance(r, UpdateChunk)] == \
         [index % 4 for index in range(count - 1)]
     assert server.responder.counts["errors"] == 1
+
+
+def test_forged_relay_hops_are_shaped_per_connection(session) -> None:
+    """One connection forging 300 relay hops with 7 update requests each (issue 26 item 5: it
+    got 1792 chunks in 3 s and filled every held reply): at most
+    ``MAX_RECEIVERS_PER_CONNECTION`` of its receivers are shaped at once, the rest are
+    refused at once, and a receiver on a connection of its own still gets its chunk."""
+    model, data, _ = session
+    endpoint = free_endpoint()
+    server = _Server(endpoint, model, data[:1], UpdateShaper())
+    attacker = ControlClient(control_endpoint(endpoint))
+    honest = ControlClient(control_endpoint(endpoint))
+    count = -(-len(data[0]) // 1024)
+    replies: list = []
+    try:
+        for hop in range(300):
+            for index in range(7):
+                attacker.socket.send_multipart([b"hop%d" % hop, b"", encode_message(
+                    UpdateRequest(model.sha256, 1, index % count))])
+        deadline = time.monotonic() + 3.0
+        while (left := deadline - time.monotonic()) > 0:
+            if attacker.socket.poll(round(left * 1000)):
+                replies.append(decode_message(attacker.socket.recv_multipart()[-1]))
+        mine = honest.request(UpdateRequest(model.sha256, 1, 0), 5000)
+    finally:
+        attacker.close()
+        honest.close()
+        server.close()
+    chunks = sum(isinstance(r, UpdateChunk) for r in replies)
+    # a shaped receiver gets at most 3 chunks per 1.1 s window: 9 in 3 s
+    assert 0 < chunks <= MAX_RECEIVERS_PER_CONNECTION * 9, chunks
+    assert any(isinstance(r, Error) and "of this connection" in r.message for r in replies)
+    assert isinstance(mine, UpdateChunk), mine

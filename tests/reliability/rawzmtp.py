@@ -6,10 +6,12 @@ to send what libzmq's own sockets never would: a frame header declaring a gigaby
     READY     flags 0x04 | size (1 byte) | b"\\x05READY" | b"\\x0bSocket-Type"
               | value length (4 bytes, big-endian) | value
     a long frame's header: flags 0x02 | size (8 bytes, big-endian)
+    a short frame:         flags (0x01: more frames follow) | size (1 byte) | body
 
 A peer sends its greeting and its READY and reads the other side's. Reads take exactly the
 bytes expected: ``recv`` on a socket with a timeout may return fewer, and libzmq sends its
-greeting in two parts.
+greeting in two parts. A CURVE greeting (``greeting(mechanism=b"CURVE")``) starts a handshake
+that the raw peer never finishes: what it sends then is what an unauthenticated peer can send.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ import time
 GIGABYTE = 1 << 30
 
 
-def greeting(as_server: bool) -> bytes:
-    return (b"\xff" + bytes(8) + b"\x7f\x03\x00" + b"NULL".ljust(20, b"\x00")
+def greeting(as_server: bool, mechanism: bytes = b"NULL") -> bytes:
+    return (b"\xff" + bytes(8) + b"\x7f\x03\x00" + mechanism.ljust(20, b"\x00")
             + bytes([as_server]) + bytes(31))
 
 
@@ -77,3 +79,34 @@ def declare_a_gigabyte(conn: socket.socket) -> float:
         while conn.recv(4096):
             pass
     return time.monotonic() - tick
+
+
+def frame(body: bytes, more: bool = False) -> bytes:
+    """One ZMTP frame carrying ``body`` (short or long form), with MORE set if asked."""
+    if len(body) < 256:
+        return bytes([int(more), len(body)]) + body
+    return bytes([0x02 | int(more)]) + struct.pack(">Q", len(body)) + body
+
+
+def connect_raw(port: int, mechanism: bytes = b"NULL") -> socket.socket:
+    """A connection to 127.0.0.1:``port`` that has sent its greeting only (and read the
+    other side's): a CURVE peer stops here, before its HELLO."""
+    conn = socket.create_connection(("127.0.0.1", port), timeout=10)
+    conn.sendall(greeting(False, mechanism))
+    assert read_exactly(conn, 64)[:1] == b"\xff"
+    return conn
+
+
+def stream(conn: socket.socket, data: bytes, total: int, seconds: float) -> int:
+    """Send ``data`` over and over until ``total`` bytes or ``seconds`` have gone, or the peer
+    closed the connection; the bytes sent."""
+    sent, deadline = 0, time.monotonic() + seconds
+    conn.settimeout(0.5)
+    while sent < total and time.monotonic() < deadline:
+        try:
+            sent += conn.send(data)
+        except TimeoutError:
+            continue
+        except OSError:  # reset or closed by the peer
+            break
+    return sent

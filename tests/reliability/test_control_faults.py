@@ -19,7 +19,7 @@ Sender side: ``sender.sender.send`` runs in a thread on a short grey clip, loopi
 DEALER sends garbage, random bytes, huge declared lengths, wrong types, indices out of range,
 a wrong sha256, messages that are no requests, a flood; each gets an ``Error`` reply (counted
 in the sender's ``control.errors``). Requests with broken framing are dropped unanswered
-(``ControlServer.recv``), a frame over ``protocol.transport.MAX_CONTROL_FRAME`` (sent, or only
+(``ControlServer.recv``), a frame over ``protocol.transport.MAX_REQUEST_FRAME`` (sent, or only
 declared by a raw TCP peer) ends that peer's connection at the frame's header; the sender
 keeps streaming and answers a good HelloRequest and every chunk afterwards.
 """
@@ -58,6 +58,7 @@ from facewire.protocol.control import (
 from facewire.protocol.packet import Flag, Frame, decode, encode
 from facewire.protocol.transport import (
     MAX_CONTROL_FRAME,
+    MAX_REQUEST_FRAME,
     ControlServer,
     PacketSubscriber,
     control_endpoint,
@@ -420,7 +421,7 @@ def _ask_bad_requests(dealer: Dealer, hello: Hello, data: bytes,
         refused(packb({"type": "model_request", "sha256": sha, "index": index}), "index")
     refused(encode_message(ModelRequest("0" * 64, 0)), sha)
     refused(encode_message(hello), "not a request")
-    refused(encode_message(model_chunks(data, sha)[0]), "not a request")
+    refused(encode_message(model_chunks(data[:100], sha)[0]), "not a request")
     refused(encode_message(Error(ESCAPES)), "not a request")
     for size in rng.integers(0, 300, 200):  # random bytes: almost never msgpack maps
         refused(rng.bytes(int(size)) or b"\xc1", "bad request")
@@ -444,7 +445,7 @@ def _send_broken_frames(dealer: Dealer, hello: Hello, port: int) -> None:
                          timeout_ms=300) is None  # 9 hops: more than MAX_HOPS
     relayed = dealer.frames(*[b"hop"] * 6, b"", request)
     assert relayed == hello  # 7 hops: answered along its envelope
-    assert dealer.ask(b"\x00" * (MAX_CONTROL_FRAME + 1), timeout_ms=500) is None
+    assert dealer.ask(b"\x00" * (MAX_REQUEST_FRAME + 1), timeout_ms=500) is None
     assert dealer.ask(encode_message(HelloRequest())) == hello
     with connect_as_dealer(port) as conn:
         assert declare_a_gigabyte(conn) < 5
