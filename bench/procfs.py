@@ -5,7 +5,7 @@
   spaces), divided by ``SC_CLK_TCK``.
 - Run-queue wait: the time its threads were ready to run but waiting for a core, the second
   field of each ``/proc/PID/task/TID/schedstat``, ns.
-- Resident memory: ``VmRSS`` of ``/proc/PID/status``, kB.
+- Resident memory: ``VmRSS`` of ``/proc/PID/status``, kB; its threads: ``Threads`` there.
 """
 
 from __future__ import annotations
@@ -46,7 +46,16 @@ def wait_seconds(pid: int) -> float:
 
 def rss_mb(pid: int) -> float:
     """The resident set size of a process, MB."""
+    return _status_field(pid, "VmRSS") / 1024
+
+
+def thread_count(pid: int) -> int:
+    """The threads of a process."""
+    return _status_field(pid, "Threads")
+
+
+def _status_field(pid: int, name: str) -> int:
     for line in _read(pid, "status").splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise ProcessGone(f"/proc/{pid}/status: no VmRSS")
+        if line.startswith(f"{name}:"):
+            return int(line.split()[1])
+    raise ProcessGone(f"/proc/{pid}/status: no {name}")

@@ -155,9 +155,10 @@ REOPEN_S = 8.0
 MAX_MESSAGE_BYTES = 256
 MAX_MESSAGES_PER_S = 5
 SEND_BUFFER_BYTES = 32 * 1024
+RECEIVE_BUFFER_BYTES = 16 * 1024
 MAX_BUFFER_BYTES = 16 * 1024
 MAX_VIEWERS = 4096
-MAX_PENDING = 64  # connections in their request (before the token is known)
+MAX_PENDING = 32  # connections in their request (before the token is known)
 EVICT_AFTER_S = 0.25
 OPEN_TIMEOUT_S = 5.0
 MAX_HEADERS = 32
@@ -447,6 +448,7 @@ class Gateway:
                 await asyncio.sleep(SWEEP_S)
                 self._forward()
                 self._sweep()
+                self.admission.tidy()
                 if self._status_to is not None and time.monotonic() >= next_status:
                     next_status = time.monotonic() + STATUS_S
                     self._status_to(self.status())
@@ -857,6 +859,10 @@ def _guarded(admission: Admission) -> type[ServerConnection]:
 
     class Guarded(ServerConnection):
         def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            transport.max_size = RECEIVE_BUFFER_BYTES  # type: ignore[attr-defined]
             super().connection_made(transport)
             if not admission.admit(transport):
                 transport.abort()

@@ -277,6 +277,7 @@ class LiveView:
             self._admission.release(transport)
             self._tasks.discard(task)
             transport.close()
+            self._admission.tidy()
 
     async def _request(self, reader: asyncio.StreamReader) -> str:
         """The path of a GET whose head is within the bounds (module docstring).

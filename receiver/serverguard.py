@@ -8,7 +8,11 @@ evicts the oldest pending one if that one has been pending for ``evict_after_s``
 (a client that trickles its request holds a slot for at most that long once others come),
 and is refused (closed at once) otherwise. The new connection is never the one evicted: a
 normal client's request takes milliseconds, so it gets through unless
-``pending_cap`` others arrive within that time.
+``pending_cap`` others arrive within that time. A request cut short leaves what was read of
+it in reference cycles (the parser's exception, its traceback, the frames' locals) that only
+the cyclic garbage collector frees: ``tidy`` runs it once ``TIDY_AFTER`` connections have
+ended since the last run, so that what attackers sent is freed within moments of their
+leaving, not at the collector's next full pass.
 
 Open files (``open_file_caps``). A connection is one file descriptor. The caps come from the
 soft ``RLIMIT_NOFILE`` (read, never raised) less the descriptors open when the server starts
@@ -32,6 +36,7 @@ dropped first).
 from __future__ import annotations
 
 import asyncio
+import gc
 import ipaddress
 import os
 import resource
@@ -45,6 +50,7 @@ FREE_FAILURES = 5
 BASE_DELAY_S = 0.05
 MAX_DELAY_S = 3.0
 MAX_ADDRESSES = 4096
+TIDY_AFTER = 32
 
 
 def open_file_caps(wanted: int) -> tuple[int, int]:
@@ -82,6 +88,7 @@ class Admission:
         self._open: set[asyncio.BaseTransport] = set()
         self.evicted = 0
         self.refused = 0
+        self._ended = 0
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._open)
@@ -109,6 +116,14 @@ class Admission:
         """A connection has ended."""
         self._pending.pop(transport, None)
         self._open.discard(transport)
+        self._ended += 1
+
+    def tidy(self) -> None:
+        """Collect the garbage of the connections that ended, once ``TIDY_AFTER`` have
+        (module docstring)."""
+        if self._ended >= TIDY_AFTER:
+            self._ended = 0
+            gc.collect()
 
     def close_all(self) -> None:
         """Close every connection held (each flushes what it has to send first)."""
