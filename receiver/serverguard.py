@@ -12,7 +12,8 @@ normal client's request takes milliseconds, so it gets through unless
 it in reference cycles (the parser's exception, its traceback, the frames' locals) that only
 the cyclic garbage collector frees: ``tidy`` runs it once ``TIDY_AFTER`` connections have
 ended since the last run, so that what attackers sent is freed within moments of their
-leaving, not at the collector's next full pass.
+leaving, not at the collector's next full pass; then glibc's ``malloc_trim(0)`` hands the
+freed pages back to the system (glibc keeps them otherwise, between the packets' buffers).
 
 Open files (``open_file_caps``). A connection is one file descriptor. The caps come from the
 soft ``RLIMIT_NOFILE`` (read, never raised) less the descriptors open when the server starts
@@ -36,6 +37,8 @@ dropped first).
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import gc
 import ipaddress
 import os
@@ -51,6 +54,20 @@ BASE_DELAY_S = 0.05
 MAX_DELAY_S = 3.0
 MAX_ADDRESSES = 4096
 TIDY_AFTER = 32
+
+
+def _glibc() -> ctypes.CDLL | None:
+    """The C library when it is glibc (it has ``malloc_trim``), else None."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        return libc
+    except (OSError, AttributeError, TypeError):
+        return None
+
+
+_LIBC = _glibc()
 
 
 def open_file_caps(wanted: int) -> tuple[int, int]:
@@ -124,6 +141,8 @@ class Admission:
         if self._ended >= TIDY_AFTER:
             self._ended = 0
             gc.collect()
+            if _LIBC is not None:
+                _LIBC.malloc_trim(0)
 
     def close_all(self) -> None:
         """Close every connection held (each flushes what it has to send first)."""
