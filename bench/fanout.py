@@ -396,7 +396,8 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
             status(f"page: the gateway's page in headless Chromium, {page_seconds:g} s")
             gateway.check()
             try:
-                page_result = measure_page(f"http://127.0.0.1:{port}/?token={token}", page_seconds, folder)
+                page_result = measure_page(f"http://127.0.0.1:{port}/?token={token}",
+                                           page_seconds, folder)
                 status(format_page(page_result))
             except ChromiumMissing as missing:
                 skipped = str(missing)

@@ -864,6 +864,7 @@ def _guarded(admission: Admission) -> type[ServerConnection]:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
             transport.max_size = RECEIVE_BUFFER_BYTES  # type: ignore[attr-defined]
             super().connection_made(transport)
+            assert isinstance(transport, asyncio.Transport)  # a TCP connection's
             if not admission.admit(transport):
                 transport.abort()
 

@@ -101,8 +101,8 @@ class Admission:
     def __init__(self, total_cap: int, pending_cap: int, evict_after_s: float) -> None:
         self.total_cap, self.pending_cap = total_cap, max(1, min(pending_cap, total_cap))
         self.evict_after_s = evict_after_s
-        self._pending: OrderedDict[asyncio.BaseTransport, float] = OrderedDict()
-        self._open: set[asyncio.BaseTransport] = set()
+        self._pending: OrderedDict[asyncio.WriteTransport, float] = OrderedDict()
+        self._open: set[asyncio.WriteTransport] = set()
         self.evicted = 0
         self.refused = 0
         self._ended = 0
@@ -110,7 +110,7 @@ class Admission:
     def __len__(self) -> int:
         return len(self._pending) + len(self._open)
 
-    def admit(self, transport: asyncio.BaseTransport) -> bool:
+    def admit(self, transport: asyncio.WriteTransport) -> bool:
         """A new connection: True if it is held (pending), False if refused (the caller
         closes it). May abort the oldest pending connection to make room."""
         if len(self._pending) >= self.pending_cap or len(self) >= self.total_cap:
@@ -124,12 +124,12 @@ class Admission:
         self._pending[transport] = time.monotonic()
         return True
 
-    def promote(self, transport: asyncio.BaseTransport) -> None:
+    def promote(self, transport: asyncio.WriteTransport) -> None:
         """A pending connection is now a viewer: it is never evicted."""
         if self._pending.pop(transport, None) is not None:
             self._open.add(transport)
 
-    def release(self, transport: asyncio.BaseTransport) -> None:
+    def release(self, transport: asyncio.WriteTransport) -> None:
         """A connection has ended."""
         self._pending.pop(transport, None)
         self._open.discard(transport)

@@ -82,6 +82,20 @@ def measure(pid: int, attack: Callable[[Meanwhile], None], meanwhile: Meanwhile)
     return Cost(rss0, peak[0], rss_mb(pid), threads0, int(peak[1]), thread_count(pid))
 
 
+def settle(pid: int, timeout: float = 30.0) -> None:
+    """Wait until a process's memory and threads hold still for a second (it has started:
+    model fetched, renderer made), so that an attack's cost is the attack's."""
+    deadline = time.monotonic() + timeout
+    last = (rss_mb(pid), thread_count(pid))
+    while time.monotonic() < deadline:
+        time.sleep(1.0)
+        now = (rss_mb(pid), thread_count(pid))
+        if abs(now[0] - last[0]) < 1.0 and now[1] == last[1]:
+            return
+        last = now
+    raise AssertionError(f"process {pid} does not settle: {last[0]:.0f} MB, {last[1]} threads")
+
+
 def get(url: str, headers: dict[str, str] | None = None,
         timeout: float = 5.0) -> tuple[int, bytes]:
     """GET ``url``: (status, body)."""
