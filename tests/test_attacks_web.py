@@ -254,13 +254,16 @@ def test_web_at_the_open_files_limit_answers_the_page_and_logs_one_line(
         assert len(errors) <= 1, errors  # at most one line per 10 s, none here
         evil = {"Host": f"evil.example:{port}", "Origin": f"http://evil.example:{port}"}
         assert get(url, evil)[0] == 403
-        with pytest.raises(InvalidStatus, match="403"):
-            connect(url.replace("http://", "ws://").replace("/?", "/stream?"),
-                    additional_headers=evil)
+        upgrade = raw_request(port, f"GET /stream?token={TOKEN} HTTP/1.1\r\nHost: evil.example:"
+                              f"{port}\r\nOrigin: http://evil.example:{port}\r\nUpgrade: "
+                              f"websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: "
+                              f"dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+                              .encode())
+        assert upgrade.startswith(b"HTTP/1.1 403"), upgrade[:100]
         assert get(url, {"Host": f"watch.example:{port}"})[0] == 200
-        for twice in ("Host", "Origin"):
+        for twice in ("Host: a.example\r\n", "Origin: http://a.example\r\n" * 2):
             answer = raw_request(port, f"GET /stream?token={TOKEN} HTTP/1.1\r\nHost: 127.0.0.1:"
-                                 f"{port}\r\n{twice}: a.example\r\n\r\n".encode())
+                                 f"{port}\r\n{twice}\r\n".encode())
             assert answer.startswith(b"HTTP/1.1 400"), answer[:100]
         assert tracebacks(process.err) == 0
     finally:
