@@ -93,7 +93,7 @@ hands its results to the loop the same way; only the loop touches the viewers.
 Stopping: ``stop`` set (Ctrl-C and SIGTERM in the CLI): the server closes every WebSocket
 (1001, going away), the upstream thread and the reader end, the summary is returned.
 
-Size: this module is some 750 lines, the docstring above about 110 of them; the server
+Size: this module is some 900 lines, the docstring above about 125 of them; the server
 (``Gateway``) and its upstream thread (``Upstream``) hand each other results at every step,
 and the receiving parts they use already live apart (``receiver.packetreader``,
 ``receiver.acquire``, ``receiver.updates``).
