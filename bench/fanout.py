@@ -83,6 +83,7 @@ from facewire.protocol.transport import (
     control_endpoint,
     free_loopback_endpoint,
 )
+from facewire.receiver.gateway import TOKEN_ENV, new_token
 from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
@@ -167,7 +168,7 @@ class _Process:
     """A child process with its stderr in a file, stopped by SIGINT (killed if stuck)."""
 
     def __init__(self, args: list[str], name: str, folder: Path,
-                 stdio: bool = False) -> None:
+                 stdio: bool = False, env: dict[str, str] | None = None) -> None:
         self.name = name
         self.err_path = folder / f"{name}.err"
         with open(self.err_path, "w") as err:
@@ -175,7 +176,7 @@ class _Process:
                 [sys.executable, *args], stderr=err,
                 stdin=subprocess.PIPE if stdio else subprocess.DEVNULL,
                 stdout=subprocess.PIPE if stdio else subprocess.DEVNULL,
-                text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+                text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1", **(env or {})})
 
     def check(self) -> None:
         """Raise ``FanoutError`` if the process has exited."""
@@ -371,11 +372,12 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
         relay = _Process(["-m", "facewire.cli", "relay", "--in", sender.endpoint, "--out",
                           relay_out], "relay", folder)
         stack.callback(relay.stop)
+        token = new_token()
         gateway = _Process(["-m", "facewire.cli", "web", "--connect", relay_out, "--http",
-                            f"127.0.0.1:{port}"], "gateway", folder)
+                            f"127.0.0.1:{port}"], "gateway", folder, env={TOKEN_ENV: token})
         stack.callback(gateway.stop)
         _wait_listening(port, gateway)
-        targets = {"websocket": (f"ws://127.0.0.1:{port}/stream", gateway),
+        targets = {"websocket": (f"ws://127.0.0.1:{port}/stream?token={token}", gateway),
                    "zmq": (relay_out, relay)}
         for n, kind in ((n, kind) for n in viewers for kind in KINDS):
             if runs:
@@ -394,7 +396,8 @@ def measure_fanout(model_path: str | os.PathLike[str], source: str | os.PathLike
             status(f"page: the gateway's page in headless Chromium, {page_seconds:g} s")
             gateway.check()
             try:
-                page_result = measure_page(f"http://127.0.0.1:{port}/", page_seconds, folder)
+                page_result = measure_page(f"http://127.0.0.1:{port}/?token={token}",
+                                           page_seconds, folder)
                 status(format_page(page_result))
             except ChromiumMissing as missing:
                 skipped = str(missing)

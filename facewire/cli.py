@@ -9,10 +9,12 @@ benchmark whose target is missed exits with status 1.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, TypeAlias, TypeVar
 
 from facewire.protocol.errors import FacewireError
@@ -186,14 +188,49 @@ def _relay(args: argparse.Namespace) -> int:
 
 
 def _web(args: argparse.Namespace) -> int:
-    from facewire.receiver.gateway import DEFAULT_HTTP, parse_http, remote_warning, serve_gateway
+    from facewire.receiver.gateway import (
+        DEFAULT_HTTP,
+        TOKEN_ENV,
+        check_hosts,
+        check_token,
+        new_token,
+        parse_http,
+        read_token_file,
+        remote_warning,
+        serve_gateway,
+        shown_url,
+    )
     from facewire.report import report
 
     http = args.http or DEFAULT_HTTP
     host, _ = parse_http(http, args.allow_remote)
-    warning = remote_warning(host, args.token)
+    hosts = tuple(args.host or ())
+    check_hosts(hosts, args.allow_remote)
+    warning = remote_warning(host)
     if warning is not None:
         print(f"facewire web: {warning}", file=sys.stderr)
+    opener: Path | None = None
+    if args.token is not None:
+        check_token(args.token)
+        print("facewire web: warning: --token shows the token to every user of this machine "
+              f"(ps); use --token-file FILE or {TOKEN_ENV}", file=sys.stderr)
+        token, where = args.token, "--token"
+    elif args.token_file is not None:
+        token, where = read_token_file(args.token_file), args.token_file
+    elif os.environ.get(TOKEN_ENV):
+        token, where = os.environ[TOKEN_ENV], TOKEN_ENV
+        check_token(token, TOKEN_ENV)
+    else:
+        token, where = new_token(), None
+
+    def opened(url: str) -> None:
+        nonlocal opener
+        if where is not None:
+            say(f"open {shown_url(url)} with the token of {where} (Ctrl-C stops)")
+            return
+        opener = _page_opener(url)
+        say(f"open file://{opener} : it opens {shown_url(url)} with its token, made for this "
+            f"run (Ctrl-C stops)")
 
     def status(t: dict) -> str:
         return (f"{t['seconds']:7.1f} s  sender {t['sender']}  model {t['model'] or '-'} "
@@ -211,12 +248,13 @@ def _web(args: argparse.Namespace) -> int:
                       flush=True)
                 line.width = 0
 
-            s = serve_gateway(args.connect, http, args.curve_dir, args.token,
-                              args.allow_remote, stop=stop, say=say, status=line,
-                              ready=lambda url: say(f"open {url} (Ctrl-C stops)"))
+            s = serve_gateway(args.connect, http, args.curve_dir, token, args.allow_remote,
+                              stop=stop, say=say, status=line, ready=opened, hosts=hosts)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if opener is not None:
+            opener.unlink(missing_ok=True)
     report(s, [f"forwarded {s['forwarded']} packets ({s['corrupt']} corrupt dropped, "
                f"{s['held']} before a model) in {s['seconds']} s to at most {s['viewers_max']} "
                f"viewers ({s['viewers_total']} in all; cut off: {s['dropped_junk']} for junk, "
@@ -225,6 +263,20 @@ def _web(args: argparse.Namespace) -> int:
                f"{s['http_served']} files served, {s['http_refused']} requests refused"],
            args.json)
     return 0
+
+
+def _page_opener(url: str) -> Path:
+    """A private (0600) HTML file that sends a browser to ``url``: the way to the page whose
+    token is shown nowhere."""
+    import html
+    import tempfile
+
+    fd, name = tempfile.mkstemp(prefix="facewire-web-", suffix=".html")
+    link = html.escape(url)
+    with os.fdopen(fd, "w", encoding="utf-8") as file:
+        file.write(f'<!doctype html><meta charset="utf-8"><meta http-equiv="refresh" '
+                   f'content="0; url={link}"><a href="{link}">facewire web</a>\n')
+    return Path(name)
 
 
 class _StatusLine:
@@ -866,10 +918,16 @@ def _add_tools(sub: Commands) -> None:
     w.add_argument("--http", metavar="HOST:PORT",
                    help="where to serve the page and the WebSocket (default 127.0.0.1:8080; "
                    "port 0: any free one)")
-    w.add_argument("--token", help="require ?token=TOKEN on every request (the page's URL "
-                   "carries it)")
+    w.add_argument("--token-file", metavar="FILE", help="the token every request carries "
+                   "(?token=, in the page's URL) is the first line of FILE, made with a new "
+                   "token if it does not exist (default: $FACEWIRE_TOKEN, or a new token for "
+                   "this run, told in a private file)")
+    w.add_argument("--token", help=argparse.SUPPRESS)  # shown by ps: kept, with a warning
     w.add_argument("--allow-remote", action="store_true", help="serve on an address other "
-                   "than loopback (plain HTTP: unencrypted; use --token)")
+                   "than loopback (plain HTTP: unencrypted)")
+    w.add_argument("--host", action="append", metavar="NAME", help="with --allow-remote: a "
+                   "DNS name the page is opened by (repeatable); requests naming another "
+                   "name are refused (DNS rebinding)")
     _add_json(w)
     w.set_defaults(run=_web)
 

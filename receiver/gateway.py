@@ -36,10 +36,14 @@ viewer, once the gateway has the model the current Hello names (before that, ``h
 
 Downstream (``websockets``' asyncio server on the calling thread's event loop)
 -----------------------------------------------------------------------------
-One port, ``--http HOST:PORT``. Every request (page, model, WebSocket) must name a loopback
-host in its ``Host`` header unless ``allow_remote`` (``protocol.loopback``: DNS rebinding),
-and carry ``?token=T`` when the gateway has a token (compared in constant time); 403
-otherwise. Plain GETs are answered in ``process_request``:
+One port, ``--http HOST:PORT``. Every request (page, model, WebSocket) must name in its
+``Host`` header a loopback host, or with ``allow_remote`` a loopback host, an IP address or
+one of the names the user gave (``hosts``; ``protocol.loopback``: DNS rebinding), and carry
+``?token=T`` (compared in constant time); 403 otherwise, 400 for two ``Host`` or ``Origin``
+headers. A gateway always has a token: the user's (16 to 256 URL-safe characters), or
+``secrets.token_urlsafe(TOKEN_BYTES)`` (256 random bits). A wrong token earns
+its address a delay (``serverguard.FailureThrottle``); the token is never in the summary
+(``shown_url``). Plain GETs are answered in ``process_request``:
 
 - ``/`` (``index.html``) and ``/NAME.js|.css|.html``: the page's files, read once at start
   from the installed package (``importlib.resources``, ``facewire.receiver/web``);
@@ -72,8 +76,14 @@ gateway's; every ``SWEEP_S`` a page with more than ``MAX_BUFFER_BYTES`` unsent i
 others; at 1.35 kB/s it is dropped once its own receive buffer and these are full (a minute
 or more), unless ``websockets``' keepalive ping (20 s, then 20 s for the answer) closed it
 first.
-At most ``MAX_VIEWERS`` WebSockets at once (503 beyond). HTTP requests are ``websockets``'
-own parser's (its limits on lines and headers; ``open_timeout`` for a slow client).
+Before the token is checked, a connection costs at most its request: ``websockets``' parser
+with at most ``MAX_HEADERS`` headers of ``MAX_LINE_BYTES`` each (set in ``websockets.http11``
+for the process), ``OPEN_TIMEOUT_S`` for the whole handshake. Connections are admitted by
+``serverguard.Admission``: at most ``MAX_PENDING`` in their request (the oldest evicted after
+``EVICT_AFTER_S`` when more come), at most ``MAX_VIEWERS`` WebSockets (503 beyond), both caps
+below the open-files limit (``serverguard.open_file_caps``); errors the event loop reports
+(``accept`` failing with EMFILE...) are one line per ``ERROR_EVERY_S``
+(``serverguard.QuietErrors``), never a traceback.
 
 Threads: the event loop (the caller's thread: HTTP, WebSockets, forwarding, the status), the
 packet reader, the upstream thread (Hello, model, the web bodies) and the update fetcher.
@@ -83,7 +93,7 @@ hands its results to the loop the same way; only the loop touches the viewers.
 Stopping: ``stop`` set (Ctrl-C and SIGTERM in the CLI): the server closes every WebSocket
 (1001, going away), the upstream thread and the reader end, the summary is returned.
 
-Size: this module is some 750 lines, the docstring above about 110 of them; the server
+Size: this module is some 900 lines, the docstring above about 125 of them; the server
 (``Gateway``) and its upstream thread (``Upstream``) hand each other results at every step,
 and the receiving parts they use already live apart (``receiver.packetreader``,
 ``receiver.acquire``, ``receiver.updates``).
@@ -97,9 +107,12 @@ import dataclasses
 import email.utils
 import gzip
 import hmac
+import ipaddress
 import json
 import logging
+import os
 import re
+import secrets
 import socket
 import threading
 import time
@@ -110,6 +123,7 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+import websockets.http11
 from websockets.asyncio.server import ServerConnection, broadcast, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
@@ -126,6 +140,7 @@ from facewire.protocol.transport import PacketSubscriber, control_endpoint
 from facewire.receiver.acquire import ControlChannel, ModelAcquirer
 from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.packetreader import PacketReader
+from facewire.receiver.serverguard import Admission, FailureThrottle, QuietErrors, open_file_caps
 from facewire.receiver.updates import UpdateFetcher
 
 DEFAULT_HTTP = "127.0.0.1:8080"
@@ -140,8 +155,17 @@ REOPEN_S = 8.0
 MAX_MESSAGE_BYTES = 256
 MAX_MESSAGES_PER_S = 5
 SEND_BUFFER_BYTES = 32 * 1024
+RECEIVE_BUFFER_BYTES = 16 * 1024
 MAX_BUFFER_BYTES = 16 * 1024
 MAX_VIEWERS = 4096
+MAX_PENDING = 32  # connections in their request (before the token is known)
+EVICT_AFTER_S = 0.25
+OPEN_TIMEOUT_S = 5.0
+MAX_HEADERS = 32
+MAX_LINE_BYTES = 8192
+ERROR_EVERY_S = 10.0
+TOKEN_BYTES = 32
+TOKEN_ENV = "FACEWIRE_TOKEN"
 SWEEP_S = 0.25
 STATUS_S = 0.5
 MODELS_KEPT = 4
@@ -151,12 +175,16 @@ _FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html))")
 _MODEL = re.compile(r"/model/(?P<sha>[0-9a-f]{64})\.(?P<kind>glb|rig)")
 _UPDATE = re.compile(r"/model/(?P<sha>[0-9a-f]{64})/(?P<serial>[1-9][0-9]{0,3})\.upd")
 _HTTP = re.compile(r"(?P<host>\[[^\]]+\]|[^:\[\]]*):(?P<port>[0-9]{1,5})")
-_TOKEN = re.compile(r"[A-Za-z0-9._~-]{1,256}")
+_TOKEN = re.compile(r"[A-Za-z0-9._~-]{16,256}")
+_NAME = re.compile(r"(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
           ".css": "text/css; charset=utf-8"}
 _QUIET = logging.getLogger("facewire.gateway.websockets")  # websockets' own log: not shown
 _QUIET.addHandler(logging.NullHandler())
 _QUIET.propagate = False
+# websockets reads these two at each request it parses: the gateway's bounds, process-wide.
+websockets.http11.MAX_NUM_HEADERS = MAX_HEADERS
+websockets.http11.MAX_LINE_LENGTH = MAX_LINE_BYTES
 
 Say = Callable[[str], None]
 Status = Callable[[dict[str, Any]], None]
@@ -198,23 +226,79 @@ def parse_http(address: str, allow_remote: bool) -> tuple[str, int]:
         raise GatewayError(
             f"--http {address}: refusing to serve beyond this host: the page, the model and "
             f"the face stream go out unencrypted (plain HTTP); pass --allow-remote to serve "
-            f"on {host} (and --token T so that only those given the URL can watch)")
+            f"on {host} (and --host NAME for each name the page is opened by)")
     return host, int(m["port"])
 
 
-def remote_warning(host: str, token: str | None) -> str | None:
+def remote_warning(host: str) -> str | None:
     """The warning for serving on ``host`` (None on loopback), as ``send`` warns."""
     if is_loopback(host):
         return None
-    return (f"warning: {host} is reachable from the network and the page, the model and the "
-            f"face stream are served unencrypted (plain HTTP)"
-            + ("" if token else "; anyone who reaches the port can watch: add --token T"))
+    return (f"warning: {host} is reachable from the network and the page, the model, the "
+            f"face stream and the token in its URL go out unencrypted (plain HTTP)")
 
 
-def check_token(token: str | None) -> None:
-    """A token must be 1 to 256 characters that need no escaping in a URL."""
-    if token is not None and not _TOKEN.fullmatch(token):
-        raise GatewayError("--token: expected 1 to 256 of the characters A-Z a-z 0-9 . _ ~ -")
+def check_token(token: str, where: str = "--token") -> None:
+    """A token must be 16 to 256 characters that need no escaping in a URL.
+
+    Raises:
+        GatewayError: naming ``where`` the token came from.
+    """
+    if not _TOKEN.fullmatch(token):
+        raise GatewayError(f"{where}: expected 16 to 256 of the characters A-Z a-z 0-9 . _ ~ "
+                           f"- (got {len(token)} characters); leave the token out to have one "
+                           f"of {8 * TOKEN_BYTES} random bits made")
+
+
+def new_token() -> str:
+    """A token of ``TOKEN_BYTES`` random bytes, URL-safe base64."""
+    return secrets.token_urlsafe(TOKEN_BYTES)
+
+
+def read_token_file(path: str) -> str:
+    """The token in the first line of ``path``; a file that does not exist is made (0600)
+    with a new token.
+
+    Raises:
+        GatewayError: the file cannot be read or made, or its token is not a valid one.
+    """
+    token = new_token()
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        try:
+            with open(path, encoding="utf-8") as file:
+                token = file.readline().strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise GatewayError(f"--token-file {path}: cannot read it: {exc}") from None
+        check_token(token, f"--token-file {path}")
+        return token
+    except OSError as exc:
+        raise GatewayError(f"--token-file {path}: cannot make it: {exc.strerror}") from None
+    with os.fdopen(fd, "w", encoding="utf-8") as file:
+        file.write(token + "\n")
+    return token
+
+
+def check_hosts(hosts: tuple[str, ...], allow_remote: bool) -> None:
+    """``--host NAME``: DNS names, and only with ``allow_remote``.
+
+    Raises:
+        GatewayError: a name that is not a DNS name, or names without ``allow_remote``.
+    """
+    if hosts and not allow_remote:
+        raise GatewayError("--host: only with --allow-remote (on loopback the page is opened "
+                           "by a loopback name)")
+    for name in hosts:
+        if not _NAME.fullmatch(name):
+            raise GatewayError(f"--host {name!r}: expected a DNS name such as "
+                               f"watch.example.org")
+
+
+def shown_url(url: str) -> str:
+    """``url`` with its token cut to its first 4 characters (for terminals and logs)."""
+    base, sep, token = url.partition("?token=")
+    return base + (f"?token={token[:4]}..." if sep else "")
 
 
 def serve_gateway(connect: str, http: str = DEFAULT_HTTP,
@@ -222,20 +306,23 @@ def serve_gateway(connect: str, http: str = DEFAULT_HTTP,
                   allow_remote: bool = False, cache_dir: str | None = None,
                   stop: threading.Event | None = None, say: Say | None = None,
                   status: Status | None = None,
-                  ready: Callable[[str], None] | None = None) -> dict[str, Any]:
+                  ready: Callable[[str], None] | None = None,
+                  hosts: tuple[str, ...] = ()) -> dict[str, Any]:
     """Serve browsers the stream of the sender at ``connect`` until ``stop`` is set.
 
     Args:
         connect: the sender's (or a relay's) packet address ``tcp://HOST:PORT``.
         http: where to serve, ``HOST:PORT`` (port 0: any free one).
         curve_dir: a CURVE key folder (``protocol.keys.client_keys``).
-        token: when given, every request must carry ``?token=`` it.
-        allow_remote: serve on a host that is not loopback, and accept any ``Host`` header.
+        token: every request must carry ``?token=`` it; None: one is made (``new_token``).
+        allow_remote: serve on a host that is not loopback, and accept a ``Host`` header
+            that is an IP address or one of ``hosts``.
         cache_dir: the model cache folder (``receiver.modelcache.default_folder`` if None).
         stop: set it (from another thread or a signal handler) to stop.
         say: called with a line of text at each event (sender found or lost, model...).
         status: called every ``STATUS_S`` with the live counts (``Gateway.status``).
         ready: called once serving, with the page's URL (the token included).
+        hosts: with ``allow_remote``, the names (DNS) the page may be opened by.
 
     Returns:
         The summary (``Gateway.summary``).
@@ -247,12 +334,44 @@ def serve_gateway(connect: str, http: str = DEFAULT_HTTP,
             key folder; the packet socket failed.
     """
     host, port = parse_http(http, allow_remote)
+    check_hosts(hosts, allow_remote)
+    if token is None:
+        token = new_token()
     check_token(token)
     control_endpoint(connect)  # checks the address (TransportError)
     curve = client_keys(curve_dir) if curve_dir is not None else None
-    gateway = Gateway(connect, curve, ModelCache(cache_dir), token, allow_remote,
+    access = Access(token, allow_remote, frozenset(name.lower() for name in hosts))
+    gateway = Gateway(connect, curve, ModelCache(cache_dir), access,
                       stop or threading.Event(), say, status)
     return asyncio.run(gateway.run(host, port, ready))
+
+
+@dataclasses.dataclass(frozen=True)
+class Access:
+    """Who is answered: the token every request carries, and the ``Host`` names allowed."""
+
+    token: str
+    allow_remote: bool
+    hosts: frozenset[str]
+
+    def host_allowed(self, header: str) -> bool:
+        """A ``Host`` header names loopback, or with ``allow_remote`` an IP address or one of
+        ``hosts`` (module docstring)."""
+        if host_header_is_loopback(header):
+            return True
+        if not self.allow_remote:
+            return False
+        try:
+            name = urlsplit(f"//{header}").hostname
+        except ValueError:
+            return False
+        if name is None:
+            return False
+        try:
+            ipaddress.ip_address(name)
+            return True
+        except ValueError:
+            return name in self.hosts
 
 
 class Gateway:
@@ -263,10 +382,15 @@ class Gateway:
     """
 
     def __init__(self, connect: str, curve: CurveClient | None, cache: ModelCache,
-                 token: str | None, allow_remote: bool, stop: threading.Event,
-                 say: Say | None, status: Status | None) -> None:
+                 access: Access, stop: threading.Event, say: Say | None,
+                 status: Status | None) -> None:
         self.connect, self.curve, self.cache = connect, curve, cache
-        self.token, self.allow_remote, self.stop = token, allow_remote, stop
+        self.access, self.stop = access, stop
+        self.throttle = FailureThrottle()
+        total, self.backlog = open_file_caps(MAX_VIEWERS + MAX_PENDING)
+        pending = min(MAX_PENDING, max(1, total // 2))
+        self.max_viewers = max(1, total - pending)
+        self.admission = Admission(total, pending, EVICT_AFTER_S)
         self._say_to, self._status_to = say, status
         self._say_lock = threading.Lock()
         self.viewers: set[ServerConnection] = set()
@@ -300,17 +424,19 @@ class Gateway:
     async def run(self, host: str, port: int, ready: Callable[[str], None] | None
                   ) -> dict[str, Any]:
         self._loop = asyncio.get_running_loop()
+        self._loop.set_exception_handler(QuietErrors(self.say, "connections", ERROR_EVERY_S))
         try:
             server = await serve(self._viewer, host, port, process_request=self._http,
                                  compression=None, max_size=MAX_MESSAGE_BYTES, max_queue=4,
-                                 logger=_QUIET)
+                                 logger=_QUIET, open_timeout=OPEN_TIMEOUT_S,
+                                 backlog=self.backlog,
+                                 create_connection=_guarded(self.admission))
         except OSError as exc:
             raise GatewayError(f"--http {host}:{port}: cannot serve there: "
                                f"{exc.strerror or exc}") from None
         bound = server.sockets[0].getsockname()
         shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
-        self.url = f"http://{shown}:{bound[1]}/" + (f"?token={self.token}" if self.token
-                                                    else "")
+        self.url = f"http://{shown}:{bound[1]}/?token={self.access.token}"
         try:
             self.reader = PacketReader(lambda: PacketSubscriber(self.connect, self.curve),
                                        QUEUE_PACKETS, REOPEN_S, self._wake)
@@ -322,6 +448,7 @@ class Gateway:
                 await asyncio.sleep(SWEEP_S)
                 self._forward()
                 self._sweep()
+                self.admission.tidy()
                 if self._status_to is not None and time.monotonic() >= next_status:
                     next_status = time.monotonic() + STATUS_S
                     self._status_to(self.status())
@@ -479,6 +606,7 @@ class Gateway:
             first += [self.hello_json, self.model_json, *self.update_json]
         for text in first:
             broadcast([viewer], text)
+        self.admission.promote(viewer.transport)
         self.viewers.add(viewer)
         self.counts["viewers_total"] += 1
         self.viewers_max = max(self.viewers_max, len(self.viewers))
@@ -507,31 +635,41 @@ class Gateway:
 
     # -- HTTP --------------------------------------------------------------------------------
 
-    def _http(self, connection: ServerConnection, request: Request) -> Response | None:
+    async def _http(self, connection: ServerConnection, request: Request) -> Response | None:
         """A plain GET answered, or None to open the WebSocket (module docstring)."""
         url = urlsplit(request.path)
         headers = request.headers
-        if not self.allow_remote and not host_header_is_loopback(headers.get("Host")):
+        hosts, origins = headers.get_all("Host"), headers.get_all("Origin")
+        if len(hosts) > 1 or len(origins) > 1:
+            return self._refuse(HTTPStatus.BAD_REQUEST, "one Host and at most one Origin "
+                                "header, please")
+        host = hosts[0] if hosts else ""
+        if not self.access.host_allowed(host):
             return self._refuse(HTTPStatus.FORBIDDEN, "this gateway answers only requests "
-                                "to a loopback host")
-        if self.token is not None:
-            given = parse_qs(url.query).get("token", [""])[0]
-            if not hmac.compare_digest(given.encode(), self.token.encode()):
-                return self._refuse(HTTPStatus.FORBIDDEN, "wrong or missing ?token=")
-        upgrade = "websocket" in headers.get("Upgrade", "").lower()
+                                "to a loopback host" + (", an IP address or a name given by "
+                                                        "--host" if self.access.allow_remote
+                                                        else ""))
+        given = parse_qs(url.query).get("token", [""])[0]
+        if not hmac.compare_digest(given.encode(), self.access.token.encode()):
+            address = connection.remote_address[0] if connection.remote_address else None
+            delay = self.throttle.delay(address)
+            self.throttle.failed(address)
+            if delay > 0:
+                await asyncio.sleep(delay)
+            return self._refuse(HTTPStatus.FORBIDDEN, "wrong or missing ?token=")
+        upgrade = "websocket" in ",".join(headers.get_all("Upgrade")).lower()
         if url.path == "/stream" and upgrade:
-            origin = headers.get("Origin")
-            if origin is not None and urlsplit(origin).netloc != headers.get("Host"):
+            if origins and urlsplit(origins[0]).netloc != host:
                 return self._refuse(HTTPStatus.FORBIDDEN, "the stream is for this "
                                     "gateway's own page (Origin)")
-            if len(self.viewers) >= MAX_VIEWERS:
+            if len(self.viewers) >= self.max_viewers:
                 return self._refuse(HTTPStatus.SERVICE_UNAVAILABLE, "too many viewers")
             return None
         body = None if upgrade else self._body(url.path)
         if body is None:
             return self._refuse(HTTPStatus.NOT_FOUND, f"no {url.path[:100]} here")
         self.counts["http_served"] += 1
-        gz = body.gz is not None and _accepts_gzip(headers.get("Accept-Encoding", ""))
+        gz = body.gz is not None and _accepts_gzip(",".join(headers.get_all("Accept-Encoding")))
         data = body.gz if gz and body.gz is not None else body.raw
         response = Headers([("Date", email.utils.formatdate(usegmt=True)),
                             ("Connection", "close"), ("Content-Type", body.kind),
@@ -577,8 +715,8 @@ class Gateway:
                 "seconds": round(time.monotonic() - self.started, 1)}
 
     def summary(self) -> dict[str, Any]:
-        """``connect``, ``url``, ``seconds``; packets ``forwarded`` (and their bytes),
-        ``held`` (before a model), ``corrupt`` (and ``corrupt_REASON``), ``overflow``;
+        """``connect``, ``url`` (``shown_url``), ``seconds``; packets ``forwarded`` (and
+        their bytes), ``held`` (before a model), ``corrupt`` (and ``corrupt_REASON``), ``overflow``;
         viewers: ``viewers_total``, ``viewers_max``, ``dropped_junk``, ``dropped_slow``;
         ``http_served``, ``http_refused``; the model: ``model_sha256``, ``model_serial``,
         ``glb_bytes``, ``rig_bytes`` and as sent gzipped ``glb_bytes_gzip``,
@@ -589,7 +727,7 @@ class Gateway:
             "dropped_junk", "dropped_slow", "http_served", "http_refused")}
         reasons = {k: v for k, v in self.counts.items() if k.startswith("corrupt_")}
         upstream = self.upstream
-        return {"connect": self.connect, "url": self.url,
+        return {"connect": self.connect, "url": shown_url(self.url),
                 "seconds": round(time.monotonic() - self.started, 3), **counts, **reasons,
                 "overflow": self.reader.overflow if self.reader else 0,
                 "viewers_max": self.viewers_max, "model_sha256": self.sha256,
@@ -713,6 +851,28 @@ class Upstream:
 
 class _Closing(Exception):
     """Unwinds the upstream thread when the gateway stops."""
+
+
+def _guarded(admission: Admission) -> type[ServerConnection]:
+    """``websockets``' connection class with each connection admitted by ``admission`` (and
+    closed at once when refused)."""
+
+    class Guarded(ServerConnection):
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            transport.max_size = RECEIVE_BUFFER_BYTES  # type: ignore[attr-defined]
+            super().connection_made(transport)
+            assert isinstance(transport, asyncio.Transport)  # a TCP connection's
+            if not admission.admit(transport):
+                transport.abort()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            admission.release(self.transport)
+            super().connection_lost(exc)
+
+    return Guarded
 
 
 def _model_files(model: PersonModel) -> dict[str, Body]:

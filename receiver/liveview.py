@@ -1,11 +1,10 @@
 """The live view: a local web page showing the rendered stream and the receiver's statistics.
 
-``facewire receive --view`` serves it with the standard library (``http.server``, one thread
-per connection, the server loop on a daemon thread); a browser on the same host opens
-``LiveView.url``. The render loop hands over each frame with ``publish``, which only copies
-the frame and wakes the waiting connections (0.3 ms median at 640 x 480, with or without
-browsers watching, on the 2-core test machine); it never encodes, never waits for a browser
-and never blocks on the network.
+``facewire receive --view`` serves it from one thread of its own, an asyncio event loop
+(every connection is a task of that loop, none has a thread); a browser on the same host
+opens ``LiveView.url``. The render loop hands over each frame with ``publish``, which only
+copies the frame and wakes the loop; it never encodes, never waits for a browser and never
+blocks on the network.
 
 Endpoints (HTTP/1.0, one request per connection; a query string is ignored)
 ---------------------------------------------------------------------------
@@ -18,48 +17,59 @@ Endpoints (HTTP/1.0, one request per connection; a query string is ignored)
                  ``Content-Type: image/jpeg``, ``Content-Length: n``, a blank line, the JPEG
                  and CRLF, and the next ``--frame`` boundary follows each JPEG at once (a
                  browser shows a part when it sees the boundary after it). Each connection
-                 waits on a ``threading.Condition`` for a frame newer than the one it sent
-                 last, so a slow browser skips frames instead of queueing them and an idle
-                 one costs nothing.
+                 waits for a frame newer than the one it sent last, and for what it sent to
+                 be taken by the kernel, so a slow browser skips frames instead of queueing
+                 them and an idle one costs nothing; one that has gone (end of stream or
+                 reset) is dropped at once, frame or no frame.
 ``/frame.jpg``   the latest frame as one JPEG (503 before the first frame).
 ``/stats.json``  ``{"frame": n, "age_s": s, "stats": {...}}``: the number of frames
                  published, the seconds since the last of them, and the latest stats.
 
 JPEG. A frame is encoded (RGB to BGR, ``cv2.imencode`` at quality ``JPEG_QUALITY`` = 80) at
-most once, lazily, by the first connection that needs it, on that connection's thread
-(OpenCV releases the GIL, so on two cores it runs beside the render loop); with no browser
-watching nothing is encoded. 640 x 480 frames of a real face take 1.1 ms and about 20 kB
-(a 30 Hz stream is about 5 Mbit/s on loopback).
+most once, lazily, on the loop's thread, by the first connection that needs it (OpenCV
+releases the GIL, so on two cores it runs beside the render loop); with no browser watching
+nothing is encoded.
 
 Stats. A flat dict of str keys; values are numbers, strings, booleans or None (numpy scalars
 are converted). Non-finite floats (NaN while a number is unknown) are sent as null, shown as
 a dash.
 
+Bounds (nobody is authenticated here). A request's head (request line and headers) is at
+most ``MAX_HEAD_BYTES`` and ``MAX_HEADERS`` headers, read within ``HEAD_TIMEOUT_S`` in all
+(400, 431 or the connection closed otherwise); only ``GET`` is answered (405). Connections
+are admitted by ``serverguard.Admission``: at most ``MAX_PENDING`` reading their request
+(the oldest evicted after ``EVICT_AFTER_S`` when more come) and ``MAX_CONNECTIONS`` in all,
+below the open-files limit (``serverguard.open_file_caps``); a browser that takes nothing
+for ``WRITE_TIMEOUT_S`` is cut off. A peer that resets mid-request ends its task quietly;
+errors the loop reports are one line per ``ERROR_EVERY_S`` on stderr
+(``serverguard.QuietErrors``), never a traceback.
+
 Binding and safety. The page carries the face stream unencrypted and without any
 authentication, so it binds to ``127.0.0.1`` by default and refuses any host that is not a
 loopback address (127.0.0.0/8, ::1, localhost) unless ``allow_remote=True`` is passed
 explicitly (then anyone who can reach the port can watch). On loopback it also answers only
-requests whose ``Host`` header names a loopback host (403 otherwise), so a web page that
-rebinds its own domain name to 127.0.0.1 cannot read the stream (``protocol.loopback``). A
-port already in use is a ``LiveViewError`` naming it.
+requests whose ``Host`` header names a loopback host (403 otherwise; 400 for two of them),
+so a web page that rebinds its own domain name to 127.0.0.1 cannot read the stream
+(``protocol.loopback``). A port already in use is a ``LiveViewError`` naming it.
 
-Shutdown. ``close`` (or leaving the ``with`` block) stops the server loop, wakes every
-connection waiting for a frame, shuts the open connections' sockets down (a browser still
-reading the stream sees the end of it), waits up to ``CLOSE_WAIT_S`` for their threads to
-finish and closes the listening socket. Publishing after ``close`` raises ``ValueError``.
+Shutdown. ``close`` (or leaving the ``with`` block) stops listening, ends every stream and
+closes every connection (each sends what it holds, then the end of the stream: a browser
+still reading sees it), waits up to ``CLOSE_WAIT_S`` for them (aborting the rest) and stops
+the loop's thread. Publishing after ``close`` raises ``ValueError``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import math
 import numbers
 import socket
+import sys
 import threading
 import time
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Self
 from urllib.parse import urlsplit
 
@@ -68,11 +78,19 @@ import numpy as np
 
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.loopback import host_header_is_loopback, is_loopback
+from facewire.receiver.serverguard import Admission, QuietErrors, open_file_caps
 
 JPEG_QUALITY = 80
 BOUNDARY = "frame"
 CLOSE_WAIT_S = 5.0
-SOCKET_TIMEOUT_S = 10.0  # a connection that neither sends a request nor reads is dropped
+MAX_HEAD_BYTES = 16 * 1024
+MAX_HEADERS = 32
+HEAD_TIMEOUT_S = 5.0
+WRITE_TIMEOUT_S = 10.0  # a browser that takes nothing this long is cut off
+MAX_CONNECTIONS = 64
+MAX_PENDING = 16
+EVICT_AFTER_S = 0.25
+ERROR_EVERY_S = 10.0
 # Stats keys the page shows as headline numbers: key, label, decimals, unit.
 HEADLINE = (("fps", "fps", 1, ""), ("kbps", "bitrate", 1, " kbit/s"),
             ("loss_pct", "loss", 1, " %"), ("latency_ms", "latency", 0, " ms"))
@@ -80,6 +98,14 @@ HEADLINE = (("fps", "fps", 1, ""), ("kbps", "bitrate", 1, " kbit/s"),
 
 class LiveViewError(FacewireError, OSError):
     """The live view cannot be served (port in use, host refused); the message says why."""
+
+
+class _BadRequest(Exception):
+    """A request refused before it is routed: its status and text."""
+
+    def __init__(self, status: HTTPStatus, text: str) -> None:
+        super().__init__(text)
+        self.status = status
 
 
 class LiveView:
@@ -115,29 +141,34 @@ class LiveView:
                 f"live view: refusing to serve on {host}: the page shows the face stream "
                 f"unencrypted and without authentication, so it binds to 127.0.0.1 only "
                 f"(pass allow_remote=True to serve on another address)")
-        self._cond = threading.Condition()
+        self._lock = threading.Lock()  # the frame and stats, shared with publish
         self._closed = False
         self._seq = 0  # frames published; the latest is number _seq
         self._rgb: np.ndarray | None = None
         self._published_at = time.monotonic()
         self._stats_json = "{}"
-        self._encode_lock = threading.Lock()
-        self._jpeg_seq = 0
+        self._jpeg_seq = 0  # the loop's thread only, as every field below
         self._jpeg = b""
-        self._connections: set[socket.socket] = set()
+        total, backlog = open_file_caps(MAX_CONNECTIONS)
+        self._admission = Admission(total, MAX_PENDING, EVICT_AFTER_S)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._wake: asyncio.Event | None = None
+        self._stopping = False
 
-        server_class = _Server6 if ":" in host else _Server
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
         try:
-            self._server = server_class((host, port), _Handler)
+            self._listener = socket.create_server((host, port), family=family, backlog=backlog)
         except OSError as exc:
             raise LiveViewError(f"live view: cannot serve on {host} port {port}: "
                                 f"{_bind_reason(exc, port)}") from exc
-        self._server.view = self
         self.host = host
-        self.port = int(self._server.server_address[1])
-        self._thread = threading.Thread(target=self._server.serve_forever, name="liveview",
-                                        kwargs={"poll_interval": 0.1}, daemon=True)
+        self.port = int(self._listener.getsockname()[1])
+        self._loop = asyncio.new_event_loop()
+        self._loop.set_exception_handler(QuietErrors(_say, "live view", ERROR_EVERY_S))
+        self._thread = threading.Thread(target=self._loop.run_forever, name="liveview",
+                                        daemon=True)
         self._thread.start()
+        self._server = asyncio.run_coroutine_threadsafe(self._start(), self._loop).result()
 
     @property
     def url(self) -> str:
@@ -165,7 +196,7 @@ class LiveView:
                                  f"{_describe(rgb)}")
             rgb = np.array(rgb, order="C", copy=True)
         text = json.dumps(_plain_stats(stats), allow_nan=False)
-        with self._cond:
+        with self._lock:
             if self._closed:
                 raise ValueError("publish: the live view is closed")
             if rgb is not None:
@@ -173,22 +204,23 @@ class LiveView:
                 self._seq += 1
                 self._published_at = time.monotonic()
             self._stats_json = text
-            self._cond.notify_all()
+            if rgb is not None:
+                self._loop.call_soon_threadsafe(self._woken)
 
     def close(self) -> None:
         """Stop serving and release every connection (see the module docstring); idempotent."""
-        with self._cond:
+        with self._lock:
             if self._closed:
                 return
             self._closed = True
-            self._cond.notify_all()
-        self._server.shutdown()
-        with self._cond:
-            for sock in self._connections:
-                _shut(sock)
-            self._cond.wait_for(lambda: not self._connections, timeout=CLOSE_WAIT_S)
-        self._server.server_close()
-        self._thread.join(CLOSE_WAIT_S)
+        done = asyncio.run_coroutine_threadsafe(self._shutdown(), self._loop)
+        try:
+            done.result(CLOSE_WAIT_S + 1.0)
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(CLOSE_WAIT_S)
+            if not self._thread.is_alive():
+                self._loop.close()
 
     def __enter__(self) -> Self:
         return self
@@ -196,137 +228,185 @@ class LiveView:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- used by the connection threads ---
+    # --- the loop's thread ---
 
-    def _track(self, sock: socket.socket, open_: bool) -> None:
-        with self._cond:
-            if open_ and self._closed:  # accepted just before close: release it at once
-                _shut(sock)
-            if open_:
-                self._connections.add(sock)
+    async def _start(self) -> asyncio.Server:
+        self._wake = asyncio.Event()
+        return await asyncio.start_server(self._client, sock=self._listener,
+                                          limit=MAX_HEAD_BYTES)
+
+    def _woken(self) -> None:
+        """A frame was published: wake the streams waiting for one."""
+        assert self._wake is not None
+        self._wake.set()
+        self._wake = asyncio.Event()
+
+    async def _shutdown(self) -> None:
+        self._stopping = True
+        self._server.close()
+        self._woken()
+        self._admission.close_all()
+        if self._tasks:
+            _, late = await asyncio.wait(set(self._tasks), timeout=CLOSE_WAIT_S)
+            for task in late:
+                task.cancel()
+            if late:
+                await asyncio.wait(late)
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """One connection: its request read within the bounds, answered (module docstring)."""
+        transport = writer.transport
+        task = asyncio.current_task()
+        if self._stopping or not self._admission.admit(transport):
+            transport.abort()
+            return
+        assert task is not None
+        self._tasks.add(task)
+        try:
+            try:
+                path = await asyncio.wait_for(self._request(reader), HEAD_TIMEOUT_S)
+            except _BadRequest as bad:
+                await _respond(writer, bad.status, "text/plain; charset=utf-8",
+                               f"{bad}\n".encode())
+                return
+            await self._route(path, reader, writer)
+        except (ConnectionError, TimeoutError, asyncio.IncompleteReadError,
+                asyncio.LimitOverrunError):
+            transport.abort()  # gone, too slow or too long: nothing more is said
+        finally:
+            self._admission.release(transport)
+            self._tasks.discard(task)
+            transport.close()
+            self._admission.tidy()
+
+    async def _request(self, reader: asyncio.StreamReader) -> str:
+        """The path of a GET whose head is within the bounds (module docstring).
+
+        Raises:
+            _BadRequest: a malformed or refused request.
+            asyncio.LimitOverrunError, asyncio.IncompleteReadError: a head too long, or cut.
+        """
+        try:
+            head = await reader.readuntil(b"\r\n\r\n")
+        except asyncio.LimitOverrunError:
+            raise _BadRequest(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE,
+                              f"the request's head is over {MAX_HEAD_BYTES} bytes") from None
+        lines = head.decode("latin-1").split("\r\n")[:-2]
+        parts = lines[0].split(" ")
+        if len(parts) != 3 or not parts[2].startswith("HTTP/"):
+            raise _BadRequest(HTTPStatus.BAD_REQUEST, "expected GET PATH HTTP/1.x")
+        if len(lines) - 1 > MAX_HEADERS:
+            raise _BadRequest(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE,
+                              f"over {MAX_HEADERS} headers")
+        hosts = [line.partition(":")[2].strip() for line in lines[1:]
+                 if line.partition(":")[0].strip().lower() == "host"]
+        if parts[0] != "GET":
+            raise _BadRequest(HTTPStatus.METHOD_NOT_ALLOWED, "only GET is answered")
+        if len(hosts) > 1:
+            raise _BadRequest(HTTPStatus.BAD_REQUEST, "one Host header, please")
+        if self.loopback_only and not host_header_is_loopback(hosts[0] if hosts else None):
+            raise _BadRequest(HTTPStatus.FORBIDDEN,
+                              "the live view answers only requests to a loopback host")
+        return urlsplit(parts[1]).path
+
+    async def _route(self, path: str, reader: asyncio.StreamReader,
+                     writer: asyncio.StreamWriter) -> None:
+        if path == "/":
+            await _respond(writer, HTTPStatus.OK, "text/html; charset=utf-8", _PAGE)
+        elif path == "/stats.json":
+            await _respond(writer, HTTPStatus.OK, "application/json", self._stats_body())
+        elif path == "/frame.jpg":
+            seq, jpeg = self._latest_jpeg()
+            if seq == 0:
+                await _respond(writer, HTTPStatus.SERVICE_UNAVAILABLE,
+                               "text/plain; charset=utf-8", b"no frame published yet\n")
             else:
-                self._connections.discard(sock)
-            self._cond.notify_all()
+                await _respond(writer, HTTPStatus.OK, "image/jpeg", jpeg)
+        elif path == "/stream.mjpg":
+            self._admission.promote(writer.transport)
+            await self._stream(reader, writer)
+        else:
+            await _respond(writer, HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8",
+                           b"not found: try /, /stream.mjpg, /frame.jpg or /stats.json\n")
 
-    def _next_frame(self, after: int) -> tuple[int, bytes] | None:
-        """Wait for a frame newer than number ``after``: (number, JPEG), or None once closed."""
-        with self._cond:
-            self._cond.wait_for(lambda: self._closed or self._seq > after)
-            if self._closed:
-                return None
-        return self._latest_jpeg()
+    async def _stream(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """``/stream.mjpg`` until the browser goes or the view closes (module docstring)."""
+        gone = asyncio.ensure_future(_until_end(reader))
+        try:
+            writer.write(_head(HTTPStatus.OK, f"multipart/x-mixed-replace; boundary={BOUNDARY}")
+                         + f"--{BOUNDARY}\r\n".encode())
+            await _drain(writer)
+            sent = 0
+            while not self._stopping:
+                with self._lock:
+                    newer = self._seq > sent
+                if not newer:
+                    assert self._wake is not None
+                    woken = asyncio.ensure_future(self._wake.wait())
+                    await asyncio.wait({woken, gone}, return_when=asyncio.FIRST_COMPLETED)
+                    woken.cancel()
+                    if gone.done():
+                        return
+                    continue
+                sent, jpeg = self._latest_jpeg()
+                writer.write(f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
+                             .encode() + jpeg + f"\r\n--{BOUNDARY}\r\n".encode())
+                await _drain(writer)
+        finally:
+            gone.cancel()
 
     def _latest_jpeg(self) -> tuple[int, bytes]:
         """The latest frame as (number, JPEG), encoded at most once per frame; (0, b"")
         before the first."""
-        with self._cond:
+        with self._lock:
             seq, rgb = self._seq, self._rgb
-        with self._encode_lock:
-            if seq > self._jpeg_seq:  # an older frame is never cached over a newer one
-                assert rgb is not None  # seq > 0: a frame was published
-                ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-                if not ok:
-                    raise RuntimeError(f"JPEG encoding of a {rgb.shape} frame failed")
-                self._jpeg_seq, self._jpeg = seq, buf.tobytes()
-            return self._jpeg_seq, self._jpeg
+        if seq > self._jpeg_seq:
+            assert rgb is not None  # seq > 0: a frame was published
+            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                                   [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            if not ok:
+                raise RuntimeError(f"JPEG encoding of a {rgb.shape} frame failed")
+            self._jpeg_seq, self._jpeg = seq, buf.tobytes()
+        return self._jpeg_seq, self._jpeg
 
     def _stats_body(self) -> bytes:
-        with self._cond:
+        with self._lock:
             return (f'{{"frame": {self._seq}, '
                     f'"age_s": {time.monotonic() - self._published_at:.3f}, '
                     f'"stats": {self._stats_json}}}').encode()
 
-    def _host_allowed(self, header: str | None) -> bool:
-        """The request's Host header names a loopback host (always true with allow_remote)."""
-        return not self.loopback_only or host_header_is_loopback(header)
+
+def _head(status: HTTPStatus, content_type: str, length: int | None = None) -> bytes:
+    """An HTTP/1.0 response head."""
+    lines = [f"HTTP/1.0 {status.value} {status.phrase}", "Server: facewire-liveview",
+             f"Content-Type: {content_type}", "Cache-Control: no-store", "Connection: close"]
+    if length is not None:
+        lines.append(f"Content-Length: {length}")
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
 
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
-    block_on_close = False  # LiveView.close waits for the connections itself
-    view: LiveView
+async def _respond(writer: asyncio.StreamWriter, status: HTTPStatus, content_type: str,
+                   body: bytes) -> None:
+    writer.write(_head(status, content_type, len(body)) + body)
+    await _drain(writer)
 
 
-class _Server6(_Server):
-    address_family = socket.AF_INET6
+async def _drain(writer: asyncio.StreamWriter) -> None:
+    """Wait until the kernel has taken what is written (``WRITE_TIMEOUT_S`` at most)."""
+    await asyncio.wait_for(writer.drain(), WRITE_TIMEOUT_S)
 
 
-class _Handler(BaseHTTPRequestHandler):
-    server: _Server
-    timeout = SOCKET_TIMEOUT_S
-    server_version = "facewire-liveview"
-
-    def setup(self) -> None:
-        super().setup()
-        self.server.view._track(self.connection, True)
-
-    def finish(self) -> None:
-        try:
-            super().finish()
-        except OSError:
-            pass  # the peer went away before the last bytes were flushed
-        finally:
-            self.server.view._track(self.connection, False)
-
-    def log_message(self, format: str, *args: Any) -> None:
-        """Silent: the receiver's status line owns the terminal."""
-
-    def do_GET(self) -> None:
-        view = self.server.view
-        if not view._host_allowed(self.headers.get("Host")):
-            self._send(HTTPStatus.FORBIDDEN, "text/plain; charset=utf-8",
-                       b"the live view answers only requests to a loopback host\n")
-            return
-        path = urlsplit(self.path).path
-        try:
-            if path == "/":
-                self._send(HTTPStatus.OK, "text/html; charset=utf-8", _PAGE)
-            elif path == "/stats.json":
-                self._send(HTTPStatus.OK, "application/json", view._stats_body())
-            elif path == "/frame.jpg":
-                seq, jpeg = view._latest_jpeg()
-                if seq == 0:
-                    self._send(HTTPStatus.SERVICE_UNAVAILABLE, "text/plain; charset=utf-8",
-                               b"no frame published yet\n")
-                else:
-                    self._send(HTTPStatus.OK, "image/jpeg", jpeg)
-            elif path == "/stream.mjpg":
-                self._stream(view)
-            else:
-                self._send(HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8",
-                           b"not found: try /, /stream.mjpg, /frame.jpg or /stats.json\n")
-        except (ConnectionError, TimeoutError):
-            pass  # the browser closed the page or stopped reading
-
-    def _send(self, status: HTTPStatus, content_type: str, body: bytes) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(body)
-
-    def _stream(self, view: LiveView) -> None:
-        self.send_response(HTTPStatus.OK)
-        self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(f"--{BOUNDARY}\r\n".encode())
-        sent = 0
-        while (frame := view._next_frame(sent)) is not None:
-            sent, jpeg = frame
-            self.wfile.write(f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
-                             .encode() + jpeg + f"\r\n--{BOUNDARY}\r\n".encode())
-            self.wfile.flush()
-
-
-def _shut(sock: socket.socket) -> None:
-    """End a connection both ways: a thread blocked reading or writing it returns."""
+async def _until_end(reader: asyncio.StreamReader) -> None:
+    """Return when the peer ends the connection (what it sends meanwhile is dropped)."""
     try:
-        sock.shutdown(socket.SHUT_RDWR)
-    except OSError:
-        pass  # the peer already closed it
+        while await reader.read(4096):
+            pass
+    except ConnectionError:
+        pass
+
+
+def _say(text: str) -> None:
+    print(f"facewire live view: {text}", file=sys.stderr, flush=True)
 
 
 def _bind_reason(exc: OSError, port: int) -> str:

@@ -26,6 +26,7 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -50,7 +51,7 @@ from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
 FAST = (10**9, 1.1, (1e9, 1e9))  # a shaper that holds nothing: the tests are not about rate
-TOKEN = "s3cret-T0ken"
+TOKEN = "s3cret-T0ken-of-22ch"
 
 
 class _Sender:
@@ -279,13 +280,16 @@ def test_pages_get_the_model_first_then_every_packet_unchanged_and_in_order(
     assert summary["dropped_junk"] == summary["dropped_slow"] == 0
 
 
-def _stalled_page(port: int) -> socket.socket:
+def _stalled_page(url: str) -> socket.socket:
     """A WebSocket opened by hand that never reads after its handshake (a small receive
     buffer, so that the gateway's side fills soon)."""
+    split = urlsplit(url)
+    port = split.port
     sock = socket.socket()
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect(("127.0.0.1", port))
-    sock.sendall(f"GET /stream HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+    sock.sendall(f"GET /stream?{split.query} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+                 f"Upgrade: websocket\r\n"
                  f"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
                  f"Sec-WebSocket-Version: 13\r\n\r\n".encode())
     assert sock.recv(12) == b"HTTP/1.1 101"
@@ -302,7 +306,7 @@ def test_pages_that_send_junk_or_do_not_read_are_dropped_and_the_others_get_ever
         good = gateway.page()
         _until(lambda: "model" in good.kinds(), "the model is announced")
         big, chatty = gateway.page(), gateway.page()
-        stalled = _stalled_page(int(gateway.url.rsplit(":", 1)[1].strip("/")))
+        stalled = _stalled_page(gateway.url)
         big.ws.send(b"x" * 1000)
         for _ in range(10):
             chatty.ws.send("hi")
@@ -345,7 +349,8 @@ def test_no_sender_means_waiting_and_every_request_needs_the_token_and_a_loopbac
                                  "text": "waiting for the sender"}
         base = gateway.url.partition("?")[0]
         stream = base.replace("http://", "ws://") + "stream"
-        for url in (stream, f"{stream}?token=wrong", f"{stream}?token={TOKEN}x"):
+        for url in (stream, f"{stream}?token=wrong", f"{stream}?token={TOKEN}x",
+                    f"{stream}?token={TOKEN[:-1]}"):
             with pytest.raises(InvalidStatus, match="403"):
                 connect(url)
         with pytest.raises(InvalidStatus, match="403"):  # another site's page
@@ -366,7 +371,8 @@ def test_no_sender_means_waiting_and_every_request_needs_the_token_and_a_loopbac
     finally:
         summary = gateway.close()
     assert summary["forwarded"] == 0 and summary["model_sha256"] is None
-    assert summary["http_refused"] >= 9
+    assert summary["http_refused"] >= 10
+    assert summary["url"].endswith("?token=s3cr...") and TOKEN not in json.dumps(summary)
 
 
 def test_another_model_holds_the_packets_back_until_the_pages_are_told_of_it(
@@ -475,11 +481,20 @@ def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(
     assert len(err.splitlines()) == 1 and "--allow-remote" in err
     assert main(["web", "--connect", endpoint, "--token", "no spaces"]) == 2
     assert "--token" in capsys.readouterr().err
+    monkeypatch.setenv("FACEWIRE_TOKEN", "15-characters--")  # under 16: refused
+    assert main(["web", "--connect", endpoint]) == 2
+    assert "FACEWIRE_TOKEN: expected 16 to 256" in capsys.readouterr().err
+    monkeypatch.delenv("FACEWIRE_TOKEN")
+    (tmp_path / "short").write_text("a\n")
+    assert main(["web", "--connect", endpoint, "--token-file", str(tmp_path / "short")]) == 2
+    assert "short: expected 16 to 256" in capsys.readouterr().err
+    assert main(["web", "--connect", endpoint, "--host", "watch.example"]) == 2
+    assert "--host: only with --allow-remote" in capsys.readouterr().err
     assert parse_http("0.0.0.0:8080", allow_remote=True) == ("0.0.0.0", 8080)
     assert parse_http("[::1]:0", allow_remote=False) == ("::1", 0)
-    warning = remote_warning("0.0.0.0", None)
-    assert warning is not None and "unencrypted" in warning and "--token" in warning
-    assert remote_warning("localhost", None) is None
+    warning = remote_warning("0.0.0.0")
+    assert warning is not None and "unencrypted" in warning and "token" in warning
+    assert remote_warning("localhost") is None
     with socket.create_server(("127.0.0.1", 0)) as taken:
         port = taken.getsockname()[1]
         assert main(["web", "--connect", endpoint, "--http", f"127.0.0.1:{port}"]) == 2
@@ -488,6 +503,9 @@ def test_the_command_refuses_a_remote_address_unless_asked_and_stops_on_sigterm(
     timer.start()
     assert main(["web", "--connect", endpoint, "--http", "127.0.0.1:0", "--json"]) == 0
     out, err = capsys.readouterr()
-    assert "open http://127.0.0.1:" in err and "waiting for a sender" in err
+    assert "open file://" in err and "waiting for a sender" in err
+    opener = Path(err.split("open file://", 1)[1].split(" ", 1)[0])
+    assert not opener.exists()  # removed at the end: its token was for that run only
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["forwarded"] == 0 and summary["seconds"] < 10
+    assert summary["url"].startswith("http://127.0.0.1:") and summary["url"].endswith("...")
