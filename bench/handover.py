@@ -2,30 +2,38 @@
 enrollment frames, the later frames clean.
 
 The hand (``HANDS``) is cut from one real frame of a clip where a hand is seen in front of
-the chest: ``back``, the back of the man's right hand lying over his wrist in
-``latentsync_demo2.mp4`` (against his black sweater), or ``clasped``, the woman's upper
-hand of her clasped hands in ``mediapipe_selfie.mp4`` (against her white top). Cutting
-(``cut_hand``): MediaPipe's hand landmarker (the model its wheel carries) gives the hand's
-21 points; GrabCut, started from them, draws its outline: definitely the hand along the
-bones (wrist to each knuckle, knuckle to knuckle along each finger, the palm's polygon),
-probably the hand in the points' convex hull grown by ``HULL_GROW`` of the hand's length
-and in the forearm's strip (from the wrist away from the middle knuckle, ``FOREARM``
-hand lengths long, as wide as the palm), probably not within twice that growth, and
-certainly not beyond. The largest connected piece is kept, its edge feathered over
-``FEATHER_PX`` source pixels, and the forearm fades out over its far half (its cut end
-never shows as an edge). The hand keeps its own pixels: its shading, its hair, its edges.
+the chest: ``back``, the back of the man's left hand lying over his other wrist in
+``latentsync_demo2.mp4`` frame 210 (against his black sweater; sharp, 300 px long), or
+``raised``, the woman's right hand raised, fingers curled, in ``mediapipe_selfie.mp4``
+frame 178 (against her white top and yellow jacket; small, 60 px, and motion-blurred: laid
+on a face it is a soft hand, scaled up). Cutting (``cut_hand``): MediaPipe's hand
+landmarker (the model its wheel carries) gives the hand's 21 points; GrabCut, started from
+them, draws its outline: definitely the hand along the bones (wrist to each knuckle, along
+each finger: 3.5 % of the hand's length wide) and in the palm's polygon (points 0, 1, 5, 9,
+13, 17); probably the hand in its shape (the bones drawn ``FINGER`` of its length wide, the
+palm, and the forearm's strip: from the wrist away from the middle knuckle, ``FOREARM``
+hand lengths long, 1.1 palms wide); probably not in the rest of the points' convex hull
+grown by twice ``HULL_GROW`` of the hand's length; certainly not beyond. What GrabCut calls
+the hand is kept within the shape grown by ``HULL_GROW`` (a hand lying on another, skin on
+skin, is told apart by its shape, not its colour), its largest connected piece, its edge
+feathered over ``FEATHER_PX`` source pixels; the forearm fades out over its far half (its
+cut end never shows as an edge). The hand keeps its own pixels: its shading, its hair, its
+edges.
 
 Laying it on the face (``lay_hand``), per frame, from the sender's tracker's 68 points of
 the clean frame:
 
-- scale: the palm's breadth (knuckles 5 to 17) becomes ``PALM_OVER_EYES`` of the outer eye
-  distance (36-45), as a real palm (about 85 mm) to real eye corners (about 95 mm);
-- rotation: the hand's axis (wrist to middle knuckle) points across the face towards
-  the person's right cheek turned ``TILT_DEG`` up from the eye line, the wrist below the
-  other cheek, rolling with the face (the eye line's angle);
+- scale: the palm's length (wrist 0 to middle knuckle 9) becomes the hand's
+  ``HANDS`` ratio of the outer eye distance (36-45): 1.0 for ``back``, as a real palm
+  (about 95 mm) to real eye corners (about 95 mm); 0.7 for ``raised``, whose curled
+  fingers reach far beyond its palm;
+- rotation: the hand's axis (wrist to middle knuckle) points up across the face towards
+  the person's right cheek, ``TILT_DEG`` above the eye line, the wrist below the other
+  cheek, rolling with the face (the eye line's angle);
 - place: the palm's centre (points 0, 5, 9, 13, 17) over the point ``CHEEK`` of the way
-  from the mouth's centre (48-67) to the person's left cheek (point 13), so the palm covers
-  the mouth and the fingers the far cheek;
+  from the mouth's centre (48-67) to the person's left cheek (point 13), ``DROP`` of the
+  eye distance down the face, so the palm covers the mouth and the fingers the cheek and
+  the side of the nose;
 - its own motion: a slow sway, ``SWAY_DEG`` of rotation, ``SWAY_SHIFT`` of the eye distance
   in x and y, ``SWAY_SCALE`` of scale, at incommensurate periods (``SWAY_PERIODS_S``);
 - light: the hand's colour is pulled towards the face's by a per-channel gain (the ratio
@@ -60,6 +68,7 @@ import numpy as np
 from facewire.bench.occluded import write_h264
 from facewire.models.infra.video import frame_range, read_frames, video_info
 from facewire.models.landmarks import outer_eye_distance
+from facewire.sender.enroll.occluders import load_mediapipe
 from facewire.sender.tracker import LandmarkTracker
 
 # name: (clip, frame, the hand's image x (px) nearest which the wanted hand's wrist lies,
@@ -116,10 +125,8 @@ class HandOver:
 
 def hand_landmarks(image: np.ndarray) -> list[np.ndarray]:
     """The hands MediaPipe's landmarker finds in one image: each (21, 2) float64 px."""
-    import mediapipe as mp
-
     h, w = image.shape[:2]
-    with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=2,
+    with load_mediapipe().solutions.hands.Hands(static_image_mode=True, max_num_hands=2,
                                   model_complexity=1, min_detection_confidence=0.3) as hands:
         found = hands.process(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
     return [np.array([[p.x * w, p.y * h] for p in lm.landmark])

@@ -601,8 +601,10 @@ def _bench_reproductions(args: argparse.Namespace) -> int:
 
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
+    from facewire.sender.enroll.occluders import check_hand_model
 
     print(check_egl())
+    print(check_hand_model())
     return 0
 
 
@@ -871,7 +873,8 @@ def _add_tools(sub: Commands) -> None:
     kg.add_argument("--name", default="id", help="key pair file name (default: id)")
     kg.set_defaults(run=_keys_generate)
 
-    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa")
+    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa, and "
+                       "the enrollment's hand model (mediapipe)")
     c.set_defaults(run=_check)
 
 

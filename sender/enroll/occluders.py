@@ -33,8 +33,11 @@ nothing from a frame whose part is covered, as with the ring test.
 
 from __future__ import annotations
 
+import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -49,6 +52,7 @@ PART_GROW = 0.3  # of each part's hull, from its centre
 PART_COVERED = 0.2  # of a part's pixels covered: the part is occluded
 FACE_COVERED = 0.05  # of the face hull covered: the frame is occluded
 STRIDE = 1
+WEIGHTS = ("palm_detection/palm_detection_full.tflite", "hand_landmark/hand_landmark_full.tflite")
 
 
 class OccluderError(FacewireError, RuntimeError):
@@ -104,6 +108,35 @@ def verdict(mask: np.ndarray, points: np.ndarray, hands: Sequence[np.ndarray] = 
     return Occlusion(share, covered, tuple(hands))
 
 
+def check_hand_model() -> str:
+    """One line naming the hand model and its weights' files, as ``facewire check`` prints it.
+
+    Raises:
+        OccluderError: mediapipe is missing, or its wheel lacks the hand model's weights.
+    """
+    mp = load_mediapipe()
+    folder = Path(mp.__file__).parent / "modules"
+    missing = [w for w in WEIGHTS if not (folder / w).is_file()]
+    if missing:
+        raise OccluderError(f"{folder}: mediapipe {mp.__version__} lacks {', '.join(missing)}; "
+                            "run ./install.sh")
+    return f"hand model: mediapipe {mp.__version__} ({', '.join(WEIGHTS)})"
+
+
+def load_mediapipe() -> Any:
+    """The mediapipe module (``OccluderError`` naming the fix when it is missing)."""
+    # its C++ log lines (glog) and protobuf 4's deprecation warning at every frame say
+    # nothing to a user: kept quiet
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype", category=UserWarning)
+    try:
+        import mediapipe as mp
+    except ImportError as exc:  # the one optional import: say how to get it
+        raise OccluderError(f"the hand model needs mediapipe ({exc}); run ./install.sh"
+                            ) from None
+    return mp
+
+
 class OccluderFinder:
     """MediaPipe's hand tracker over the face's crop of consecutive frames (module docstring).
 
@@ -112,12 +145,7 @@ class OccluderFinder:
     """
 
     def __init__(self) -> None:
-        try:
-            import mediapipe as mp
-        except ImportError as exc:  # the one optional import: say how to get it
-            raise OccluderError(f"the hand model needs mediapipe ({exc}); run ./install.sh"
-                                ) from None
-        self._hands: Any = mp.solutions.hands.Hands(
+        self._hands: Any = load_mediapipe().solutions.hands.Hands(
             static_image_mode=False, max_num_hands=2, model_complexity=1,
             min_detection_confidence=0.5, min_tracking_confidence=0.5)
 
