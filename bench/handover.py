@@ -161,7 +161,7 @@ def cut_hand(data: str | os.PathLike[str], name: str = "back") -> Hand:
     x1, y1 = min(image.shape[1], x1), min(image.shape[0], y1)
     crop = np.ascontiguousarray(image[y0:y1, x0:x1])
     local = points - [x0, y0]
-    seed = np.full(crop.shape[:2], cv2.GC_BGD, np.uint8)
+    seed: np.ndarray = np.full(crop.shape[:2], cv2.GC_BGD, np.uint8)
     hull = cv2.convexHull(local.astype(np.float32)).reshape(-1, 2)
     centre = hull.mean(axis=0)
 
@@ -181,7 +181,7 @@ def cut_hand(data: str | os.PathLike[str], name: str = "back") -> Hand:
     seed[shape > 0] = cv2.GC_PR_FGD
     _draw_hand(seed, local, 0.035 * length, cv2.GC_FGD)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.grabCut(crop, seed, None, bgd, fgd, 6, cv2.GC_INIT_WITH_MASK)
+    cv2.grabCut(crop, seed, (0, 0, 1, 1), bgd, fgd, 6, cv2.GC_INIT_WITH_MASK)  # rect unused
     bound = cv2.dilate(shape, cv2.getStructuringElement(
         cv2.MORPH_ELLIPSE, (int(2 * grow) | 1, int(2 * grow) | 1)))
     mask = (((seed == cv2.GC_FGD) | (seed == cv2.GC_PR_FGD)) & (bound > 0)).astype(np.uint8)
@@ -246,7 +246,7 @@ def lay_hand(image: np.ndarray, hand: Hand, points: np.ndarray, t: float
         gain = _cheek_colour(image, points) / np.maximum(np.median(pixels[inside], axis=0), 1)
         pixels *= gain ** COLOUR_PULL
     soft = cv2.GaussianBlur(alpha, (0, 0), max(0.1 * eyes, 1.0))
-    shift = np.float32([[1, 0, 0], [0, 1, 0.05 * eyes]])
+    shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.05 * eyes]], np.float32)
     shade = np.clip(cv2.warpAffine(soft, shift, (w, h)) - alpha, 0, 1)
     face = image.astype(np.float32) * (1 - SHADOW * shade)[..., None]
     out = face * (1 - alpha[..., None]) + pixels * alpha[..., None]

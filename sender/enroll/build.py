@@ -426,16 +426,17 @@ def _fit(points: list[np.ndarray | None], camera: Intrinsics, where: str,
 
 def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[int],
                   points: list[np.ndarray | None], blur: list[float], fit: Fit,
-                  camera: Intrinsics, where: str, photo: bool, occluded: set[int]
+                  camera: Intrinsics, where: str, photo: bool, handed: set[int]
                   ) -> tuple[Fit, tuple[int, ...], dict[int, np.ndarray], np.ndarray,
                              dict[str, Any]]:
     """Step 3: the fit (fitted again when the neutral frame was occluded), the views fused
-    (positions in ``indices``; none of the ``occluded`` ones while others are candidates),
+    (positions in ``indices``; none of the ``handed`` ones, a hand on the face, while
+    others are candidates),
     the decoded images by frame index, the filled base texture and the evidence the build
     reports."""
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
     scores = frame_scores(points, fit, camera, blur)
-    scores = {f: c for f, c in scores.items() if f not in occluded} or scores
+    scores = {f: c for f, c in scores.items() if f not in handed} or scores
     chosen, primary = ((fit.neutral,), 1) if photo else texture_views(fit, scores)
     images = _decode(read, {indices[k] for k in chosen})
     fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
