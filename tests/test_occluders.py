@@ -44,6 +44,11 @@ def test_a_real_hand_on_a_real_face_is_found(shared_data: Path, hand: str):
     assert all(v.occluded for v in verdicts), [v.face for v in verdicts]
     assert all("mouth" in v.parts for v in verdicts), [v.parts for v in verdicts]
     assert min(v.face for v in verdicts) > 0.2
+    image, points = laid[0]
+    mask = verdicts[0].mask(image.shape)
+    mouth = np.rint(points[48:68].mean(axis=0)).astype(int)
+    assert mask.shape == image.shape[:2] and mask[mouth[1], mouth[0]]
+    assert mask.mean() < 0.5  # the hand, not the frame
 
 
 @pytest.mark.parametrize("clip, frames", [(CLIP, slice(100, 108)),

@@ -22,9 +22,13 @@ Per frame with face landmarks (``OccluderFinder.find``):
    ``PART_COVERED`` of their pixels (``Occlusion.parts``). A frame is occluded when the
    mask covers more than ``FACE_COVERED`` of the face or any part.
 
-Every ``stride``-th frame with a face is examined (``OccluderScan``); a frame between two
-examined ones takes the union of their verdicts (a hand coming or going is counted
-occluded on both sides).
+Every ``stride``-th frame with a face is examined (``OccluderScan``; ``STRIDE`` 1: every
+one); a frame between two examined ones, a frame without a face too, takes the union of
+their verdicts (a hand coming or going is counted occluded on both sides). The mask of a
+frame is kept as its hands' points (``Occlusion.mask`` draws it), not as an image per frame.
+``check_hand_model`` (``facewire check``) loads nothing but says whether the wheel holds
+the weights (``WEIGHTS``). Why this detector and not the palm detector alone, the lite
+model or BlazePose's hand points: measured in docs/DESIGN.md §7 ("Hands on the face").
 
 The enrollment (``sender.enroll.build``) takes an occluded frame neither as the neutral
 nor as a view of the base texture, and the regions (``sender.enroll.layers``) take
@@ -72,6 +76,11 @@ class Occlusion:
     def occluded(self) -> bool:
         """Whether the frame is occluded (module docstring, 4)."""
         return self.face > FACE_COVERED or bool(self.parts)
+
+    def mask(self, shape: tuple[int, ...]) -> np.ndarray:
+        """(H, W) bool: the frame's occluder mask (module docstring, 3) in an image of
+        ``shape``; empty for a frame not examined."""
+        return hand_mask(shape, self.hands)
 
     def merged(self, other: Occlusion) -> Occlusion:
         """The union of two verdicts (a frame between two examined ones)."""
