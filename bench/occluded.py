@@ -118,6 +118,21 @@ def paste(image: np.ndarray, patch: np.ndarray, points: np.ndarray, over: str = 
     return out, (x0, y0, x0 + w, y0 + h)
 
 
+def write_h264(images: list[np.ndarray], rate_hz: float, out: str | os.PathLike[str]) -> None:
+    """Write (H, W, 3) uint8 BGR ``images`` as a real H.264 file (libx264, CRF ``CRF``,
+    yuv420p) at ``rate_hz`` rounded to a whole rate."""
+    h, w = images[0].shape[:2]
+    with av.open(str(out), "w") as container:
+        stream = container.add_stream("libx264", rate=int(round(rate_hz)))
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        stream.options = {"crf": str(CRF)}
+        for image in images:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
 def occlude(source: str | os.PathLike[str], out: str | os.PathLike[str],
             frames: slice = slice(0, None), part: float = 0.6, gap: float = 0.25,
             seed: int = 16, data: str | os.PathLike[str] | None = None,
@@ -155,17 +170,7 @@ def occlude(source: str | os.PathLike[str], out: str | os.PathLike[str],
             images[k], box = paste(image, patch, points, over)
             occluded.append(k)
             boxes.append(box)
-    rate = video_info(source).rate_hz
-    h, w = images[0].shape[:2]
-    with av.open(str(out), "w") as container:
-        stream = container.add_stream("libx264", rate=int(round(rate)))
-        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
-        stream.options = {"crf": str(CRF)}
-        for image in images:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+    write_h264(images, video_info(source).rate_hz, out)
     return Occluded(out, source, frames.start or 0, len(images), tuple(occluded), tuple(boxes))
 
 

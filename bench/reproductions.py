@@ -1,4 +1,5 @@
-"""``facewire bench reproductions``: issue 16's three reproductions, built and scored, one table.
+"""``facewire bench reproductions``: issues 16's and 24's reproductions, built and scored, one
+table.
 
 Each reproduction is a model built from a short, hard enrollment segment of a tuning clip
 (``bench.clips``) and scored by ``bench quality`` (``measure_quality``) on frames of the same
@@ -13,6 +14,9 @@ clip the model never saw:
     motion    openface_multi_face.avi: the man with glasses talks     200:272     272:452
               and laughs, his head at some 220 mm/s (the build's
               self-check measures 218 mm/s, 20 deg/s), 2.4 s
+    hand      hdtf_edmarkey.mp4 with a real hand (latentsync_demo2's, 0:120 of    the clip
+              ``bench.handover``) held over the mouth and cheek in   the copy    120:
+              its first 96 frames
     ========  ====================================================  ==========  ===========
 
 The motion segment: the clip's front man moves across the frame between frames 130 and
@@ -27,8 +31,8 @@ NME over all 68 points and over the mouth, face SSIM, the packets' held-out NME,
 x264 reference's render NME and SSIM at about our bit rate (``bench.quality``'s names).
 ``--models DIR`` scores ``DIR/KEY.fwm`` where it exists instead of building (a model
 built by another commit, say), ``--limit N`` scores only the first N held-out frames (a
-quick check of the plumbing), ``--only KEY`` runs some. Heavy: three builds (15-25 s each
-on the shared machine) and about 600 scored frames (some 0.3 s each, the x264 reference's
+quick check of the plumbing), ``--only KEY`` runs some. Heavy: four builds (15-90 s each
+on the shared machine) and about 680 scored frames (some 0.3 s each, the x264 reference's
 two passes included).
 
     facewire bench reproductions --data ../shared/data [--work DIR] [--models DIR] [--json]
@@ -56,7 +60,9 @@ class ReproductionError(FacewireError, ValueError):
 @dataclass(frozen=True)
 class Reproduction:
     """One reproduction: ``clip`` in the data's ``video`` folder, the model built from
-    ``enrol`` (of the occluded copy when ``occluded``), scored on ``score``."""
+    ``enrol`` (of the occluded copy when ``occluded``, of the copy with the hand ``hand``
+    of ``bench.handover`` over the first ``HAND_PART`` of it when ``hand``), scored on
+    ``score``."""
 
     key: str
     title: str
@@ -64,6 +70,7 @@ class Reproduction:
     enrol: slice
     score: slice
     occluded: bool = False
+    hand: str | None = None
 
 
 REPRODUCTIONS = (
@@ -72,7 +79,10 @@ REPRODUCTIONS = (
     Reproduction("closed", "no open mouth", "lp_d18.mp4", slice(0, 60), slice(60, None)),
     Reproduction("motion", "fast head motion", "openface_multi_face.avi", slice(200, 272),
                  slice(272, 452)),
+    Reproduction("hand", "real hand on mouth", "hdtf_edmarkey.mp4", slice(0, 120),
+                 slice(120, None), hand="back"),
 )
+HAND_PART = 0.8
 COLUMNS = ("render_nme_mean", "render_nme_mouth", "face_ssim_mean", "nme_heldout_mean",
            "h264_render_nme_mean", "h264_face_ssim_mean")
 _HEADS = ("render NME", "mouth", "SSIM", "held-out NME", "x264 NME", "x264 SSIM")
@@ -99,6 +109,7 @@ def run_reproductions(data: str | os.PathLike[str], work: str | os.PathLike[str]
     Raises:
         ReproductionError: an unknown key, a bad limit or a missing clip.
     """
+    from facewire.bench.handover import hand_over
     from facewire.sender.enroll.build import build_model
 
     keys = [r.key for r in REPRODUCTIONS]
@@ -125,6 +136,10 @@ def run_reproductions(data: str | os.PathLike[str], work: str | os.PathLike[str]
             if r.occluded:
                 copy = occlude(clip, out / f"{r.key}.mp4", r.enrol)
                 build_model(copy.path, model, progress=progress)
+            elif r.hand is not None:
+                held = hand_over(clip, out / f"{r.key}.mp4", r.enrol, HAND_PART, r.hand,
+                                 data=video)
+                build_model(held.path, model, progress=progress)
             else:
                 build_model(clip, model, r.enrol, progress=progress)
         score = r.score if limit is None else slice(

@@ -476,6 +476,8 @@ def _build_lines(s: dict[str, Any]) -> list[str]:
             f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
             f"frames:   {s['face_frames']} of {s['frames']} with a face; neutral frame "
             f"{s['neutral_frame']}; texture from frames {s['texture_views']}",
+            f"hands:    on the face in {s['occluded_enrollment_frames']} of {s['frames']} "
+            "frames (never the neutral nor a texture view)",
             "built from: " + (f"{s['source']['video']} frames {s['source']['start']}:"
                               f"{s['source']['stop']}" if s["source"] else
                               "a camera's recording (not kept)"),
@@ -663,8 +665,10 @@ def _bench_reproductions(args: argparse.Namespace) -> int:
 
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
+    from facewire.sender.enroll.occluders import check_hand_model
 
     print(check_egl())
+    print(check_hand_model())
     return 0
 
 
@@ -877,13 +881,14 @@ def _add_bench(sub: Commands) -> None:
                          "frame rate at 640x480; made by default, skipped without Chromium)")
     _add_json(bf)
     bf.set_defaults(run=_bench_fanout)
-    br = bsub.add_parser("reproductions", help="issue 16's reproductions (occluded mouth, no "
-                         "open mouth, fast head motion): models built and scored, one table")
+    br = bsub.add_parser("reproductions", help="issues 16's and 24's reproductions (occluded "
+                         "mouth, no open mouth, fast head motion, a real hand on the mouth): "
+                         "models built and scored, one table")
     br.add_argument("--data", required=True, help="the shared data folder (holds video/)")
     br.add_argument("--work", help="folder to keep the models and the occluded copy in "
                     "(default: a temporary one)")
     br.add_argument("--models", help="folder of models KEY.fwm to score instead of building "
-                    "(occluded, closed, motion)")
+                    "(occluded, closed, motion, hand)")
     br.add_argument("--only", action="append", metavar="KEY",
                     help="run this reproduction only (repeatable)")
     br.add_argument("--limit", type=int, metavar="N",
@@ -947,7 +952,8 @@ def _add_tools(sub: Commands) -> None:
     kg.add_argument("--name", default="id", help="key pair file name (default: id)")
     kg.set_defaults(run=_keys_generate)
 
-    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa")
+    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa, and "
+                       "the enrollment's hand model (mediapipe)")
     c.set_defaults(run=_check)
 
 

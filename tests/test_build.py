@@ -44,6 +44,7 @@ def test_build_info_export(built, capsys):
     assert summary["bytes"] == out.stat().st_size
     assert out.stat().st_mode & 0o777 == 0o600  # a person's face: the owner's only
     assert summary["face_frames"] >= 70
+    assert summary["occluded_enrollment_frames"] == 0  # no hand on lp_d0's face
     model = load_model(out)
     assert model.sha256 == summary["sha256"]
     assert model.texture.shape == (*TEXTURE_SIZE, 3)

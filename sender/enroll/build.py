@@ -124,6 +124,7 @@ from facewire.sender.enroll.evidence import (
 from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
+from facewire.sender.enroll.occluders import OccluderScan, Occlusion
 from facewire.sender.enroll.registration import sharp_frames
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
@@ -178,6 +179,8 @@ class BuildResult:
             the first neutral frame when it was occluded and taken again
             (``sender.enroll.evidence``), and per part the doubled-feature measure of the
             texture (``sender.enroll.registration``, 3).
+        occluders: the frames a hand covered (video indices) and per part of the face how
+            many frames covered it (``sender.enroll.occluders``); None for a photo's build.
     """
 
     model: PersonModel
@@ -191,6 +194,7 @@ class BuildResult:
     coverage: Coverage
     self_check: dict[str, Any]
     evidence: dict[str, Any] | None = None
+    occluders: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object: the model keys of docs/DESIGN.md §7, then how the build went."""
@@ -203,6 +207,8 @@ class BuildResult:
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
                 "texture_evidence": self.evidence,
+                "occluded_enrollment_frames": len((self.occluders or {}).get("frames", ())),
+                "occluders": self.occluders,
                 "appearance": self.appearance,
                 "region_frames": region_frames_summary(self.model),
                 **self.coverage.summary(),
@@ -317,15 +323,19 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     model says it was built from (``info.source``; None for an image given in memory);
     ``guide`` the prompted frames of a guided recording."""
     start = time.perf_counter()
-    indices, points, blur, face_frames = _track(read, frames, total, progress, where, photo)
+    indices, points, blur, face_frames, occlusions = _track(read, frames, total, progress,
+                                                            where, photo)
     camera = intrinsics_guess(width, height)
     sharp = sharp_frames(blur, [p is not None for p in points])
     if guide is not None:
         calm = [k for k, i in enumerate(indices) if i in guide.neutral]
         sharp = [k for k in calm if k in sharp] or calm
-    fit = _fit(points, camera, where, sharp)
-    fit, chosen, images, texture, evidence = _base_texture(read, indices, points, blur, fit,
-                                                           camera, where, photo)
+    unoccluded = [k for k in sharp if not occlusions[k].occluded]
+    fit = _fit(points, camera, where, unoccluded or sharp)
+    fit, chosen, images, texture, evidence = _base_texture(
+        read, indices, points, blur, fit, camera, where, photo,
+        {k for k, o in enumerate(occlusions) if o.occluded})
+    occluders = _occluders_report(indices, occlusions)
 
     used, neutral = tuple(sorted(indices[k] for k in chosen)), indices[fit.neutral]
     if photo:  # the copies are one frame: frame 0
@@ -342,8 +352,9 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     report: dict[str, Any] = {}
     coverage = measure_coverage({}, np.zeros(len(MEASURES)))
     if video is not None:
+        covered = {indices[k]: o.parts for k, o in enumerate(occlusions) if o.parts}
         regions, report, coverage, usage, texture = enroll_regions(model, video, frames,
-                                                                   progress, guide)
+                                                                   progress, guide, covered)
         model = at_rest(replace(model, texture=texture, regions=regions,
                                 region_frames=usage))
     model = replace(model, coverage=coverage.states)
@@ -357,15 +368,18 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     neutral_image = images[min(images)] if photo else images[indices[fit.neutral]]
     _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start, report, coverage, checked, evidence)
+                       time.perf_counter() - start, report, coverage, checked, evidence,
+                       occluders)
 
 
 def _track(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: int | None,
            progress: Progress, where: str, photo: bool
-           ) -> tuple[list[int], list[np.ndarray | None], list[float], int]:
-    """Step 1: each frame's index, 68 points (None: no face) and sharpness, and how many
-    frames show a face; ``BuildError`` when none do."""
+           ) -> tuple[list[int], list[np.ndarray | None], list[float], int, list[Occlusion]]:
+    """Step 1: each frame's index, 68 points (None: no face), sharpness and occluders
+    (``sender.enroll.occluders``; none looked for in a photo's copies), and how many frames
+    show a face; ``BuildError`` when none do."""
     tracker = LandmarkTracker()
+    scan = None if photo else OccluderScan()
     indices: list[int] = []
     points: list[np.ndarray | None] = []
     blur: list[float] = []
@@ -378,13 +392,27 @@ def _track(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: 
         found = tracker.track(frame.image).points
         points.append(found)
         blur.append(0.0 if found is None else sharpness(frame.image, found))
+        if scan is not None:
+            scan.see(frame.image, found)
+    occlusions = [Occlusion()] * len(indices) if scan is None else scan.verdicts()
     if not indices:
         raise BuildError(f"{where}: no frames in range {range_text(frames)}")
     face_frames = sum(p is not None for p in points)
     if face_frames == 0:
         raise BuildError(f"{where}: no face found in the photo" if photo else
                          f"{where}: no face found in frames {indices[0]}..{indices[-1]}")
-    return indices, points, blur, face_frames
+    return indices, points, blur, face_frames, occlusions
+
+
+def _occluders_report(indices: list[int], occlusions: list[Occlusion]) -> dict[str, Any]:
+    """What the build reports of the occluders found (``sender.enroll.occluders``): the
+    occluded frames (video indices) and per part of the face how many frames covered it."""
+    parts: dict[str, int] = {}
+    for o in occlusions:
+        for part in o.parts:
+            parts[part] = parts.get(part, 0) + 1
+    return {"frames": [i for i, o in zip(indices, occlusions) if o.occluded],
+            "parts": dict(sorted(parts.items()))}
 
 
 def _fit(points: list[np.ndarray | None], camera: Intrinsics, where: str,
@@ -398,15 +426,18 @@ def _fit(points: list[np.ndarray | None], camera: Intrinsics, where: str,
 
 def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[int],
                   points: list[np.ndarray | None], blur: list[float], fit: Fit,
-                  camera: Intrinsics, where: str, photo: bool
+                  camera: Intrinsics, where: str, photo: bool, handed: set[int]
                   ) -> tuple[Fit, tuple[int, ...], dict[int, np.ndarray], np.ndarray,
                              dict[str, Any]]:
     """Step 3: the fit (fitted again when the neutral frame was occluded), the views fused
-    (positions in ``indices``), the decoded images by frame index, the filled base texture
-    and the evidence the build reports."""
+    (positions in ``indices``; none of the ``handed`` ones, a hand on the face, while
+    others are candidates),
+    the decoded images by frame index, the filled base texture and the evidence the build
+    reports."""
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
-    chosen, primary = ((fit.neutral,), 1) if photo else texture_views(
-        fit, frame_scores(points, fit, camera, blur))
+    scores = frame_scores(points, fit, camera, blur)
+    scores = {f: c for f, c in scores.items() if f not in handed} or scores
+    chosen, primary = ((fit.neutral,), 1) if photo else texture_views(fit, scores)
     images = _decode(read, {indices[k] for k in chosen})
     fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
     clean = clean_views(fusion, occluded)

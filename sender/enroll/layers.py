@@ -9,8 +9,9 @@ the sender's pose and lift.
 
 1. Observe. Every frame of the range goes through the pipeline; each frame with a pose
    gives its pose, residuals, the (centre-offset) sample of every region, five cues, the
-   parts of the face occluded in it (``sender.enroll.evidence``, 4: a region whose part is
-   occluded in a frame takes nothing from it, its cue there is dropped) and the
+   parts of the face occluded in it (``sender.enroll.evidence``, 4, and the hands found by
+   ``sender.enroll.occluders``: a region whose part is occluded in a frame takes nothing
+   from it, its cue there is dropped) and the
    coverage's measures (``sender.enroll.coverage.state_measures``: once the states are
    chosen, ``coverage.measure_coverage`` judges which expression states their frames show).
 2. Cues (``sender.cues.region_cues``, landmark-derived; at run time only the classifier
@@ -84,6 +85,7 @@ the sender's pose and lift.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -188,7 +190,8 @@ class Enrollment(NamedTuple):
 
 def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
                    frames: slice = slice(0, None), progress: Progress = no_progress,
-                   guide: Guide | None = None) -> Enrollment:
+                   guide: Guide | None = None,
+                   covered: Mapping[int, frozenset[str]] | None = None) -> Enrollment:
     """Choose every region's states in a video and extract their layers and templates.
 
     Args:
@@ -199,6 +202,9 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         progress: wraps an iterable to show progress.
         guide: a guided recording's prompted frames (``sender.enroll.routine``): each
             region's states chosen among its prompts' frames (module docstring, 3).
+        covered: per video frame index, the parts of the face (``sender.clean.PARTS``)
+            an occluder covers there (``sender.enroll.occluders``): occluded as when the
+            ring test finds them (module docstring, step 1).
 
     Returns:
         The regions in ``REGIONS`` order, a report per region (the chosen frames, their
@@ -212,7 +218,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
     """
     video = Path(video)
     texels = _RegionTexels(model, model.camera)
-    observations, candidates = _observe(model, model.camera, video, frames, progress, texels)
+    observations, candidates = _observe(model, model.camera, video, frames, progress, texels,
+                                        covered or {})
     if len(observations) < 2:
         raise EnrollError(f"{video}: {len(observations)} frames with a head pose in range "
                           f"{range_text(frames)}; appearance needs at least 2")
@@ -278,9 +285,11 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
 
 
 def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
-             progress: Progress, texels: _RegionTexels) -> tuple[list[Observation], int]:
+             progress: Progress, texels: _RegionTexels,
+             covered: Mapping[int, frozenset[str]]) -> tuple[list[Observation], int]:
     """Run the sender over the frames (module docstring, step 1); the frames with a pose,
-    and how many frames were read."""
+    and how many frames were read; a frame's occluded parts are the ring test's and those
+    ``covered`` names for it."""
     info = video_info(video)
     pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(info.rate_hz))
     names = tuple(r.name for r in REGIONS)
@@ -304,7 +313,8 @@ def _observe(model: PersonModel, camera: Intrinsics, video: Path, frames: slice,
             eye_ratio=eye_aspect_ratio(sent.points),
             yaw_deg=float(np.degrees(np.arctan2(forward[0], forward[2]))), measures=measures,
             lips=np.asarray(sent.points[60:68], np.float32))
-        out.append(replace(seen, occluded=texels.occluded(frame.image, seen)))
+        out.append(replace(seen, occluded=texels.occluded(frame.image, seen)
+                           | covered.get(frame.index, frozenset())))
     return out, read
 
 
