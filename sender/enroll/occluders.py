@@ -38,8 +38,10 @@ nothing from a frame whose part is covered, as with the ring test.
 from __future__ import annotations
 
 import os
+import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -146,6 +148,24 @@ def load_mediapipe() -> Any:
     return mp
 
 
+@contextmanager
+def _native_stderr_quiet() -> Iterator[None]:
+    """File descriptor 2 sent to /dev/null for the block: TFLite's and absl's start-up lines
+    (the XNNPACK delegate, the feedback manager), written there by C++ past Python's
+    ``sys.stderr`` when the graph first runs or closes, would break a command's one-line
+    messages."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
 class OccluderFinder:
     """MediaPipe's hand tracker over the face's crop of consecutive frames (module docstring).
 
@@ -154,13 +174,17 @@ class OccluderFinder:
     """
 
     def __init__(self) -> None:
-        self._hands: Any = load_mediapipe().solutions.hands.Hands(
-            static_image_mode=False, max_num_hands=2, model_complexity=1,
-            min_detection_confidence=0.5, min_tracking_confidence=0.5)
+        hands = load_mediapipe().solutions.hands
+        with _native_stderr_quiet():  # made and run once on a blank image: all it says, said
+            self._hands: Any = hands.Hands(
+                static_image_mode=False, max_num_hands=2, model_complexity=1,
+                min_detection_confidence=0.5, min_tracking_confidence=0.5)
+            self._hands.process(np.zeros((64, 64, 3), np.uint8))
 
     def close(self) -> None:
         """Free the model's graph."""
-        self._hands.close()
+        with _native_stderr_quiet():
+            self._hands.close()
 
     def hands(self, image: np.ndarray, points: np.ndarray) -> list[np.ndarray]:
         """The hands found in the face's crop of ``image`` (H, W, 3) uint8 BGR, the face
