@@ -88,7 +88,7 @@ from facewire.protocol.transport import (
 )
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
-from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.pipeline import SenderPipeline, identity_warning, sender_camera
 from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
@@ -189,7 +189,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
          frames: slice = slice(0, None), start: threading.Event | None = None,
-         learn: bool = True, updates: UpdateStore | None = None) -> dict[str, Any]:
+         learn: bool = True, updates: UpdateStore | None = None,
+         warn: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -214,6 +215,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         updates: the session's model updates as served to receivers, or None for a store of
             the sender's own; the updates the pipeline learns are published into it, and
             others may be from any thread (``UpdateStore.publish_update``).
+        warn: called once, before streaming, with ``sender.pipeline.identity_warning``'s
+            line when the model cannot hold its person (no face descriptors).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -239,6 +242,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
     stop = stop if stop is not None else threading.Event()
     report = status if status is not None else (lambda _: None)
     model, data = _read_model(model_path)
+    identity = identity_warning(model, model_path)
+    if identity is not None and warn is not None:
+        warn(identity)
     curve = server_keys(curve_dir) if curve_dir is not None else None
     with ExitStack() as stack:
         src = stack.enter_context(open_source(str(source), rate_hz, frames=frames))
