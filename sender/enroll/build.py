@@ -651,7 +651,7 @@ def _person_row(image: np.ndarray, frame: int, chosen: Chosen, width: int) -> np
     row[4:4 + view.shape[0], 4:4 + view.shape[1]] = view
     text = chosen.line().removeprefix("person:").strip()
     x, y = view.shape[1] + 16, 24
-    for part in ("model of " + text).split("; "):
+    for part in text.split("; "):
         cv2.putText(row, part, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (230, 230, 230), 1,
                     cv2.LINE_AA)
         y += 22

@@ -87,8 +87,8 @@ class Chosen:
         """``model build``'s line on the person."""
         where = "not in the first frame" if self.index is None else \
             f"face {self.index} of {len(self.first[1])} in frame {self.first[0]}, left to right"
-        how = {"most present": "the one most present", "index": "by --person N",
-               "photo": "by --person PHOTO"}[self.how]
+        how = {"most present": "the one most present", "index": "chosen by --person N",
+               "photo": "chosen by --person PHOTO"}[self.how]
         return (f"person:   {how}, of {self.people} seen: in {self.frames} of {self.sampled} "
                 f"sampled frames; {where}")
 
