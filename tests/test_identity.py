@@ -16,6 +16,7 @@ from conftest import npy_bytes, write_zip, zip_members
 from facewire.bench.quality import measure_quality
 from facewire.models.infra.video import read_frames
 from facewire.models.modelfile import ModelFileError, PersonModel, load_model, save_model
+from facewire.protocol.packet import Flag
 from facewire.sender.enroll.build import build_model
 from facewire.sender.enroll.person import (
     PersonError,
@@ -197,3 +198,30 @@ def test_bench_quality_judges_whom_the_sender_followed(back_model: Path, clip: P
     assert r["identity_frames"] == r["tracked_frames"] >= 12
     assert 0 <= r["identity_distance_max"] < MATCH_DISTANCE
     assert (r["reacquire_s"] is None) == (r["returns"] == r["reacquire_missed"])
+
+
+def test_the_face_is_absent_while_the_person_is_gone_and_back_when_they_return(
+        generic_model: Path, clip: Path, people: list) -> None:
+    # the man at the back right covered by a grey patch on frames 70-84 (his box, grown):
+    # the packets say no face then, though two other faces are in the picture, and say it
+    # again within 0.5 s of his return
+    back = people[2]
+    model = _with_descriptors(generic_model, back.descriptor[None])
+    pipeline = SenderPipeline(model, sender_camera(640, 480), learn=False)
+    x0, y0, x1, y1 = back.box
+    pad = (x1 - x0) // 2
+    present = {}
+    for frame in read_frames(clip, slice(FIRST, FIRST + 45)):
+        image = frame.image.copy()
+        if 70 <= frame.index < 85:
+            image[max(y0 - pad, 0):y1 + pad, max(x0 - pad, 0):x1 + pad] = 128
+        out = pipeline.process(image, frame.time)
+        present[frame.index] = bool(out.frame.flags & Flag.FACE_PRESENT)
+        if out.points is not None:
+            centre = out.points.mean(axis=0)
+            assert x0 - pad <= centre[0] <= x1 + pad, f"frame {frame.index}: not his face"
+    assert all(present[i] for i in range(FIRST, 70))
+    assert not any(present[i] for i in range(71, 85))
+    back_at = min(i for i in range(85, FIRST + 45) if present[i])
+    assert back_at - 85 <= 15  # frames at 30 Hz: 0.5 s
+    assert all(present[i] for i in range(back_at, FIRST + 45))

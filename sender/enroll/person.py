@@ -30,6 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from facewire.models.fields import MAX_DESCRIPTORS
 from facewire.models.infra.video import VideoFrame
 from facewire.protocol.errors import FacewireError
 from facewire.sender.identity import MATCH_DISTANCE, face_descriptor
@@ -58,7 +59,8 @@ class Chosen:
     """The person a build is of.
 
     Attributes:
-        descriptors: (D, 128) float32, the chosen faces' descriptors (the tracker's seed).
+        descriptors: (D, 128) float32, the chosen faces' descriptors (the tracker's seed;
+            at most ``MAX_DESCRIPTORS``).
         how: ``"most present"``, ``"index"`` or ``"photo"``.
         people: how many people the sampled frames showed (groups of faces).
         frames: in how many of the ``sampled`` frames the person was seen.
@@ -170,7 +172,7 @@ def choose_person(sampled: list[list[Face]], person: int | np.ndarray | None,
         how = "most present"
     mine = {id(f) for f in chosen}
     index = next((k for k, f in enumerate(first) if id(f) in mine), None)
-    return Chosen(seed.astype(np.float32), how, len(groups), len({f.frame for f in chosen}),
+    return Chosen(seed[:MAX_DESCRIPTORS].astype(np.float32), how, len(groups), len({f.frame for f in chosen}),
                   len(sampled), index,
                   (first[0].frame if first else -1, tuple(f.box for f in first)),
                   tuple((f, id(f) in mine) for f in faces))
