@@ -43,10 +43,11 @@ N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``arrays/descriptors.npy`` is 
 optional member: present when the model was built with its person's descriptors (whom the
 sender follows: ``sender.identity``), absent in models built before them, which still load
 (``PersonModel.descriptors`` None). It leaves ``format_version`` at 4: a reader that
-predates it refuses such a model by name ("not a member of a facewire model"). ``.npy`` members are numpy format 1.0 or
-2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
-their header before that). The manifest ``model.json`` (its keys, the records it holds, the
-versions and what each added) and the schema table every member is checked against are
+predates it refuses such a model by name ("not a member of a facewire model").
+``.npy`` members are numpy format 1.0 or 2.0, little-endian, never object arrays (read
+with ``allow_pickle=False``, and refused from their header before that). The manifest
+``model.json`` (its keys, the records it holds, the versions and what each added) and the
+schema table every member is checked against are
 ``models.manifest``'s; the field checks and limits the model types share with it are
 ``models.fields``.
 

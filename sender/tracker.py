@@ -44,7 +44,12 @@ person and nobody else:
   face found not to be the person (a stranger) is not identified again for
   ``stranger_every`` frames while a detection overlaps its box (IoU >= ``STRANGER_IOU``;
   the box follows it): each check is a descriptor (``sender.identity``, "Cost"), and
-  without this memory a frame with strangers and no person would pay one per stranger;
+  without this memory a frame with strangers and no person would pay one per stranger. A
+  near miss (a distance under ``NEAR_MISS``, dlib's pairwise threshold: the person
+  turning back into view or blurred by motion, more often than another person) is tried
+  again after ``NEAR_RETRY`` frames: on openface_multi_face the man at the back came back
+  at 0.53-0.57 and matched a frame or two later, and a 10-frame wait after each near miss
+  had kept him out for up to 1.3 s;
 - tracking, the face's descriptor is checked again when the track is restarted from the
   detector's box (the verification reseated it: what the box holds changed, e.g. a face
   crossed in front) and every ``identify_every`` frames (a slow slide from one face to
@@ -114,6 +119,8 @@ VERIFY_MARGIN = 0.25
 MAX_JUMP = 0.25
 SWITCH_RATIO = 1.25
 STRANGER_IOU = 0.5
+NEAR_MISS = 0.6  # a stranger this near the person (dlib's pairwise threshold) is retried soon
+NEAR_RETRY = 2  # frames
 
 Box = tuple[int, int, int, int]
 
@@ -270,7 +277,7 @@ class LandmarkTracker:
         verify_threshold: float = -0.5,
         reseat_iou: float = 0.5,
         person: Person | None = None,
-        identify_every: int = 300,
+        identify_every: int = 600,
         stranger_every: int = 10,
     ) -> None:
         """Load the models.
@@ -335,7 +342,8 @@ class LandmarkTracker:
         """Forget the tracked face and the strangers; the next frame runs the full detector."""
         self._drop()
         self._frame = 0  # frames seen since the reset
-        self._strangers: list[tuple[Box, int]] = []  # (box, the frame it was identified on)
+        # (box, the frame it was identified on, frames to wait before identifying it again)
+        self._strangers: list[tuple[Box, int, int]] = []
 
     def _drop(self) -> None:
         """Forget the tracked face."""
@@ -387,8 +395,9 @@ class LandmarkTracker:
             self._since_identify += 1
             if not (reseated or self._since_identify >= self._identify_every):
                 return TrackResult(points=points, box=box, detected=False, verified=verified)
-            if not self._is_person(colour, points):
-                self._strangers.append((box, self._frame))
+            distance = self._identify(colour, points)
+            if distance >= self.person.threshold:
+                self._strangers.append((box, self._frame, self._wait(distance)))
                 found_again = self._acquire(gray, colour, verified=verified)
                 return TrackResult(found_again.points, found_again.box, True, verified,
                                    found_again.acquired, identified=True)
@@ -450,31 +459,37 @@ class LandmarkTracker:
             points = self._follow(gray, box)
             return TrackResult(points=points, box=box, detected=True, verified=verified,
                                acquired=True)
-        strangers: list[tuple[Box, int]] = []  # those seen on this frame, their boxes moved
+        strangers: list[tuple[Box, int, int]] = []  # those seen on this frame, boxes moved
         identified = False
         for box in sorted(faces, key=_side, reverse=True):
             known = max(self._strangers, key=lambda s: _iou(s[0], box), default=None)
             if known is not None and _iou(known[0], box) >= STRANGER_IOU \
-                    and self._frame - known[1] < self._stranger_every:
-                strangers.append((box, known[1]))
+                    and self._frame - known[1] < known[2]:
+                strangers.append((box, known[1], known[2]))
                 continue
             points = self._follow(gray, box)
             identified = True
-            if self._is_person(colour, points):
+            distance = self._identify(colour, points)
+            if distance < self.person.threshold:
                 self._strangers = strangers
                 return TrackResult(points=points, box=box, detected=True, verified=verified,
                                    acquired=True, identified=True)
             self._drop()
-            strangers.append((box, self._frame))
+            strangers.append((box, self._frame, self._wait(distance)))
         self._strangers = strangers
         return TrackResult(points=None, box=None, detected=True, verified=verified,
                            identified=identified)
 
-    def _is_person(self, colour: np.ndarray, points: np.ndarray) -> bool:
-        """Whether the face of these points is the person's (a descriptor: tens of ms)."""
+    def _identify(self, colour: np.ndarray, points: np.ndarray) -> float:
+        """The distance of the face of these points from the person (a descriptor: tens of
+        ms); the person's when under ``person.threshold``."""
         assert self.person is not None
         self._since_identify = 0
-        return self.person.matches(colour, points)
+        return self.person.distance(colour, points)
+
+    def _wait(self, distance: float) -> int:
+        """Frames before a stranger at this distance is identified again."""
+        return NEAR_RETRY if distance < NEAR_MISS else self._stranger_every
 
     def _find_larger(self, gray: np.ndarray, box: Box) -> Box | None:
         """The largest other face at least SWITCH_RATIO times the tracked one's side, or None.

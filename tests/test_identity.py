@@ -24,7 +24,7 @@ from facewire.sender.enroll.person import (
     faces_in,
     photo_descriptor,
 )
-from facewire.sender.identity import MATCH_DISTANCE, Person, face_descriptor
+from facewire.sender.identity import MATCH_DISTANCE, Person
 from facewire.sender.pipeline import SenderPipeline, encode_video, identity_warning, sender_camera
 from facewire.sender.tracker import LandmarkTracker
 

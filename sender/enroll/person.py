@@ -172,8 +172,8 @@ def choose_person(sampled: list[list[Face]], person: int | np.ndarray | None,
         how = "most present"
     mine = {id(f) for f in chosen}
     index = next((k for k, f in enumerate(first) if id(f) in mine), None)
-    return Chosen(seed[:MAX_DESCRIPTORS].astype(np.float32), how, len(groups), len({f.frame for f in chosen}),
-                  len(sampled), index,
+    return Chosen(seed[:MAX_DESCRIPTORS].astype(np.float32), how, len(groups),
+                  len({f.frame for f in chosen}), len(sampled), index,
                   (first[0].frame if first else -1, tuple(f.box for f in first)),
                   tuple((f, id(f) in mine) for f in faces))
 
