@@ -369,7 +369,8 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
-        camera=camera, descriptors=_descriptors(read, indices, points, who),
+        camera=camera, descriptors=who.descriptors if photo  # one image: its face's descriptor
+        else _descriptors(read, indices, points, who),
         info=ModelInfo(name=name, source_video=source, frames_used=used,
                        neutral_frame=neutral, creator=CREATOR, source=made_from))
     report: dict[str, Any] = {}
