@@ -91,6 +91,7 @@ from facewire.models.modelfile import PersonModel
 from facewire.protocol.packet import Flag
 from facewire.protocol.rate import stream_rate
 from facewire.sender.pipeline import SenderPipeline, sender_camera, wire_camera
+from facewire.sender.tracker import LandmarkTracker
 
 MAX_FRAMES = 40
 POOR_SSIM = 0.65
@@ -198,10 +199,10 @@ def score_frames(model: PersonModel, frames: Sequence[VideoFrame], rate_hz: floa
     decoded = decode_run(run.packets, run.indices)
     flags = decoded["flags"].astype(np.int64)
     posed = ((flags & Flag.FACE_PRESENT) != 0) & ((flags & Flag.TRACKING_LOST) == 0)
-    # the pipeline's tracker does the fresh detections too: creating a second one costs
-    # about 1.5 s (dlib's detector), a quarter of the self-check
+    # the fresh detections take any face (the pipeline's tracker holds the model's person);
+    # trackers of a thread share its detector and the predictor, so this one costs nothing
     scores = render_scores(model, camera, decoded, run.tracked, posed, run.images, progress,
-                           pipeline.tracker, truths=run.tracked)
+                           LandmarkTracker(), truths=run.tracked)
     nme = render_summary("self_check_render", scores.seen)
     ssim = scores.ssim[np.isfinite(scores.ssim)]
     out.update({
