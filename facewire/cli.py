@@ -330,7 +330,8 @@ def _model_build(args: argparse.Namespace) -> int:
     result = build_model(args.video, args.output, frames, progress=_progress, check=check,
                          person=_person(args.person))
     s = result.summary()
-    report(s, [result.person.line(), *_build_lines(s)], args.json)
+    person = [] if result.person is None else [result.person.line()]
+    report(s, [*person, *_build_lines(s)], args.json)
     return 0
 
 

@@ -456,13 +456,13 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     """
     start = time.perf_counter()
     model = load_model(model_path)
-    identity = identity_warning(model, model_path)
-    if identity is not None and warn is not None:
-        warn(identity)
     src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
     pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn)
+    identity = identity_warning(model, model_path)
+    if identity is not None and warn is not None:  # once the source is open
+        warn(identity)
     hello = pipeline.hello()
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
               "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0, "updates": 0}

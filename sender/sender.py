@@ -215,8 +215,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         updates: the session's model updates as served to receivers, or None for a store of
             the sender's own; the updates the pipeline learns are published into it, and
             others may be from any thread (``UpdateStore.publish_update``).
-        warn: called once, before streaming, with ``sender.pipeline.identity_warning``'s
-            line when the model cannot hold its person (no face descriptors).
+        warn: called once, before streaming (the model, source and sockets accepted),
+            with ``sender.pipeline.identity_warning``'s line when the model cannot hold its
+            person (no face descriptors).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -242,9 +243,6 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
     stop = stop if stop is not None else threading.Event()
     report = status if status is not None else (lambda _: None)
     model, data = _read_model(model_path)
-    identity = identity_warning(model, model_path)
-    if identity is not None and warn is not None:
-        warn(identity)
     curve = server_keys(curve_dir) if curve_dir is not None else None
     with ExitStack() as stack:
         src = stack.enter_context(open_source(str(source), rate_hz, frames=frames))
@@ -255,6 +253,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
                                   learn=learn, background=True)
+        identity = identity_warning(model, model_path)
+        if identity is not None and warn is not None:  # once the source and sockets are up
+            warn(identity)
         hello = pipeline.hello()
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None

@@ -190,7 +190,8 @@ class BuildResult:
         coverage: the states the layers show (``sender.enroll.coverage``; none without
             regions).
         self_check: the self-check hook's report keys ({} when it was not run).
-        person: whom the model is of (``sender.enroll.person.Chosen``).
+        person: whom the model is of (``sender.enroll.person.Chosen``); None when no
+            sampled frame showed a face (the largest face tracked was taken).
         evidence: the base texture's views (video indices, the neutral first), those
             dropped as misaligned, per part of the face those that were occluded there, and
             the first neutral frame when it was occluded and taken again
@@ -208,7 +209,7 @@ class BuildResult:
     appearance: dict[str, Any]
     coverage: Coverage
     self_check: dict[str, Any]
-    person: Chosen
+    person: Chosen | None
     evidence: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
@@ -222,7 +223,7 @@ class BuildResult:
                 "source": None if self.model.info.source is None
                 else self.model.info.source.as_dict(),
                 "texture_evidence": self.evidence,
-                "person": self.person.summary(),
+                "person": None if self.person is None else self.person.summary(),
                 "appearance": self.appearance,
                 "region_frames": region_frames_summary(self.model),
                 **self.coverage.summary(),
@@ -348,7 +349,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     start = time.perf_counter()
     tracker = LandmarkTracker()
     who = _choose(read, frames, total, tracker, where, photo, person)
-    tracker = LandmarkTracker(person=Person(who.descriptors))
+    tracker = LandmarkTracker(person=None if who is None else Person(who.descriptors))
     indices, points, blur, face_frames = _track(read, frames, total, progress, where, photo,
                                                 tracker)
     camera = intrinsics_guess(width, height)
@@ -369,7 +370,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
-        camera=camera, descriptors=who.descriptors if photo  # one image: its face's descriptor
+        camera=camera, descriptors=who.descriptors if photo and who is not None  # one image
         else _descriptors(read, indices, points, who),
         info=ModelInfo(name=name, source_video=source, frames_used=used,
                        neutral_frame=neutral, creator=CREATOR, source=made_from))
@@ -398,15 +399,19 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
 
 def _choose(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: int | None,
             tracker: LandmarkTracker, where: str, photo: bool,
-            person: int | str | os.PathLike[str] | None) -> Chosen:
+            person: int | str | os.PathLike[str] | None) -> Chosen | None:
     """Step 1's choice of the person (``sender.enroll.person``) among the faces of
-    ``SAMPLES`` frames spread over the range (a photo: its one image)."""
+    ``SAMPLES`` frames spread over the range (a photo: its one image); None when no sampled
+    frame shows a face and no ``person`` was asked for (the tracking then takes the largest
+    face of any frame, or says there is none)."""
     first = frames.start or 0
     count = 1 if photo or not total else total  # frames of unknown count: the first only
     wanted = sample_indices(list(range(first, first + count)))
     sampled = sample_faces(read(slice(first, wanted[-1] + 1)), wanted, tracker)
     if not sampled:
         raise BuildError(f"{where}: no frames in range {range_text(frames)}")
+    if person is None and not any(sampled):
+        return None
     reference: int | np.ndarray | None = None
     name = ""
     if isinstance(person, int):
@@ -418,31 +423,34 @@ def _choose(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total:
 
 
 def _descriptors(read: Callable[[slice], Iterable[VideoFrame]], indices: list[int],
-                 points: list[np.ndarray | None], chosen: Chosen) -> np.ndarray:
+                 points: list[np.ndarray | None], chosen: Chosen | None) -> np.ndarray:
     """(D, 128) float32: the person's descriptors at up to ``STORED_DESCRIPTORS`` tracked
     face frames spread over the range (those within ``MATCH_DISTANCE`` of the chosen faces'
-    mean), or the chosen faces' own when none is."""
+    mean, all without a choice), or the chosen faces' own when none is."""
     faces = [k for k, p in enumerate(points) if p is not None]
     picks = sorted({faces[int(round(i))] for i in np.linspace(
         0, len(faces) - 1, min(STORED_DESCRIPTORS, len(faces)))})
     images = _decode(read, {indices[k] for k in picks})
-    seed = Person(chosen.descriptors)
+    seed = None if chosen is None else Person(chosen.descriptors)
     found = []
     for k in picks:
         p = points[k]
         assert p is not None
         d = face_descriptor(images[indices[k]], p)
-        if seed.distance_of(d) < MATCH_DISTANCE:
+        if seed is None or seed.distance_of(d) < MATCH_DISTANCE:
             found.append(d)
-    return np.stack(found) if found else chosen.descriptors[:STORED_DESCRIPTORS]
+    if not found:
+        assert chosen is not None
+        return chosen.descriptors[:STORED_DESCRIPTORS]
+    return np.stack(found)
 
 
-def _person_view(read: Callable[[slice], Iterable[VideoFrame]], chosen: Chosen
+def _person_view(read: Callable[[slice], Iterable[VideoFrame]], chosen: Chosen | None
                  ) -> tuple[np.ndarray, int, Chosen] | None:
     """The frame the preview's person row shows (module docstring, 5), its index and the
     choice, or None when the clip showed one person: of the sampled frames that show the
     person, the one with the most faces (the earliest of those)."""
-    if chosen.people < 2:
+    if chosen is None or chosen.people < 2:
         return None
     counts: dict[int, int] = {}
     for face, _ in chosen.faces:
