@@ -26,9 +26,9 @@ model's person, ``sender.identity``: 90-250 ms on the shared machine, so a clip 
 several people is scored on the model's person) and one rendering; once, the pipeline's
 set-up (the tracker's dlib models, the sampler's template grids, about 2 s of it) and the
 renderer. On lp_d3 frames 0:300 (three alternating pairs of builds on the shared 2-core
-machine, others' jobs running): the build took 15.2, 12.8 and 11.1 s without the self-
-check, 20.2, 16.5 and 14.1 s with it; the self-check, decoding included, 6.2, 4.3 and 3.8
-s: 34-41 % of the build. ``--no-self-check`` skips it.
+machine, others' jobs running): the build took 15.2, 12.8 and 11.1 s without the
+self-check, 20.2, 16.5 and 14.1 s with it; the self-check, decoding included, 6.2, 4.3 and
+3.8 s: 34-41 % of the build. ``--no-self-check`` skips it.
 
 Diagnosis (``evidence`` and ``diagnose``). A score is poor when the render NME is over
 ``POOR_RENDER_NME`` (3 %), the SSIM under ``POOR_SSIM`` (0.65), or the tracker finds no face
