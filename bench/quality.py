@@ -76,6 +76,13 @@ with the same frame numbers is not refused. ``overlap_frames`` is 0 for another 
 None for a model that stores no range (built before it was stored); ``model_source`` is the
 stored range.
 
+Whom the sender followed (``bench.identity``): ``identity_switches``, the frames whose
+tracked face is not the model's person's, judged by the face descriptor on the real frame
+at the tracked points (``identity_frames`` judged, ``identity_distance_max``), and
+``reacquire_s``, the median time from the person's return to the first face packet (None
+when the face was never absent after it was first sent; ``reacquire_max_s``, ``returns``,
+``reacquire_missed``). All None for a model without descriptors.
+
 Appearance classification. ``q_regions`` gives, per region of the model in packet order
 (a list of objects with the region's ``name``), its layer count
 and the mean, standard deviation, minimum and maximum of the decoded Q over the measured
@@ -120,6 +127,7 @@ from facewire.bench.clips import subset
 from facewire.bench.encoding import Run, decode_run, encode_frames
 from facewire.bench.fidelity import gray_ssim, psnr, x264_reference
 from facewire.bench.geometry import GeometryNME, geometry_nme
+from facewire.bench.identity import identity_measures
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
 from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme
@@ -218,7 +226,9 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``render_nme_mouth``, ``render_nme_eyes``, ``render_nme_brows``,
         ``render_nme_frames``, the same five with ``h264_`` in front,
         ``render_face_missing``, ``h264_face_missing``, ``real_face_missing``,
-        ``render_nme_seconds``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
+        ``render_nme_seconds``, ``identity_switches``, ``identity_frames``,
+        ``identity_distance_max``, ``reacquire_s``, ``reacquire_max_s``, ``returns``,
+        ``reacquire_missed``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
         ``model``, ``source``, ``subset`` (``bench.clips``: "tuning", "evaluation" or None).
 
     Raises:
@@ -306,6 +316,8 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         and appearance.summary["h264_face_ssim_mean"] is not None
         and appearance.summary["face_ssim_mean"] > appearance.summary["h264_face_ssim_mean"])
     summary["met"]["render_nme_at_most_h264"] = _render_at_most_h264(appearance.summary)
+    summary.update(identity_measures(model, run.images, run.tracked, run.times, face,
+                                     LandmarkTracker(), progress))
     return summary, _Series(np.array(run.indices), np.array(run.times), posed, result, q,
                             layers, run.eyes, appearance)
 
@@ -503,6 +515,7 @@ def format_quality(result: dict[str, Any]) -> str:
         lines.append(f"blinks: F1 {f1} ({a['blink_matched']} matched of "
                      f"{a['blink_events']} ours, {a['blink_events_reference']} OpenFace's); "
                      f"target >= {TARGET_Q['blink_f1']:g}: {_verdict(r['met']['blink_f1'])}")
+    lines.append(_identity_line(r))
     if r["face_ssim_mean"] is not None:
         lines.append(f"face (rendered vs real): SSIM {r['face_ssim_mean']:.3f}, PSNR "
                      f"{r['face_psnr_mean']:.2f} dB at {r['payload_kbps']:.2f} kbit/s; x264: SSIM "
@@ -518,6 +531,21 @@ def format_quality(result: dict[str, Any]) -> str:
                      f"real frames without a face left out; tracking took "
                      f"{r['render_nme_seconds']:.1f} s")
     return "\n".join(lines)
+
+
+def _identity_line(r: dict[str, Any]) -> str:
+    """The report's line on whom the sender followed (``bench.identity``)."""
+    if r["identity_frames"] is None:
+        return "identity: not judged (the model stores no face descriptors)"
+    back = "the face was never absent after it was first sent" if r["reacquire_s"] is None \
+        else (f"back after the person's return in {r['reacquire_s']:.2f} s (median; at most "
+              f"{r['reacquire_max_s']:.2f} s) over {r['returns']} returns")
+    if r["reacquire_missed"]:
+        back += f", {r['reacquire_missed']} never followed by a face packet"
+    distance = "n/a" if r["identity_distance_max"] is None else \
+        f"{r['identity_distance_max']:.2f}"
+    return (f"identity: {r['identity_switches']} of {r['identity_frames']} tracked frames not "
+            f"the model's person (largest descriptor distance {distance}); {back}")
 
 
 def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:

@@ -21,12 +21,14 @@ self-check judges the model at its own frames, not the stream's filters.
     self_check_frames      frames scored (rendered, and the face found on both pictures)
 
 Cost: per frame, two detections (the pipeline's, which is also the real frame's fresh
-track, and the rendering's) and one rendering; once, the pipeline's set-up (the tracker's
-dlib models, the sampler's template grids, about 2 s of it) and the renderer. On lp_d3
-frames 0:300 (three alternating pairs of builds on the shared 2-core machine, others' jobs
-running): the build took 15.2, 12.8 and 11.1 s without the self-check, 20.2, 16.5 and
-14.1 s with it; the self-check, decoding included, 6.2, 4.3 and 3.8 s: 34-41 % of the
-build. ``--no-self-check`` skips it.
+track, and the rendering's), one face descriptor (the pipeline's tracker takes only the
+model's person, ``sender.identity``: 90-250 ms on the shared machine, so a clip with
+several people is scored on the model's person) and one rendering; once, the pipeline's
+set-up (the tracker's dlib models, the sampler's template grids, about 2 s of it) and the
+renderer. On lp_d3 frames 0:300 (three alternating pairs of builds on the shared 2-core
+machine, others' jobs running): the build took 15.2, 12.8 and 11.1 s without the
+self-check, 20.2, 16.5 and 14.1 s with it; the self-check, decoding included, 6.2, 4.3 and
+3.8 s: 34-41 % of the build. ``--no-self-check`` skips it.
 
 Diagnosis (``evidence`` and ``diagnose``). A score is poor when the render NME is over
 ``POOR_RENDER_NME`` (3 %), the SSIM under ``POOR_SSIM`` (0.65), or the tracker finds no face
@@ -91,6 +93,7 @@ from facewire.models.modelfile import PersonModel
 from facewire.protocol.packet import Flag
 from facewire.protocol.rate import stream_rate
 from facewire.sender.pipeline import SenderPipeline, sender_camera, wire_camera
+from facewire.sender.tracker import LandmarkTracker
 
 MAX_FRAMES = 40
 POOR_SSIM = 0.65
@@ -198,10 +201,10 @@ def score_frames(model: PersonModel, frames: Sequence[VideoFrame], rate_hz: floa
     decoded = decode_run(run.packets, run.indices)
     flags = decoded["flags"].astype(np.int64)
     posed = ((flags & Flag.FACE_PRESENT) != 0) & ((flags & Flag.TRACKING_LOST) == 0)
-    # the pipeline's tracker does the fresh detections too: creating a second one costs
-    # about 1.5 s (dlib's detector), a quarter of the self-check
+    # the fresh detections take any face (the pipeline's tracker holds the model's person);
+    # trackers of a thread share its detector and the predictor, so this one costs nothing
     scores = render_scores(model, camera, decoded, run.tracked, posed, run.images, progress,
-                           pipeline.tracker, truths=run.tracked)
+                           LandmarkTracker(), truths=run.tracked)
     nme = render_summary("self_check_render", scores.seen)
     ssim = scores.ssim[np.isfinite(scores.ssim)]
     out.update({

@@ -30,7 +30,11 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
   target is <= 0.5 ms per frame on average.
 - ``sender_ms_median``: median over all frames of the sum of the stages (track, pose,
   lift, heuristics, sample, classify, learn, shade, pack); ``sender_fps`` = 1000 /
-  ``sender_ms_median``.
+  ``sender_ms_median``. ``sender_ms_mean``: the mean of the same sums, which the rare
+  costly frames (detections, the tracker's identity checks) move and the median does not;
+  ``identify_frames``: the frames on which the tracker computed a face descriptor
+  (``sender.identity``; none with a model without descriptors), and ``identify_ms`` the
+  median track time of those frames.
 - The receiver, on the packets the sender made (``_time_receiver``), BLAS pinned to one
   thread, after ``RECEIVER_WARMUP`` frames: ``decode_ms`` (``protocol.packet.decode``),
   ``render_ms`` (``receiver.render.FaceRenderer.render``: the vertex upload, the draw with
@@ -252,6 +256,10 @@ def format_speed(result: dict[str, Any]) -> str:
     lines += [f"sender: {r['sender_ms_median']:.3f} ms median per frame = "
               f"{r['sender_fps']:.1f} fps; {_verdict(r['met']['sender'])} >= "
               f"{TARGET_SENDER_FPS:g} fps",
+              f"        {r['sender_ms_mean']:.3f} ms mean per frame; face descriptors on "
+              f"{r['identify_frames']} frames"
+              + ("" if r["identify_ms"] is None else
+                 f" ({r['identify_ms']:.1f} ms median track time there)"),
               f"        per stage (medians): {stages or 'no frame with a face'}"]
     if r["classify_ms"] is not None:
         lines.append(f"classify: {r['classify_ms']:.3f} ms median per frame, "
@@ -316,6 +324,7 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
                               rate_hz=stream_rate(info.rate_hz))
     tracked: list[float] = []
     detect: list[float] = []
+    identify: list[float] = []
     stages: dict[str, list[float]] = {k: [] for k in SENDER_STAGES}
     totals: list[float] = []
     missing = 0
@@ -333,6 +342,8 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
             ms = {k: v * 1000 for k, v in out.timings.items()}
             totals.append(sum(ms[k] for k in SENDER_STAGES))
             stages["pack"].append(ms["pack"])
+            if out.identified:
+                identify.append(ms["track"])
             if out.points is None:
                 missing += 1
                 continue
@@ -362,6 +373,9 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
         "learn_updates": updates,
         "regions": len(pipeline.sampler.names),
         "sender_ms_median": round(sender_ms, 4),
+        "sender_ms_mean": round(float(np.mean(totals)), 4),
+        "identify_frames": len(identify),
+        "identify_ms": _median(identify),
         "sender_fps": round(1000.0 / sender_ms, 2),
     }
     return timings, packets, pipeline.hello()

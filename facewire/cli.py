@@ -96,7 +96,8 @@ def _send(args: argparse.Namespace) -> int:
     with _StatusLine(status) as line:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
                  status=line, loop=args.loop, learn=not args.no_learn,
-                 insecure=args.insecure)
+                 insecure=args.insecure,
+                 warn=lambda text: print(f"facewire send: {text}", file=sys.stderr))
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
@@ -359,6 +360,13 @@ def _frames(text: str | None) -> slice:
         raise CommandError(str(exc)) from None
 
 
+def _person(text: str | None) -> int | str | None:
+    """``--person PHOTO|N``: an index (digits) or a photo's path, as given."""
+    if text is None or not text.isdigit():
+        return text
+    return int(text)
+
+
 def _model_build(args: argparse.Namespace) -> int:
     from facewire.report import report
     from facewire.sender.enroll.build import build_model, is_photo
@@ -368,6 +376,8 @@ def _model_build(args: argparse.Namespace) -> int:
                            "--from-log LOG")
     if (args.model is None) != (args.from_log is None):
         raise CommandError("model build: --from-log LOG and --model BASE go together")
+    if args.person is not None and args.video is None:
+        raise CommandError("--person: chooses whom a VIDEO or PHOTO build is of")
     if args.guided is not None:
         return _model_build_guided(args)
     if args.from_log is not None:
@@ -379,9 +389,11 @@ def _model_build(args: argparse.Namespace) -> int:
 
         check = photo_check(args.video, _progress) if is_photo(args.video) else \
             video_check(args.video, _progress)
-    result = build_model(args.video, args.output, frames, progress=_progress, check=check)
+    result = build_model(args.video, args.output, frames, progress=_progress, check=check,
+                         person=_person(args.person))
     s = result.summary()
-    report(s, _build_lines(s), args.json)
+    person = [] if result.person is None else [result.person.line()]
+    report(s, [*person, *_build_lines(s)], args.json)
     return 0
 
 
@@ -485,6 +497,7 @@ def _build_lines(s: dict[str, Any]) -> list[str]:
             f"from the generic head)",
             f"regions:  {s['regions']} with {s['layers']} layers (states chosen from frames)",
             *regions,
+            _descriptors_line(s["descriptors"]),
             *_region_frames_lines(s["region_frames"]),
             *_coverage_lines(s["coverage"], s["coverage_lines"]),
             *_self_check_lines(s),
@@ -562,12 +575,22 @@ def _model_info(args: argparse.Namespace) -> int:
                f"mesh:     {s['vertices']:,} vertices, {s['triangles']:,} triangles",
                f"texture:  {s['texture'][1]} x {s['texture'][0]}",
                f"regions:  {regions or 'none'}",
+               _descriptors_line(s["descriptors"]),
                *_region_frames_lines(s["region_frames"]),
                *_coverage_lines(model.coverage),
                _stored_self_check(model.self_check),
                _learned_line(model.learned),
                f"file:     {s['bytes']:,} bytes, sha256 {s['sha256']}"], args.json)
     return 0
+
+
+def _descriptors_line(count: int) -> str:
+    """``model build/info``'s line on the person's face descriptors (whom senders follow)."""
+    if count == 0:
+        return ("identity: no face descriptors (a model built before they were stored): "
+                "senders cannot hold its person and follow the largest face")
+    return (f"identity: {count} face descriptors of the person: senders follow that person "
+            f"only")
 
 
 def _learned_line(learned: Any) -> str:
@@ -628,7 +651,8 @@ def _encode(args: argparse.Namespace) -> int:
 
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
                      focal=args.focal, calib=args.calib, progress=_progress,
-                     learn=not args.no_learn)
+                     learn=not args.no_learn,
+                     warn=lambda text: print(f"facewire encode: {text}", file=sys.stderr))
     report(s, [f"log:      {s['log']}",
                f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
                f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
@@ -708,6 +732,10 @@ def _add_model(sub: Commands) -> None:
                    "neutral only")
     m.add_argument("-o", "--output", required=True, help="model file to write (.fwm)")
     m.add_argument("--frames", help="frame range A:B of the video to use (default: all)")
+    m.add_argument("--person", metavar="PHOTO|N", help="whom to build the model of when the "
+                   "video shows several people: N, the N-th face of the range's first frame "
+                   "counted from 0 left to right, or PHOTO, a photo of the person (default: "
+                   "the one most present); the senders follow that person only")
     m.add_argument("--from-log", metavar="LOG", help="instead of enrolling: the model a "
                    "session's receivers ended with, the base model (--model) with the model "
                    "updates the session's log holds, so that the next session starts from "

@@ -90,6 +90,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from facewire.models.fields import (
+    DESCRIPTOR_SIZE,
     HEX64,
     MAX_AREAS,
     MAX_IMAGE_SIDE,
@@ -119,6 +120,7 @@ MAX_LEARNED_UPDATES = 2047  # a session's serials (protocol.packet.MAX_SERIAL)
 
 MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
 TEXTURE_MEMBER = "textures/neutral.png"
+DESCRIPTORS_MEMBER = "arrays/descriptors.npy"
 MANIFEST_MEMBER = "model.json"
 
 
@@ -437,6 +439,8 @@ SPECS = (
     Spec(re.compile(r"arrays/tags\.npy"), "npy", "uint8", ("M",), MAX_MEMBER_BYTES),
     Spec(re.compile(r"arrays/landmarks\.npy"), "npy", "int32", (68,), MAX_SMALL_BYTES),
     Spec(re.compile(r"arrays/phantoms\.npy"), "npy", "int32", (13,), MAX_SMALL_BYTES),
+    Spec(re.compile(r"arrays/descriptors\.npy"), "npy", "float32", ("D", DESCRIPTOR_SIZE),
+         MAX_SMALL_BYTES),
     Spec(re.compile(r"textures/neutral\.png"), "png", "uint8", ("H", "W", 3), MAX_MEMBER_BYTES),
     Spec(re.compile(rf"regions/{_R}/(area_[1-9]/)?layer_[0-9]{{2}}\.png", re.ASCII), "png",
           "uint8", ("h", "w", 3), MAX_MEMBER_BYTES),
@@ -452,8 +456,12 @@ def member_spec(name: str) -> Spec | None:
 
 
 
-def expected_members(regions: list[RegionEntry]) -> set[str]:
+def expected_members(regions: list[RegionEntry], descriptors: bool = False) -> set[str]:
+    """The members a model of these regions holds; ``descriptors``: with the optional
+    ``arrays/descriptors.npy`` (the model file lists it in ``members`` when it has it)."""
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
+    if descriptors:
+        names.add(DESCRIPTORS_MEMBER)
     for r in regions:
         for folder in area_folders(r):
             names |= {f"{folder}/layer_{j:02d}.png" for j in range(r.layers)}

@@ -24,6 +24,8 @@ member                          dtype, shape     content
 ``arrays/tags.npy``             uint8 (M,)       ``models.mesh.Tag`` of each triangle
 ``arrays/landmarks.npy``        int32 (68,)      vertex of each iBUG 300-W landmark, 0-based
 ``arrays/phantoms.npy``         int32 (13,)      vertices of the phantom points
+``arrays/descriptors.npy``      float32 (D,      optional: the person's face descriptors
+                                128)             (``sender.identity``), 1 <= D <= 16, finite
 ``textures/neutral.png``        uint8 (H, W, 3)  neutral texture, 8-bit RGB PNG; row 0 is v = 1
 ``regions/R/layer_JJ.png``      uint8 (h, w, 3)  region R's appearance state JJ (00 .. k-1),
                                                  8-bit RGB PNG covering the region's
@@ -37,10 +39,15 @@ member                          dtype, shape     content
 ``regions/R/area_N/mask.png``   uint8 (h, w)     the alpha of further area N's layers
 ==============================  ===============  ==============================================
 
-N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``.npy`` members are numpy format 1.0 or
-2.0, little-endian, never object arrays (read with ``allow_pickle=False``, and refused from
-their header before that). The manifest ``model.json`` (its keys, the records it holds, the
-versions and what each added) and the schema table every member is checked against are
+N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``arrays/descriptors.npy`` is the one
+optional member: present when the model was built with its person's descriptors (whom the
+sender follows: ``sender.identity``), absent in models built before them, which still load
+(``PersonModel.descriptors`` None). It leaves ``format_version`` at 4: a reader that
+predates it refuses such a model by name ("not a member of a facewire model").
+``.npy`` members are numpy format 1.0 or 2.0, little-endian, never object arrays (read
+with ``allow_pickle=False``, and refused from their header before that). The manifest
+``model.json`` (its keys, the records it holds, the versions and what each added) and the
+schema table every member is checked against are
 ``models.manifest``'s; the field checks and limits the model types share with it are
 ``models.fields``.
 
@@ -88,8 +95,10 @@ from facewire.models.archive import (
     zip_bytes,
 )
 from facewire.models.fields import (
+    DESCRIPTOR_SIZE,
     HEX64,
     MAX_AREAS,
+    MAX_DESCRIPTORS,
     MAX_IMAGE_SIDE,
     MAX_LAYERS,
     MAX_REGIONS,
@@ -107,6 +116,7 @@ from facewire.models.fields import (
 from facewire.models.geometry import Intrinsics
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.manifest import (
+    DESCRIPTORS_MEMBER,
     FORMAT,
     FORMAT_VERSION,
     MANIFEST_MEMBER,
@@ -263,6 +273,9 @@ class PersonModel:
         learned: the model updates of a session this model includes (``models.learned``),
             or None. The manifest's optional ``learned`` key; every region it names is one
             of ``regions``.
+        descriptors: (D, 128) float32, finite, 1 <= D <= 16: the person's face descriptors
+            (``sender.identity``: whom the sender follows), or None (older models). The
+            optional member ``arrays/descriptors.npy``.
     """
 
     mesh: Mesh
@@ -276,6 +289,7 @@ class PersonModel:
     self_check: SelfCheck | None = None
     region_frames: dict[str, RegionFrames] | None = None
     learned: Learned | None = None
+    descriptors: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -318,6 +332,22 @@ class PersonModel:
             strange = [u.region for u in self.learned.updates if u.region not in names]
             if strange:
                 raise ModelError(f"learned.updates: {strange[0]!r} is not a region of the model")
+        if self.descriptors is not None:
+            check_descriptors(self.descriptors)
+
+
+def check_descriptors(descriptors: object) -> None:
+    """A model's ``descriptors``: (D, 128) float32, 1 <= D <= 16, finite; ``ModelError``
+    names the field."""
+    field = f"descriptors ({DESCRIPTORS_MEMBER})"
+    check_ndarray(descriptors, field, np.float32, 2)
+    assert isinstance(descriptors, np.ndarray)
+    d, size = descriptors.shape
+    if size != DESCRIPTOR_SIZE or not 1 <= d <= MAX_DESCRIPTORS:
+        raise ModelError(f"{field}: expected shape (D, {DESCRIPTOR_SIZE}) with D in "
+                         f"[1, {MAX_DESCRIPTORS}], got {descriptors.shape}")
+    if not np.isfinite(descriptors).all():
+        raise ModelError(f"{field}: contains NaN or infinity")
 
 
 def save_model(model: PersonModel, path: str | os.PathLike[str]) -> str:
@@ -412,13 +442,14 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
                            manifest.coverage, manifest.self_check, manifest.region_frames,
-                           manifest.learned)
+                           manifest.learned, arrays.get(DESCRIPTORS_MEMBER))
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
 
 def model_summary(model: PersonModel) -> dict[str, Any]:
-    """The ``model build/info --json`` keys: vertices, triangles, regions, layers, bytes, sha256.
+    """The ``model build/info --json`` keys: vertices, triangles, regions, layers,
+    descriptors (how many the model stores, 0 for none), bytes, sha256.
 
     ``bytes`` and ``sha256`` are the loaded file's; for a model built in memory they are those
     of the file ``save_model`` would write.
@@ -433,6 +464,7 @@ def model_summary(model: PersonModel) -> dict[str, Any]:
         "triangles": int(model.mesh.triangles.shape[0]),
         "regions": len(model.regions),
         "layers": sum(int(r.layers.shape[0]) for r in model.regions),
+        "descriptors": 0 if model.descriptors is None else int(model.descriptors.shape[0]),
         "bytes": size,
         "sha256": digest,
     }
@@ -485,6 +517,8 @@ def _encode(model: PersonModel) -> bytes:
         put(name, array, data)
     for r in model.regions:
         put(f"regions/{r.name}/templates.npy", r.templates, npy_bytes(r.templates))
+    if model.descriptors is not None:
+        put(DESCRIPTORS_MEMBER, model.descriptors, npy_bytes(model.descriptors))
     c, i = model.camera, model.info
     manifest = {
         "format": FORMAT,
@@ -521,7 +555,7 @@ def _encode(model: PersonModel) -> bytes:
 def _check_members(manifest: Manifest, entries: dict[str, zipfile.ZipInfo],
                    where: str) -> set[str]:
     """The members the manifest requires: each in the zip and declared, region sizes agreeing."""
-    expected = expected_members(manifest.regions)
+    expected = expected_members(manifest.regions, DESCRIPTORS_MEMBER in manifest.members)
     for name in sorted(expected | entries.keys() | manifest.members.keys()):
         if name == MANIFEST_MEMBER:
             continue

@@ -3,7 +3,13 @@
 Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings``, s):
 
 1. ``track``: the frame converted to grey once (the sampler reads the same grey frame),
-   ``sender.tracker.LandmarkTracker`` -> 68 image points, or None (no face).
+   ``sender.tracker.LandmarkTracker`` -> 68 image points, or None (no face). Whom it
+   follows: the model's person when the model stores their face descriptors
+   (``PersonModel.descriptors``, ``sender.identity.Person``): that person only, whoever
+   else is in the picture, larger or not; while they are out of it, no face (the packets
+   say the face is absent) until they are back (``sender.tracker``, "Identity"). A model
+   without descriptors (built before they were stored): the largest face, as the tracker
+   does without a person; ``identity_warning`` is the line the commands print about it.
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
@@ -60,6 +66,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,6 +95,7 @@ from facewire.sender.capture import (
 from facewire.sender.classify import RegionClassifiers
 from facewire.sender.eyegate import EyeGate
 from facewire.sender.heuristics import ResidualFilter
+from facewire.sender.identity import Person
 from facewire.sender.learn import Learner, can_learn
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
@@ -118,6 +126,7 @@ class SenderOutput:
         timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
             ``classify``, ``learn``, ``shade``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
+        identified: the tracker computed a face descriptor on this frame (``sender.identity``).
         clamped: values clamped by the quantisers on this frame.
         grazing: non-rigid points whose lift was capped at a grazing angle.
         update: the model update learned on this frame (``sender.learn``), or None; the
@@ -137,6 +146,7 @@ class SenderOutput:
     samples: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     detected: bool = False
+    identified: bool = False
     clamped: int = 0
     grazing: int = 0
     update: ModelUpdate | None = None
@@ -179,7 +189,8 @@ class SenderPipeline:
         landmarks = model.mesh.vertices[model.mesh.landmarks].astype(np.float64)
         self.solver = PoseSolver(landmarks, camera)
         self.lifter = Lifter(self.rig, camera)
-        self.tracker = LandmarkTracker()
+        self.person = None if model.descriptors is None else Person(model.descriptors)
+        self.tracker = LandmarkTracker(person=self.person)
         self.pose_filter = PoseFilter()
         self.residual_filter = ResidualFilter()
         regions = model.regions[:N_REGIONS]
@@ -242,7 +253,7 @@ class SenderPipeline:
         clock = time.perf_counter
         t0 = clock()
         gray = _gray(image)
-        tracked = self.tracker.track(gray)
+        tracked = self.tracker.track(gray, image if gray is not image else None)
         points = tracked.points
         t1 = clock()
         pose = self._pose(tracked.acquired, points, dt)
@@ -290,7 +301,8 @@ class SenderPipeline:
             timings={"track": t1 - t0, "pose": t2 - t1, "lift": t3 - t2,
                      "heuristics": t4 - t3, "sample": t5 - t4, "classify": t6 - t5,
                      "learn": t7 - t6, "shade": t8 - t7, "pack": t9 - t8},
-            detected=bool(tracked.detected), clamped=packed.clamped,
+            detected=bool(tracked.detected), identified=tracked.identified,
+            clamped=packed.clamped,
             grazing=0 if lifted is None else int(lifted.grazing.sum()), update=update,
             update_bytes=None if update is None or self.learner is None
             else self.learner.update_bytes[update.serial])
@@ -375,6 +387,16 @@ class SenderPipeline:
         return packed
 
 
+def identity_warning(model: PersonModel, name: str | os.PathLike[str]) -> str | None:
+    """The one line to show when the sender cannot hold the model's person (a model without
+    descriptors, module docstring, 1), else None; ``name`` names the model file."""
+    if model.descriptors is not None:
+        return None
+    return (f"warning: {os.fspath(name)} stores no face descriptors (built before they were): "
+            f"the sender cannot hold its person and follows the largest face; rebuild it "
+            f"with 'facewire model build' to follow only that person")
+
+
 def wire_camera(camera: Intrinsics) -> Camera:
     """The intrinsics as the Hello carries them (``protocol.control.Camera``)."""
     return Camera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
@@ -402,7 +424,8 @@ def sender_camera(width: int, height: int, focal: float | None = None,
 def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
-                 progress: Progress = no_progress, learn: bool = True) -> dict[str, Any]:
+                 progress: Progress = no_progress, learn: bool = True,
+                 warn: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log, with
     each model update it learns after the packet of the frame that learned it.
 
@@ -415,6 +438,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         calib: a calibration JSON file (``--calib``).
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         learn: learn unseen appearance (``sender.learn``); ``--no-learn`` turns it off.
+        warn: called once, before encoding, with ``identity_warning``'s line when the model
+            cannot hold its person.
 
     Returns:
         ``frames``, ``face_frames`` (the tracker saw a face), ``packets``, ``payload_kbps``
@@ -435,6 +460,9 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
     pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn)
+    identity = identity_warning(model, model_path)
+    if identity is not None and warn is not None:  # once the source is open
+        warn(identity)
     hello = pipeline.hello()
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
               "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0, "updates": 0}

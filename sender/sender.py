@@ -90,7 +90,7 @@ from facewire.protocol.transport import (
 )
 from facewire.sender.capture import CaptureError, Pacer, Source, open_source
 from facewire.sender.framethread import FrameThread
-from facewire.sender.pipeline import SenderPipeline, sender_camera
+from facewire.sender.pipeline import SenderPipeline, identity_warning, sender_camera
 from facewire.sender.responder import Responder
 from facewire.sender.updates import UpdateStore
 
@@ -175,7 +175,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          stop: threading.Event | None = None, loop: bool = False,
          frames: slice = slice(0, None), start: threading.Event | None = None,
          learn: bool = True, updates: UpdateStore | None = None,
-         insecure: bool = False) -> dict[str, Any]:
+         insecure: bool = False,
+         warn: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -201,6 +202,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             the sender's own; the updates the pipeline learns are published into it, and
             others may be from any thread (``UpdateStore.publish_update``).
         insecure: listen without CURVE beyond loopback all the same (module docstring).
+        warn: called once, before streaming (the model, source and sockets accepted),
+            with ``sender.pipeline.identity_warning``'s line when the model cannot hold its
+            person (no face descriptors).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -238,6 +242,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
                                   learn=learn, background=True)
+        identity = identity_warning(model, model_path)
+        if identity is not None and warn is not None:  # once the source and sockets are up
+            warn(identity)
         hello = pipeline.hello()
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None

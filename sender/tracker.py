@@ -36,6 +36,31 @@ Per frame (converted to grayscale, uint8):
    tracked one, so a background face that happened to be the only one visible when the
    track started does not keep the camera's main subject from being tracked.
 
+Identity. Given the model's person (``sender.identity.Person``), the tracker follows that
+person and nobody else:
+
+- acquiring, it takes the largest face whose descriptor is the person's, trying the faces
+  the detector found from the largest down; none is: "no face" (the person is absent). A
+  face found not to be the person (a stranger) is not identified again for
+  ``stranger_every`` frames while a detection overlaps its box (IoU >= ``STRANGER_IOU``;
+  the box follows it): each check is a descriptor (``sender.identity``, "Cost"), and
+  without this memory a frame with strangers and no person would pay one per stranger. A
+  near miss (a distance under ``NEAR_MISS``, dlib's pairwise threshold: the person
+  turning back into view or blurred by motion, more often than another person) is tried
+  again after ``NEAR_RETRY`` frames: on openface_multi_face the man at the back came back
+  at 0.53-0.57 and matched a frame or two later, and a 10-frame wait after each near miss
+  had kept him out for up to 1.3 s;
+- tracking, the face's descriptor is checked again when the track is restarted from the
+  detector's box (the verification reseated it: what the box holds changed, e.g. a face
+  crossed in front) and every ``identify_every`` frames (a slow slide from one face to
+  another, which the cheap checks of step 3 do not catch if the faces touch); not the
+  person: the track is dropped, the face becomes a stranger, and step 1 runs on the frame;
+- step 4 never runs: a larger face is another person.
+
+The person's return is found by step 1, which runs on every frame without a track (as
+without identity): the delay is at most ``stranger_every`` frames when the person comes
+back where a stranger's box was, else none.
+
 Cost on 640x480 (openface_default.wmv, one core of the shared 2-core test machine, medians
 of runs that differ by +-20 %): tracked frame 1.6-2.3 ms, of which the predictor alone is
 1.3-1.8 ms; the neighbourhood check +1.4 ms; full-frame detection 20.5 ms
@@ -73,12 +98,16 @@ import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import dlib
 import numpy as np
 
 from facewire.models.landmarks import N_LANDMARKS
+
+if TYPE_CHECKING:  # sender.identity imports this module
+    from facewire.sender.identity import Person
 
 PREDICTOR_FILE = "shape_predictor_68_face_landmarks.dat"
 
@@ -89,6 +118,9 @@ VERIFY_SIDE = 80.0
 VERIFY_MARGIN = 0.25
 MAX_JUMP = 0.25
 SWITCH_RATIO = 1.25
+STRANGER_IOU = 0.5
+NEAR_MISS = 0.6  # a stranger this near the person (dlib's pairwise threshold) is retried soon
+NEAR_RETRY = 2  # frames
 
 Box = tuple[int, int, int, int]
 
@@ -130,7 +162,10 @@ class TrackResult:
         verified: the detector ran on the tracked face's neighbourhood on this frame.
         acquired: the points are of a face the detector found on this frame rather than the
             one followed from the previous frame: the first face, a face found again after
-            the tracked one was lost (possibly another person), or a switch to a larger face.
+            the tracked one was lost (possibly another person, without identity), or a
+            switch to a larger face.
+        identified: a face descriptor was computed on this frame (module docstring,
+            "Identity").
     """
 
     points: np.ndarray | None
@@ -138,6 +173,7 @@ class TrackResult:
     detected: bool
     verified: bool
     acquired: bool = False
+    identified: bool = False
 
 
 def box_from_points(points: np.ndarray) -> Box:
@@ -218,7 +254,8 @@ def _jumped(a: Box, b: Box) -> bool:
 
 
 class LandmarkTracker:
-    """Track the 68 iBUG points of one face (the largest when acquired) through a video.
+    """Track the 68 iBUG points of one face through a video: the largest when acquired, or,
+    given a person, that person's only (module docstring, "Identity").
 
     Not thread-safe; one instance per video stream. See the module docstring for the method.
     Trackers of one process share the loaded shape predictor (read-only when predicting),
@@ -239,6 +276,9 @@ class LandmarkTracker:
         min_similarity: float = 0.5,
         verify_threshold: float = -0.5,
         reseat_iou: float = 0.5,
+        person: Person | None = None,
+        identify_every: int = 600,
+        stranger_every: int = 10,
     ) -> None:
         """Load the models.
 
@@ -256,6 +296,12 @@ class LandmarkTracker:
                 own threshold is 0; a tracked face is given some slack).
             reseat_iou: after a successful check, restart from the detector's box when it
                 overlaps the tracked box by less than this, in [0, 1].
+            person: follow only this person (``sender.identity.Person``), or None: the
+                largest face.
+            identify_every: with a person, check the tracked face's identity at least every
+                this many frames (>= 1).
+            stranger_every: with a person, identify a face found not to be theirs again
+                after this many frames at the earliest (>= 1).
         """
         if detect_width < 80:
             raise ValueError(f"detect_width: expected >= 80 pixels, got {detect_width}")
@@ -267,6 +313,9 @@ class LandmarkTracker:
             raise ValueError(f"min_similarity: expected a value in [-1, 1], got {min_similarity}")
         if not 0.0 <= reseat_iou <= 1.0:
             raise ValueError(f"reseat_iou: expected a value in [0, 1], got {reseat_iou}")
+        if identify_every < 1 or stranger_every < 1:
+            raise ValueError(f"identify_every, stranger_every: expected >= 1, got "
+                             f"{identify_every}, {stranger_every}")
         path = Path(predictor) if predictor is not None else predictor_path()
         if not path.is_file():
             raise FileNotFoundError(f"{path}: shape predictor file not found")
@@ -284,28 +333,43 @@ class LandmarkTracker:
         self._min_similarity = min_similarity
         self._verify_threshold = verify_threshold
         self._reseat_iou = reseat_iou
+        self.person = person
+        self._identify_every = identify_every
+        self._stranger_every = stranger_every
         self.reset()
 
     def reset(self) -> None:
-        """Forget the tracked face; the next frame runs the full detector."""
+        """Forget the tracked face and the strangers; the next frame runs the full detector."""
+        self._drop()
+        self._frame = 0  # frames seen since the reset
+        # (box, the frame it was identified on, frames to wait before identifying it again)
+        self._strangers: list[tuple[Box, int, int]] = []
+
+    def _drop(self) -> None:
+        """Forget the tracked face."""
+        self._since_identify = 0
         self._box: Box | None = None  # the box of the last frame's points
         self._next: Box | None = None  # the box derived from them: where to look next
         self._patch: np.ndarray | None = None  # the face patch in ``_next`` on the last frame
         self._since_check = 0
         self._since_search = 0
 
-    def track(self, frame: np.ndarray) -> TrackResult:
+    def track(self, frame: np.ndarray, image: np.ndarray | None = None) -> TrackResult:
         """Find the 68 points in the next frame of the stream.
 
         Args:
             frame: (H, W, 3) uint8 BGR or (H, W) uint8 grayscale image.
+            image: the same frame in colour, (H, W, 3) uint8 BGR, for the identity checks
+                when ``frame`` is grey (``frame`` itself when None).
 
         Returns:
             The points (or None: no face) and what ran to get them.
         """
         gray = _gray(frame)
+        colour = frame if image is None else image
+        self._frame += 1
         if self._box is None or self._next is None:
-            return self._acquire(gray, verified=False)
+            return self._acquire(gray, colour, verified=False)
         last_box, last_patch = self._box, self._patch
         box = self._next
         points = self._follow(gray, box)
@@ -318,14 +382,27 @@ class LandmarkTracker:
             or _jumped(last_box, box)
         )
         verified = suspicious or self._since_check >= self._verify_every
+        reseated = False
         if verified:
             found = self._verify(gray, box)
             if found is None:
-                return self._acquire(gray, verified=True)
+                return self._acquire(gray, colour, verified=True)
             self._since_check = 0
             if _iou(found, box) < self._reseat_iou:
-                box = found
+                box, reseated = found, True
                 points = self._follow(gray, box)
+        if self.person is not None:
+            self._since_identify += 1
+            if not (reseated or self._since_identify >= self._identify_every):
+                return TrackResult(points=points, box=box, detected=False, verified=verified)
+            distance = self._identify(colour, points)
+            if distance >= self.person.threshold:
+                self._strangers.append((box, self._frame, self._wait(distance)))
+                found_again = self._acquire(gray, colour, verified=verified)
+                return TrackResult(found_again.points, found_again.box, True, verified,
+                                   found_again.acquired, identified=True)
+            return TrackResult(points=points, box=box, detected=False, verified=verified,
+                               identified=True)
         detected = self._since_search >= self._search_every
         larger = None
         if detected:
@@ -337,10 +414,25 @@ class LandmarkTracker:
         return TrackResult(points=points, box=box, detected=detected, verified=verified,
                            acquired=larger is not None)
 
+    def faces(self, frame: np.ndarray) -> list[Box]:
+        """Every face the full-frame detector finds in a frame, as acquisition runs it; the
+        track is not touched.
+
+        Args:
+            frame: (H, W, 3) uint8 BGR or (H, W) uint8 grayscale image.
+        """
+        gray = _gray(frame)
+        return self._detect(gray, min(1.0, self._detect_width / gray.shape[1]))
+
+    def points_in(self, frame: np.ndarray, box: Box) -> np.ndarray:
+        """The (68, 2) float32 points the predictor places in ``box`` of a BGR or grey
+        frame; the track is not touched."""
+        shape = self._predictor(_gray(frame), dlib.rectangle(*box))
+        return np.array([(p.x, p.y) for p in shape.parts()], dtype=np.float32)
+
     def _follow(self, gray: np.ndarray, box: Box) -> np.ndarray:
         """Predict the (68, 2) float32 points in ``box`` and hold the face for the next frame."""
-        shape = self._predictor(gray, dlib.rectangle(*box))
-        points = np.array([(p.x, p.y) for p in shape.parts()], dtype=np.float32)
+        points = self.points_in(gray, box)
         self._box = box
         self._next = box_from_points(points)
         self._patch = _patch(gray, self._next)
@@ -354,16 +446,50 @@ class LandmarkTracker:
             small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
         return [_scaled_box(r, scale, 0, 0) for r in _detector()(small)]
 
-    def _acquire(self, gray: np.ndarray, verified: bool) -> TrackResult:
-        """Full-frame detection; start a track on the largest face, or report no face."""
-        self.reset()
+    def _acquire(self, gray: np.ndarray, colour: np.ndarray, verified: bool) -> TrackResult:
+        """Full-frame detection; start a track on the largest face (the largest of the
+        person's, given one), or report no face."""
+        self._drop()
         faces = self._detect(gray, min(1.0, self._detect_width / gray.shape[1]))
         if not faces:
+            self._strangers = []
             return TrackResult(points=None, box=None, detected=True, verified=verified)
-        box = max(faces, key=_side)
-        points = self._follow(gray, box)
-        return TrackResult(points=points, box=box, detected=True, verified=verified,
-                           acquired=True)
+        if self.person is None:
+            box = max(faces, key=_side)
+            points = self._follow(gray, box)
+            return TrackResult(points=points, box=box, detected=True, verified=verified,
+                               acquired=True)
+        strangers: list[tuple[Box, int, int]] = []  # those seen on this frame, boxes moved
+        identified = False
+        for box in sorted(faces, key=_side, reverse=True):
+            known = max(self._strangers, key=lambda s: _iou(s[0], box), default=None)
+            if known is not None and _iou(known[0], box) >= STRANGER_IOU \
+                    and self._frame - known[1] < known[2]:
+                strangers.append((box, known[1], known[2]))
+                continue
+            points = self._follow(gray, box)
+            identified = True
+            distance = self._identify(colour, points)
+            if distance < self.person.threshold:
+                self._strangers = strangers
+                return TrackResult(points=points, box=box, detected=True, verified=verified,
+                                   acquired=True, identified=True)
+            self._drop()
+            strangers.append((box, self._frame, self._wait(distance)))
+        self._strangers = strangers
+        return TrackResult(points=None, box=None, detected=True, verified=verified,
+                           identified=identified)
+
+    def _identify(self, colour: np.ndarray, points: np.ndarray) -> float:
+        """The distance of the face of these points from the person (a descriptor: tens of
+        ms); the person's when under ``person.threshold``."""
+        assert self.person is not None
+        self._since_identify = 0
+        return self.person.distance(colour, points)
+
+    def _wait(self, distance: float) -> int:
+        """Frames before a stranger at this distance is identified again."""
+        return NEAR_RETRY if distance < NEAR_MISS else self._stranger_every
 
     def _find_larger(self, gray: np.ndarray, box: Box) -> Box | None:
         """The largest other face at least SWITCH_RATIO times the tracked one's side, or None.

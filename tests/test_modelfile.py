@@ -202,7 +202,8 @@ def test_summary_of_loaded_and_in_memory_model_agree(saved: Path) -> None:
     loaded = load_model(saved)
     summary = model_summary(loaded)
     assert summary == {"vertices": 144, "triangles": 242, "regions": 1, "layers": 3,
-                       "bytes": saved.stat().st_size, "sha256": model_sha256(saved)}
+                       "descriptors": 0, "bytes": saved.stat().st_size,
+                       "sha256": model_sha256(saved)}
     assert model_summary(_model()) == summary
     empty = model_summary(_model(regions=False))
     assert (empty["regions"], empty["layers"]) == (0, 0)

@@ -2,8 +2,13 @@
 
 The steps, in order (``build_model``):
 
-1. Track: the 68 points of the largest face in every frame of the range
-   (``sender.tracker``); frames without a face are kept as ``None``.
+1. Track: the person is chosen among the faces of the range (``sender.enroll.person``:
+   the one most present, or ``person``: an index in the first frame or a reference photo),
+   then their 68 points are tracked in every frame of the range (``sender.tracker`` given
+   the person: nobody else's face is taken); frames without their face are kept as
+   ``None``. Their descriptors (``sender.identity``) at up to ``STORED_DESCRIPTORS`` face
+   frames spread over the range go into the model (``PersonModel.descriptors``), so that
+   the appearance step, the self-check and every sender follow that person only.
 2. Fit: choose the neutral frame, among the sharp frames (``sender.enroll.registration``:
    a motion-blurred neutral frame doubles every edge of the texture and rest layers; of a
    guided recording, among the neutral prompt's sharp frames: ``sender.enroll.routine``),
@@ -48,7 +53,9 @@ The steps, in order (``build_model``):
    reason (and a bar of the same in proportion), then its layers in order (as drawn over
    the neutral texture: layer times its opacity and alpha ramp); last, the coverage
    (``sender.enroll.coverage``): which expression states the layers show, and which they
-   do not.
+   do not. When the clip showed more than one person, a last row shows a frame of the clip
+   with every face boxed, the person's in green, the others numbered as ``--person N``
+   counts them in the first frame.
 
 One photo (``build_photo``; ``build_model`` sends a path with a ``PHOTO_SUFFIXES`` suffix
 there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go through
@@ -125,12 +132,20 @@ from facewire.sender.enroll.fit import Fit, FitError, fit_person
 from facewire.sender.enroll.fusion import Fusion, fuse_views
 from facewire.sender.enroll.layers import enroll_regions
 from facewire.sender.enroll.occluders import OccluderScan, Occlusion
+from facewire.sender.enroll.person import (
+    Chosen,
+    choose_person,
+    photo_descriptor,
+    sample_faces,
+    sample_indices,
+)
 from facewire.sender.enroll.registration import sharp_frames
 from facewire.sender.enroll.routine import Guide
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.enroll.usage import LABELS as USAGE_LABELS
 from facewire.sender.enroll.usage import ordered as usage_order
 from facewire.sender.enroll.usage import region_frames_summary
+from facewire.sender.identity import MATCH_DISTANCE, Person, face_descriptor
 from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
@@ -149,6 +164,8 @@ COVERAGE_ROW_HEIGHT = 60  # the preview's last row: the states covered and not s
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp")  # what ``model build`` takes as a photo
 STILL_FRAMES = 10  # a photo is fitted as this many copies: sender.enroll.fit needs 10 face frames
 STILL_RATE_HZ = 30.0
+STORED_DESCRIPTORS = 8  # the person's descriptors a model stores (sender.identity)
+PERSON_ROW_HEIGHT = 240  # the preview's row showing whom the model is of
 
 SelfCheckHook = Callable[[PersonModel, Fit, Sequence[int], Sequence[np.ndarray | None]],
                          tuple[SelfCheck, dict[str, Any]]]
@@ -174,6 +191,8 @@ class BuildResult:
         coverage: the states the layers show (``sender.enroll.coverage``; none without
             regions).
         self_check: the self-check hook's report keys ({} when it was not run).
+        person: whom the model is of (``sender.enroll.person.Chosen``); None when no
+            sampled frame showed a face (the largest face tracked was taken).
         evidence: the base texture's views (video indices, the neutral first), those
             dropped as misaligned, per part of the face those that were occluded there, and
             the first neutral frame when it was occluded and taken again
@@ -193,6 +212,7 @@ class BuildResult:
     appearance: dict[str, Any]
     coverage: Coverage
     self_check: dict[str, Any]
+    person: Chosen | None
     evidence: dict[str, Any] | None = None
     occluders: dict[str, Any] | None = None
 
@@ -209,6 +229,7 @@ class BuildResult:
                 "texture_evidence": self.evidence,
                 "occluded_enrollment_frames": len((self.occluders or {}).get("frames", ())),
                 "occluders": self.occluders,
+                "person": None if self.person is None else self.person.summary(),
                 "appearance": self.appearance,
                 "region_frames": region_frames_summary(self.model),
                 **self.coverage.summary(),
@@ -230,12 +251,14 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
                 frames: slice = slice(0, None), name: str | None = None,
                 progress: Progress = no_progress,
                 appearance: bool = True, check: SelfCheckHook | None = None,
-                guide: Guide | None = None) -> BuildResult:
+                guide: Guide | None = None,
+                person: int | str | os.PathLike[str] | None = None) -> BuildResult:
     """Build a person's model from a video, or from one photo, and save it with its preview.
 
     Args:
-        video: the enrollment video: one person (the largest face is taken), some seconds of
-            neutral face and expressions, ideally some head turns (for depth and side texture).
+        video: the enrollment video: the person (the one most present, unless ``person``
+            says whom), some seconds of neutral face and expressions, ideally some head
+            turns (for depth and side texture).
             A photo (``is_photo``) goes to ``build_photo``.
         out: the ``.fwm`` file to write; the preview goes to ``preview_path(out)``.
         frames: the frame range to use (``models.infra.video.frame_range``); a photo takes
@@ -248,9 +271,13 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
         guide: a guided recording's prompted frames (``sender.enroll.routine``, frame
             indices of ``video``): the neutral frame is chosen among the neutral prompt's
             frames, each region's states among its prompts' frames.
+        person: whom to build the model of, among several people (``--person``): an index
+            of the faces in the range's first frame, left to right, or a reference photo's
+            path; None: the one most present (``sender.enroll.person``).
 
     Raises:
         BuildError: no readable frames, no face, or too few face frames (names the video).
+        PersonError: the person asked for is not found (names the input).
         EnrollError: the appearance step found fewer than 2 frames with a head pose.
         VideoError: the video cannot be opened or decoded.
     """
@@ -258,18 +285,19 @@ def build_model(video: str | os.PathLike[str], out: str | os.PathLike[str],
     if is_photo(video):
         if frames != slice(0, None):
             raise BuildError(f"{video}: a photo has one frame; --frames is for videos")
-        return build_photo(video, out, name, progress, check)
+        return build_photo(video, out, name, progress, check, person)
     info = video_info(video)
     with decoded_once(video):  # tracking, texture, appearance and self-check share frames
         return _build(video.name, lambda s: read_frames(video, s), info.width, info.height,
                       frames_in_range(frames, info.frames), out, frames, name or video.stem,
                       progress, video if appearance else None, str(video), video,
-                      check=check, guide=guide)
+                      check=check, guide=guide, person=person)
 
 
 def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLike[str],
                 name: str | None = None, progress: Progress = no_progress,
-                check: SelfCheckHook | None = None) -> BuildResult:
+                check: SelfCheckHook | None = None,
+                person: int | str | os.PathLike[str] | None = None) -> BuildResult:
     """Build a model from one photo: the neutral only (module docstring, "One photo").
 
     Args:
@@ -279,6 +307,7 @@ def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLi
         name: the person's name; the file name without extension (or "portrait") by default.
         progress: wraps an iterable to show progress.
         check: the self-check hook (module docstring), or None.
+        person: as ``build_model``'s (the photo's largest face by default).
 
     Raises:
         BuildError: the file is not a readable image, or no face or no usable fit in it (the
@@ -309,22 +338,26 @@ def build_photo(photo: str | os.PathLike[str] | np.ndarray, out: str | os.PathLi
     return _build(source, copies, image.shape[1], image.shape[0], STILL_FRAMES, out,
                   slice(0, None), name, progress, None, where,
                   None if isinstance(photo, np.ndarray) else Path(photo), photo=True,
-                  check=check)
+                  check=check, person=person)
 
 
 def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: int,
            height: int, total: int | None, out: str | os.PathLike[str], frames: slice,
            name: str, progress: Progress, video: Path | None, where: str,
            source_file: Path | None, photo: bool = False,
-           check: SelfCheckHook | None = None, guide: Guide | None = None) -> BuildResult:
+           check: SelfCheckHook | None = None, guide: Guide | None = None,
+           person: int | str | os.PathLike[str] | None = None) -> BuildResult:
     """The build (module docstring, steps 1-5) from a frame source: ``read(frames)`` yields
     the frames of a range; ``video`` is the file the appearance step reads (None: no
     appearance step); ``where`` names the input in errors; ``source_file`` is the file the
     model says it was built from (``info.source``; None for an image given in memory);
-    ``guide`` the prompted frames of a guided recording."""
+    ``guide`` the prompted frames of a guided recording; ``person`` as ``build_model``'s."""
     start = time.perf_counter()
+    tracker = LandmarkTracker()
+    who = _choose(read, frames, total, tracker, where, photo, person)
+    tracker = LandmarkTracker(person=None if who is None else Person(who.descriptors))
     indices, points, blur, face_frames, occlusions = _track(read, frames, total, progress,
-                                                            where, photo)
+                                                            where, photo, tracker)
     camera = intrinsics_guess(width, height)
     sharp = sharp_frames(blur, [p is not None for p in points])
     if guide is not None:
@@ -346,7 +379,8 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
         mesh=fit.mesh, texture=texture,
-        camera=camera,
+        camera=camera, descriptors=who.descriptors if photo and who is not None  # one image
+        else _descriptors(read, indices, points, who),
         info=ModelInfo(name=name, source_video=source, frames_used=used,
                        neutral_frame=neutral, creator=CREATOR, source=made_from))
     report: dict[str, Any] = {}
@@ -366,19 +400,82 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     model = replace(model, sha256=save_model(model, out), file_bytes=out.stat().st_size)
     preview = preview_path(out)
     neutral_image = images[min(images)] if photo else images[indices[fit.neutral]]
-    _write_png(preview, render_preview(model, neutral_image, points[fit.neutral]))
+    _write_png(preview, render_preview(model, neutral_image, points[fit.neutral],
+                                       _person_view(read, who)))
     return BuildResult(model, out, preview, fit, tuple(indices), face_frames,
-                       time.perf_counter() - start, report, coverage, checked, evidence,
-                       occluders)
+                       time.perf_counter() - start, report, coverage, checked, who,
+                       evidence, occluders)
+
+
+def _choose(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: int | None,
+            tracker: LandmarkTracker, where: str, photo: bool,
+            person: int | str | os.PathLike[str] | None) -> Chosen | None:
+    """Step 1's choice of the person (``sender.enroll.person``) among the faces of
+    ``SAMPLES`` frames spread over the range (a photo: its one image); None when no sampled
+    frame shows a face and no ``person`` was asked for (the tracking then takes the largest
+    face of any frame, or says there is none)."""
+    first = frames.start or 0
+    count = 1 if photo or not total else total  # frames of unknown count: the first only
+    wanted = sample_indices(list(range(first, first + count)))
+    sampled = sample_faces(read(slice(first, wanted[-1] + 1)), wanted, tracker)
+    if not sampled:
+        raise BuildError(f"{where}: no frames in range {range_text(frames)}")
+    if person is None and not any(sampled):
+        return None
+    reference: int | np.ndarray | None = None
+    name = ""
+    if isinstance(person, int):
+        reference = person
+    elif person is not None:
+        name = os.fspath(person)
+        reference = photo_descriptor(person, tracker)
+    return choose_person(sampled, reference, where, name)
+
+
+def _descriptors(read: Callable[[slice], Iterable[VideoFrame]], indices: list[int],
+                 points: list[np.ndarray | None], chosen: Chosen | None) -> np.ndarray:
+    """(D, 128) float32: the person's descriptors at up to ``STORED_DESCRIPTORS`` tracked
+    face frames spread over the range (those within ``MATCH_DISTANCE`` of the chosen faces'
+    mean, all without a choice), or the chosen faces' own when none is."""
+    faces = [k for k, p in enumerate(points) if p is not None]
+    picks = sorted({faces[int(round(i))] for i in np.linspace(
+        0, len(faces) - 1, min(STORED_DESCRIPTORS, len(faces)))})
+    images = _decode(read, {indices[k] for k in picks})
+    seed = None if chosen is None else Person(chosen.descriptors)
+    found = []
+    for k in picks:
+        p = points[k]
+        assert p is not None
+        d = face_descriptor(images[indices[k]], p)
+        if seed is None or seed.distance_of(d) < MATCH_DISTANCE:
+            found.append(d)
+    if not found:
+        assert chosen is not None
+        return chosen.descriptors[:STORED_DESCRIPTORS]
+    return np.stack(found)
+
+
+def _person_view(read: Callable[[slice], Iterable[VideoFrame]], chosen: Chosen | None
+                 ) -> tuple[np.ndarray, int, Chosen] | None:
+    """The frame the preview's person row shows (module docstring, 5), its index and the
+    choice, or None when the clip showed one person: of the sampled frames that show the
+    person, the one with the most faces (the earliest of those)."""
+    if chosen is None or chosen.people < 2:
+        return None
+    counts: dict[int, int] = {}
+    for face, _ in chosen.faces:
+        counts[face.frame] = counts.get(face.frame, 0) + 1
+    frame = min({f.frame for f, mine in chosen.faces if mine},
+                key=lambda i: (-counts[i], i))
+    return _decode(read, {frame})[frame], frame, chosen
 
 
 def _track(read: Callable[[slice], Iterable[VideoFrame]], frames: slice, total: int | None,
-           progress: Progress, where: str, photo: bool
+           progress: Progress, where: str, photo: bool, tracker: LandmarkTracker
            ) -> tuple[list[int], list[np.ndarray | None], list[float], int, list[Occlusion]]:
-    """Step 1: each frame's index, 68 points (None: no face), sharpness and occluders
-    (``sender.enroll.occluders``; none looked for in a photo's copies), and how many frames
-    show a face; ``BuildError`` when none do."""
-    tracker = LandmarkTracker()
+    """Step 1: each frame's index, the person's 68 points (None: no face), sharpness and
+    occluders (``sender.enroll.occluders``; none looked for in a photo's copies), and how
+    many frames show their face; ``BuildError`` when none do."""
     scan = None if photo else OccluderScan()
     indices: list[int] = []
     points: list[np.ndarray | None] = []
@@ -530,7 +627,8 @@ def at_rest(model: PersonModel) -> PersonModel:
 
 
 def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
-                   neutral_points: np.ndarray | None = None) -> np.ndarray:
+                   neutral_points: np.ndarray | None = None,
+                   person: tuple[np.ndarray, int, Chosen] | None = None) -> np.ndarray:
     """The model from the front and from three-quarter view, beside the neutral frame.
 
     Args:
@@ -538,9 +636,12 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
         neutral_image: (h, w, 3) uint8 BGR frame the texture's neutral view came from, or None.
         neutral_points: (68, 2) its landmarks (px), to crop the frame to the face like the
             renders; the whole frame when None.
+        person: a (h, w, 3) uint8 BGR frame of the clip, its index and the build's choice
+            of person, for the last row (module docstring, 5), or None: no such row.
 
     Returns:
-        (PREVIEW_HEIGHT + R * REGION_ROW_HEIGHT [+ COVERAGE_ROW_HEIGHT], W, 3) uint8 BGR
+        (PREVIEW_HEIGHT + R * REGION_ROW_HEIGHT [+ COVERAGE_ROW_HEIGHT]
+        [+ PERSON_ROW_HEIGHT], W, 3) uint8 BGR
         image: [neutral frame |] front | three-quarter, then a row per region of its R
         regions, then, when the model has its coverage, a row naming the states covered and
         those not seen (module docstring).
@@ -563,7 +664,36 @@ def render_preview(model: PersonModel, neutral_image: np.ndarray | None = None,
             for r in model.regions]
     if model.coverage is not None:
         rows.append(_coverage_row(model.coverage, top.shape[1]))
+    if person is not None:
+        rows.append(_person_row(*person, top.shape[1]))
     return np.vstack([top, *rows])
+
+
+def _person_row(image: np.ndarray, frame: int, chosen: Chosen, width: int) -> np.ndarray:
+    """(PERSON_ROW_HEIGHT, width, 3) BGR: frame ``frame`` of the clip (``image``) with its
+    sampled faces boxed, the person's in green, those of the range's first frame numbered
+    left to right (``--person N``), and the choice in words beside it."""
+    row = np.full((PERSON_ROW_HEIGHT, width, 3), 24, np.uint8)
+    scale = min((PERSON_ROW_HEIGHT - 8) / image.shape[0], (width / 2) / image.shape[1])
+    view = cv2.resize(image, (max(1, int(image.shape[1] * scale)),
+                              max(1, int(image.shape[0] * scale))), interpolation=cv2.INTER_AREA)
+    numbered = frame == chosen.first[0]
+    shown = [(face, mine) for face, mine in chosen.faces if face.frame == frame]
+    for n, (face, mine) in enumerate(shown):
+        x0, y0, x1, y1 = (int(round(v * scale)) for v in face.box)
+        colour = (80, 220, 80) if mine else (170, 170, 170)
+        cv2.rectangle(view, (x0, y0), (x1, y1), colour, 2 if mine else 1, cv2.LINE_AA)
+        label = " ".join(([str(n)] if numbered else []) + (["person"] if mine else []))
+        cv2.putText(view, label, (x0, max(y0 - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    colour, 1, cv2.LINE_AA)
+    row[4:4 + view.shape[0], 4:4 + view.shape[1]] = view
+    text = chosen.line().removeprefix("person:").strip()
+    x, y = view.shape[1] + 16, 24
+    for part in text.split("; "):
+        cv2.putText(row, part, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (230, 230, 230), 1,
+                    cv2.LINE_AA)
+        y += 22
+    return row
 
 
 def _coverage_row(coverage: dict[str, bool], width: int) -> np.ndarray:
