@@ -126,7 +126,8 @@ def test_an_open_mouth_frame_gives_the_persons_own_teeth_where_it_saw_them(
     model = load_model(closed_mouth_model)
     video = shared_data / "video" / "lp_d18.mp4"
     texels = _RegionTexels(model, model.camera)
-    observed, _ = _observe(model, model.camera, video, slice(118, 126), no_progress, texels)
+    observed, _ = _observe(model, model.camera, video, slice(118, 126), no_progress, texels,
+                           {})
     seen = {o.index: o for o in observed}
     image = next(f.image for f in read_frames(video, slice(125, 126)))
     inside, weights = texels.cavity.interior([(image, seen[125])])

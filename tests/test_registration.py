@@ -122,12 +122,13 @@ def fast_motion(shared_data: Path):
     from facewire.models.infra.progress import no_progress
     from facewire.models.infra.video import read_frames, video_info
     from facewire.sender.enroll import build
+    from facewire.sender.tracker import LandmarkTracker
 
     r = {r.key: r for r in REPRODUCTIONS}["motion"]
     clip = shared_data / "video" / r.clip
     info = video_info(clip)
-    _, points, blur, _ = build._track(lambda s: read_frames(clip, s), r.enrol, None,
-                                      no_progress, str(clip), False)
+    _, points, blur, _, _ = build._track(lambda s: read_frames(clip, s), r.enrol, None,
+                                         no_progress, str(clip), False, LandmarkTracker())
     camera = intrinsics_guess(info.width, info.height)
     return points, blur, camera
 
