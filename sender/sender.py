@@ -313,6 +313,9 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             if stop.is_set():
                 stopped = "stop"
                 break
+            if start is None:  # the stream's time counts from its first frame's arrival
+                start, cpu = time.monotonic(), time.process_time()
+                window = (start, 0)
             out = pipeline.process(image, t)
             publisher.send(out.packet)
             if log is not None:
@@ -323,8 +326,6 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
                     log.write_update(epoch + time.monotonic(), out.update.serial,
                                      out.update_bytes)
             now = time.monotonic()
-            if start is None:
-                start, cpu, window = now, time.process_time(), (now, 1)
             face = out.points is not None
             counts["frames"] += 1
             counts["packets"] += 1
