@@ -77,10 +77,11 @@ None for a model that stores no range (built before it was stored); ``model_sour
 stored range.
 
 Whom the sender followed (``bench.identity``): ``identity_switches``, the frames whose
-tracked face is not the model's person's, judged by the face descriptor on the real frame
-at the tracked points (``identity_frames`` judged, ``identity_distance_max``), and
-``reacquire_s``, the median time from the person's return to the first face packet (None
-when the face was never absent after it was first sent; ``reacquire_max_s``, ``returns``,
+tracked face is another person's (judged by face descriptors on the real frame: the
+tracked face's and the people's of the run), ``identity_unrecognised`` those recognised as
+nobody (``identity_frames`` judged, ``identity_distance_max``), and ``reacquire_s``, the
+median time from the person's return to the first face packet (None when no absence of
+the face was followed by a face packet; ``reacquire_max_s``, ``returns``,
 ``reacquire_missed``). All None for a model without descriptors.
 
 Appearance classification. ``q_regions`` gives, per region of the model in packet order
@@ -226,7 +227,8 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``render_nme_mouth``, ``render_nme_eyes``, ``render_nme_brows``,
         ``render_nme_frames``, the same five with ``h264_`` in front,
         ``render_face_missing``, ``h264_face_missing``, ``real_face_missing``,
-        ``render_nme_seconds``, ``identity_switches``, ``identity_frames``,
+        ``render_nme_seconds``, ``identity_switches``, ``identity_unrecognised``,
+        ``identity_frames``,
         ``identity_distance_max``, ``reacquire_s``, ``reacquire_max_s``, ``returns``,
         ``reacquire_missed``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
         ``model``, ``source``, ``subset`` (``bench.clips``: "tuning", "evaluation" or None).
@@ -537,15 +539,16 @@ def _identity_line(r: dict[str, Any]) -> str:
     """The report's line on whom the sender followed (``bench.identity``)."""
     if r["identity_frames"] is None:
         return "identity: not judged (the model stores no face descriptors)"
-    back = "the face was never absent after it was first sent" if r["reacquire_s"] is None \
+    back = "no return of the person to time" if r["reacquire_s"] is None \
         else (f"back after the person's return in {r['reacquire_s']:.2f} s (median; at most "
               f"{r['reacquire_max_s']:.2f} s) over {r['returns']} returns")
     if r["reacquire_missed"]:
         back += f", {r['reacquire_missed']} never followed by a face packet"
     distance = "n/a" if r["identity_distance_max"] is None else \
         f"{r['identity_distance_max']:.2f}"
-    return (f"identity: {r['identity_switches']} of {r['identity_frames']} tracked frames not "
-            f"the model's person (largest descriptor distance {distance}); {back}")
+    return (f"identity: {r['identity_switches']} of {r['identity_frames']} tracked frames "
+            f"another person's, {r['identity_unrecognised']} recognised as nobody (largest "
+            f"descriptor distance {distance}); {back}")
 
 
 def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:
