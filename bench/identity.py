@@ -41,8 +41,8 @@ turning into view, made a group of its own at 0.51 from his mean).
   ``reacquire_missed`` the returns never followed by a face packet before the clip ended.
 
 Cost: a descriptor per tracked frame, per face on the census frames, per face on absent
-frames and per other face on the frames recognised as nobody (tens to hundreds of ms
-each, ``sender.identity``). A model without descriptors gives None for all of them.
+frames and per other face on the frames recognised as nobody (about 100 ms of CPU each,
+``sender.identity``). A model without descriptors gives None for all of them.
 """
 
 from __future__ import annotations

@@ -501,7 +501,8 @@ class LandmarkTracker:
         """
         least = SWITCH_RATIO * _side(box)
         scale = min(1.0, self._detect_width / gray.shape[1], VERIFY_SIDE / least)
-        faces = [f for f in self._detect(gray, scale) if _side(f) >= least and box_iou(f, box) < 0.3]
+        faces = [f for f in self._detect(gray, scale)
+                 if _side(f) >= least and box_iou(f, box) < 0.3]
         return max(faces, key=_side) if faces else None
 
     def _verify(self, gray: np.ndarray, box: Box) -> Box | None:

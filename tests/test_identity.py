@@ -29,19 +29,10 @@ from facewire.sender.enroll.person import (
 )
 from facewire.sender.identity import MATCH_DISTANCE, Person
 from facewire.sender.pipeline import SenderPipeline, encode_video, identity_warning, sender_camera
-from facewire.sender.tracker import LandmarkTracker
+from facewire.sender.tracker import LandmarkTracker, box_iou
 
 CLIP = "openface_multi_face.avi"  # three people; the man in front has the largest face
 FIRST = 60  # the first frame in which the detector sees all three
-
-
-def _iou(a: tuple[int, ...], b: tuple[int, ...]) -> float:
-    w = min(a[2], b[2]) - max(a[0], b[0]) + 1
-    h = min(a[3], b[3]) - max(a[1], b[1]) + 1
-    if w <= 0 or h <= 0:
-        return 0.0
-    area = (a[2] - a[0] + 1) * (a[3] - a[1] + 1) + (b[2] - b[0] + 1) * (b[3] - b[1] + 1)
-    return w * h / (area - w * h)
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +125,7 @@ def test_a_model_of_one_person_never_drives_the_stream_with_another(
         box = (*out.points.min(axis=0), *out.points.max(axis=0))
         faces = hog.faces(frame.image)
         front = max(faces, key=lambda f: f[2] - f[0])
-        assert _iou(box, front) < 0.1, f"frame {frame.index}: the man in front drives it"
+        assert box_iou(box, front) < 0.1, f"frame {frame.index}: the man in front drives it"
         followed += 1
     assert followed >= 35
     # the same without descriptors follows the largest face: the man in front
