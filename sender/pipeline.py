@@ -13,12 +13,14 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
-   ``sender.pose.PoseFilter`` (One-Euro).
+   ``sender.smoothing.PoseFilter`` (One-Euro).
 3. ``lift``: ``sender.lift.Lifter`` -> (9, 3) model-space residuals of the non-rigid
    points, lifted again with the filtered pose (the one that is sent, so the receiver's
    points land on the tracked ones), with per-point validity.
 4. ``heuristics``: ``sender.heuristics.ResidualFilter`` (decay, mirror completion, jump hold,
-   face loss); the residuals it returns are then projected once on the rig's tangent planes
+   face loss), then ``sender.smoothing.ResidualSmoother`` (One-Euro; restarted on a frame
+   without a face and on a re-acquisition, whose decay and blend pass as they are); the
+   residuals it returns are then projected once on the rig's tangent planes
    (``Rig.to_tangent``, what the packet carries) and taken back to model space
    (``Rig.from_tangent``): ``SenderOutput.residuals`` is exactly the geometry the packet
    can carry, before quantisation.
@@ -99,8 +101,9 @@ from facewire.sender.identity import Person
 from facewire.sender.learn import Learner, can_learn
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
-from facewire.sender.pose import PoseFilter, PoseSolver
+from facewire.sender.pose import PoseSolver
 from facewire.sender.shading import ShadingEstimator
+from facewire.sender.smoothing import PoseFilter, ResidualSmoother
 from facewire.sender.tracker import LandmarkTracker
 
 
@@ -193,6 +196,7 @@ class SenderPipeline:
         self.tracker = LandmarkTracker(person=self.person)
         self.pose_filter = PoseFilter()
         self.residual_filter = ResidualFilter()
+        self.residual_smoother = ResidualSmoother()
         regions = model.regions[:N_REGIONS]
         self.sampler = AppearanceSampler(model.mesh, self.rig, camera,
                                          tuple(r.name for r in regions))
@@ -229,6 +233,7 @@ class SenderPipeline:
         self.tracker.reset()
         self.pose_filter.reset()
         self.residual_filter.reset()
+        self.residual_smoother.reset()
         self.shading.reset()
         self._raw: Pose | None = None
         self._expression: np.ndarray | None = None  # the last raw lift's residuals
@@ -370,7 +375,12 @@ class SenderPipeline:
             out = self.residual_filter.step(None, None, dt)
         else:
             out = self.residual_filter.step(lifted.residuals, lifted.valid, dt)
-        tangent = self.rig.to_tangent(out.residuals)
+        smoothed = out.residuals
+        if out.tracking_lost or out.reacquired:
+            self.residual_smoother.reset()
+        else:
+            smoothed = self.residual_smoother.step(out.residuals, dt)
+        tangent = self.rig.to_tangent(smoothed)
         residuals = self.rig.from_tangent(tangent)
         flags = out.flags | (Flag.FACE_PRESENT if face else Flag(0))
         return tangent, residuals, flags
