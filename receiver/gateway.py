@@ -171,14 +171,15 @@ STATUS_S = 0.5
 MODELS_KEPT = 4
 GZIP_SAVES = 1.0  # serve gzip when it is smaller than the raw bytes at all
 _WAKE_S = 0.1
-_FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html))")
+_FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html|vert|frag))")
 _MODEL = re.compile(r"/model/(?P<sha>[0-9a-f]{64})\.(?P<kind>glb|rig)")
 _UPDATE = re.compile(r"/model/(?P<sha>[0-9a-f]{64})/(?P<serial>[1-9][0-9]{0,3})\.upd")
 _HTTP = re.compile(r"(?P<host>\[[^\]]+\]|[^:\[\]]*):(?P<port>[0-9]{1,5})")
 _TOKEN = re.compile(r"[A-Za-z0-9._~-]{16,256}")
 _NAME = re.compile(r"(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-          ".css": "text/css; charset=utf-8"}
+          ".css": "text/css; charset=utf-8", ".vert": "text/plain; charset=utf-8",
+          ".frag": "text/plain; charset=utf-8"}  # the GLSL shaders: receiver/render.py
 _QUIET = logging.getLogger("facewire.gateway.websockets")  # websockets' own log: not shown
 _QUIET.addHandler(logging.NullHandler())
 _QUIET.propagate = False

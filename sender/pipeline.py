@@ -18,9 +18,7 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    points, lifted again with the filtered pose (the one that is sent, so the receiver's
    points land on the tracked ones), with per-point validity.
 4. ``heuristics``: ``sender.heuristics.ResidualFilter`` (decay, mirror completion, jump hold,
-   face loss), then ``sender.smoothing.ResidualSmoother`` (One-Euro; restarted on a frame
-   without a face and on a re-acquisition, whose decay and blend pass as they are); the
-   residuals it returns are then projected once on the rig's tangent planes
+   face loss); the residuals it returns are then projected once on the rig's tangent planes
    (``Rig.to_tangent``, what the packet carries) and taken back to model space
    (``Rig.from_tangent``): ``SenderOutput.residuals`` is exactly the geometry the packet
    can carry, before quantisation.
@@ -103,7 +101,7 @@ from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
 from facewire.sender.pose import PoseSolver
 from facewire.sender.shading import ShadingEstimator
-from facewire.sender.smoothing import PoseFilter, ResidualSmoother
+from facewire.sender.smoothing import PoseFilter
 from facewire.sender.tracker import LandmarkTracker
 
 
@@ -196,7 +194,6 @@ class SenderPipeline:
         self.tracker = LandmarkTracker(person=self.person)
         self.pose_filter = PoseFilter()
         self.residual_filter = ResidualFilter()
-        self.residual_smoother = ResidualSmoother()
         regions = model.regions[:N_REGIONS]
         self.sampler = AppearanceSampler(model.mesh, self.rig, camera,
                                          tuple(r.name for r in regions))
@@ -233,7 +230,6 @@ class SenderPipeline:
         self.tracker.reset()
         self.pose_filter.reset()
         self.residual_filter.reset()
-        self.residual_smoother.reset()
         self.shading.reset()
         self._raw: Pose | None = None
         self._expression: np.ndarray | None = None  # the last raw lift's residuals
@@ -375,12 +371,7 @@ class SenderPipeline:
             out = self.residual_filter.step(None, None, dt)
         else:
             out = self.residual_filter.step(lifted.residuals, lifted.valid, dt)
-        smoothed = out.residuals
-        if out.tracking_lost or out.reacquired:
-            self.residual_smoother.reset()
-        else:
-            smoothed = self.residual_smoother.step(out.residuals, dt)
-        tangent = self.rig.to_tangent(smoothed)
+        tangent = self.rig.to_tangent(out.residuals)
         residuals = self.rig.from_tangent(tangent)
         flags = out.flags | (Flag.FACE_PRESENT if face else Flag(0))
         return tangent, residuals, flags
