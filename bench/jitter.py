@@ -17,8 +17,8 @@ consecutive), the face is still at f when
 
 a drift of half a pixel a frame on a face whose eyes are 100 px apart. The test does not
 read ``q_f-1`` or ``q_f``, so it does not pick the pairs on which the tracker's noise on the
-real frame happened to be small: judged by ``m_real(f) < 0.01`` instead, the chosen pairs'
-real motion is biased low, and a rendering exactly as noisy as the video scores about 1.3.
+real frame happened to be small (judged by ``m_real(f)`` itself, the chosen pairs' real
+motion is biased low and the ratio high: docs/DESIGN.md §8, "Steadiness").
 Over the still pairs S,
 
     render_jitter_ratio = sum_S m_render(f) / sum_S m_real(f)
@@ -188,9 +188,10 @@ def lines(r: Mapping[str, Any]) -> list[str]:
         jitter = f"render jitter: not measured ({r['jitter_still_frames']} still frames)"
     else:
         jitter = (f"render jitter: {r['render_jitter_ratio']:.3f} of the real face's on "
-                  f"{r['jitter_still_frames']} still frames (real points moving under "
-                  f"{r['jitter_still_below']:g} of the eye distance a frame: "
-                  f"{r['jitter_real_motion']:.4f} real, {r['jitter_render_motion']:.4f} ours)")
+                  f"{r['jitter_still_frames']} still frames (the real face's 5-frame mean "
+                  f"moving under {r['jitter_still_below']:g} of the eye distance a frame; "
+                  f"points moving {r['jitter_real_motion']:.4f} real, "
+                  f"{r['jitter_render_motion']:.4f} ours)")
     lag = "n/a" if r["filter_lag_frames"] is None else f"{r['filter_lag_frames']:.2f}"
     return [jitter, f"filter lag: the sent face trails the tracked one by {lag} frames "
                     f"(over {r['lag_moving_frames']} moving frames)"]

@@ -77,8 +77,8 @@ None for a model that stores no range (built before it was stored); ``model_sour
 stored range.
 
 Steadiness (``bench.jitter``). On the consecutive frames where the real face is still (the
-fresh tracker's points on the real frame move less than ``STILL`` = 0.01 of the eye
-distance from one frame to the next), ``render_jitter_ratio`` is our rendering's
+5-frame mean of the fresh tracker's points on the real frame moves less than ``STILL`` =
+0.005 of the eye distance a frame), ``render_jitter_ratio`` is our rendering's
 frame-to-frame landmark motion over the real frame's, both tracked afresh as for the render
 NME (``jitter_still_frames`` pairs judged, ``jitter_real_motion``,
 ``jitter_render_motion``); ``filter_lag_frames`` is how many frames the points the packets
