@@ -45,8 +45,9 @@ headers. A gateway always has a token: the user's (16 to 256 URL-safe characters
 its address a delay (``serverguard.FailureThrottle``); the token is never in the summary
 (``shown_url``). Plain GETs are answered in ``process_request``:
 
-- ``/`` (``index.html``) and ``/NAME.js|.css|.html``: the page's files, read once at start
-  from the installed package (``importlib.resources``, ``facewire.receiver/web``);
+- ``/`` (``index.html``) and ``/NAME.js|.css|.html|.vert|.frag``: the page's files (the
+  last two the GLSL shaders it shares with ``receiver.render``), read once at start from the
+  installed package (``importlib.resources``, ``facewire.receiver/web``);
 - ``/model/S.glb``, ``/model/S.rig``: ``models.webmodel.model_glb`` and ``rig_bin`` of the
   model with sha256 S (immutable: cached by the browser for ever); the last
   ``MODELS_KEPT`` models are held;

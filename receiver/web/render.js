@@ -28,11 +28,14 @@ import { MIP_LEVELS, regionAreas, triangleGroups } from "./model.js";
 const NEAR = 10, FAR = 10000;
 
 // One GLSL source with the Python renderer (receiver/render.py): face.vert and face.frag,
-// fetched beside this module. A face.frag line ending in EACH_AREA is written once per area
+// fetched beside this module with its query (a token: index.html's import map gives every
+// module the page's query). A face.frag line ending in EACH_AREA is written once per area
 // the program composites, "#" replaced by the area's index (render.py's fragment_source).
 const EACH_AREA = "// each area";
 const [VERTEX, FRAGMENT] = await Promise.all(["face.vert", "face.frag"].map(async (name) => {
-  const response = await fetch(new URL(name, import.meta.url));
+  const url = new URL(name, import.meta.url);
+  url.search = new URL(import.meta.url).search;
+  const response = await fetch(url);
   if (!response.ok) throw new Error(`${name}: HTTP ${response.status}`);
   return response.text();
 }));
