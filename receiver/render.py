@@ -80,7 +80,9 @@ covers it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -89,7 +91,6 @@ import numpy as np
 from facewire.models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
 from facewire.models.infra.egl import create_context, in_context
 from facewire.models.infra.raster import (
-    VERTEX_TEXTURED,
     Camera,
     ContextOwner,
     OffscreenTarget,
@@ -97,39 +98,26 @@ from facewire.models.infra.raster import (
     check_output,
 )
 from facewire.models.modelfile import Area, PersonModel
-from facewire.models.shading import GLSL as SHADING_GLSL
 from facewire.protocol.packet import N_REGIONS
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
 _NO_SHADE = np.zeros(3, np.float32)
 
-_FRAGMENT = """
-#version 330
-uniform sampler2D image;
-%(uniforms)s
-in vec2 v_uv;
-in vec2 v_model;
-out vec4 f_color;
-%(shading)s
+SHADERS = Path(__file__).with_name("web")  # face.vert, face.frag: also the page's shaders
+EACH_AREA = "// each area"  # face.frag's mark of a line written once per composited area
 
-// Composite one region over the colour c (module docstring). rect: (u0, v0) of the padded
-// rectangle and 1 / its size; layer: (i, i + 1 clamped to k - 1, the weight of i + 1).
-vec3 over(vec3 c, vec3 base, sampler2DArray volume, vec4 rect, vec3 layer) {
-    vec2 st = (v_uv - rect.xy) * rect.zw;
-    vec4 s = texture(volume, vec3(st, layer.x));
-    if (layer.z > 0.0) {
-        s = mix(s, texture(volume, vec3(st, layer.y)), layer.z);
-    }
-    return c + s.a * (base - c) + s.rgb;
-}
 
-void main() {
-    vec3 base = texture(image, v_uv).rgb;
-    vec3 c = base;
-%(calls)s
-    f_color = vec4(c * shade_gain(v_model), 1.0);
-}
-"""
+def fragment_source(areas: Sequence[int]) -> str:
+    """``face.frag`` for a program compositing ``areas`` (indices): each line marked
+    ``EACH_AREA`` written once per area with ``#`` replaced by its index (as render.js's
+    ``fragment`` does)."""
+    lines: list[str] = []
+    for line in (SHADERS / "face.frag").read_text().splitlines():
+        if line.endswith(EACH_AREA):
+            lines += [line.replace("#", str(a)) for a in areas]
+        else:
+            lines.append(line)
+    return "\n".join(lines) + "\n"
 
 
 def area_volume(texture: np.ndarray, area: Area, opacity: tuple[float, ...]) -> np.ndarray:
@@ -258,15 +246,10 @@ class FaceRenderer(ContextOwner):
         self._uv = ctx.buffer(np.ascontiguousarray(mesh.uv).tobytes())
         self._indices = ctx.buffer(triangles.tobytes())
         self._groups = []
+        vertex = (SHADERS / "face.vert").read_text()
         for mask, first, count in groups:
             met = [a for a in range(len(areas)) if mask >> a & 1]
-            program = ctx.program(vertex_shader=VERTEX_TEXTURED, fragment_shader=_FRAGMENT % {
-                "shading": SHADING_GLSL,
-                "uniforms": "\n".join(f"uniform sampler2DArray volume{a};\n"
-                                      f"uniform vec4 rect{a};\nuniform vec3 layer{a};"
-                                      for a in met),
-                "calls": "\n".join(f"    c = over(c, base, volume{a}, rect{a}, layer{a});"
-                                   for a in met)})
+            program = ctx.program(vertex_shader=vertex, fragment_shader=fragment_source(met))
             program["image"].value = 0
             for a in met:
                 u0, v0, u1, v1 = rects[a]

@@ -13,7 +13,7 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
-   ``sender.pose.PoseFilter`` (One-Euro).
+   ``sender.smoothing.PoseFilter`` (One-Euro).
 3. ``lift``: ``sender.lift.Lifter`` -> (9, 3) model-space residuals of the non-rigid
    points, lifted again with the filtered pose (the one that is sent, so the receiver's
    points land on the tracked ones), with per-point validity.
@@ -99,8 +99,9 @@ from facewire.sender.identity import Person
 from facewire.sender.learn import Learner, can_learn
 from facewire.sender.lift import Lifter, LiftResult, pose_and_lift
 from facewire.sender.pack import Packed, pack
-from facewire.sender.pose import PoseFilter, PoseSolver
+from facewire.sender.pose import PoseSolver
 from facewire.sender.shading import ShadingEstimator
+from facewire.sender.smoothing import PoseFilter
 from facewire.sender.tracker import LandmarkTracker
 
 
