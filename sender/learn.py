@@ -115,11 +115,13 @@ import numpy as np
 from facewire.models.fields import TEMPLATE_SIZE
 from facewire.models.geometry import Intrinsics
 from facewire.models.modelfile import PersonModel
+from facewire.models.patch import TexturePatch, encode_patch
 from facewire.models.regions import REGION_NAMES, spec
 from facewire.models.rig import Rig
 from facewire.models.update import (
     MAX_LEARNED_LAYERS,
     ModelUpdate,
+    Update,
     apply_update,
     encode_update,
     references,
@@ -134,6 +136,7 @@ from facewire.sender.clean import (
     sharpness,
 )
 from facewire.sender.cues import region_cues
+from facewire.sender.heal import Healer
 from facewire.sender.texels import AreaTexels, area_surface, state_layers, welded_normals
 
 NOVEL_FACTOR = 2.5  # phi over this many times the region's template spacing is unseen ...
@@ -195,7 +198,8 @@ class Learner:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rig: Rig,
-                 classifiers: RegionClassifiers, background: bool = False) -> None:
+                 classifiers: RegionClassifiers, background: bool = False,
+                 heal: bool = True) -> None:
         if not can_learn(model):
             raise ValueError("model: learning needs the model's file identity (sha256) and "
                              "the regions of models.regions.REGIONS, in that order")
@@ -203,7 +207,7 @@ class Learner:
         self.camera = camera
         self.rig = rig
         self.serial = 0
-        self.updates: list[ModelUpdate] = []
+        self.updates: list[Update] = []
         self.update_bytes: dict[int, bytes] = {}  # serial -> the update's bytes
         self.base_sha256 = model.sha256
         self.names = REGION_NAMES
@@ -231,12 +235,15 @@ class Learner:
         self._rings: dict[str, tuple[AreaTexels, np.ndarray]] = {}
         self._worker = ThreadPoolExecutor(1, "learn") if background else None
         self._pending: tuple[int, Future[_Fused | None]] | None = None
+        self.healer = Healer(model, camera, rig) if heal else None
+        self._healing: Future[TexturePatch | None] | None = None
+        self._fresh = False  # a read since the last correction was looked for
         # the worker's search for every region's texels, at session start (None: inline)
         self.prepared = None if self._worker is None else self._worker.submit(self._prepare)
 
     def observe(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
                 translation: np.ndarray, residuals: np.ndarray, samples: np.ndarray,
-                result: FrameClassification, flags: Flag, time_s: float) -> ModelUpdate | None:
+                result: FrameClassification, flags: Flag, time_s: float) -> Update | None:
         """One classified frame: notice, hold, and when a capture is due, capture.
 
         Args:
@@ -250,17 +257,21 @@ class Learner:
             time_s: the frame's time, s.
 
         Returns:
-            The update issued on this frame (already applied to ``model``), or None. In the
-            background, the capture a frame makes due is issued by a later frame.
+            The update issued on this frame (already applied to ``model``): a region's new
+            state or a texture patch (``sender.heal``), or None. In the background, the
+            capture a frame makes due is issued by a later frame.
         """
         self._frames += 1
-        issued = None
+        issued: Update | None = None
         if self._pending is not None and self._pending[1].done():
             r, fused = self._pending[0], self._pending[1].result()
             self._pending = None
             issued = None if fused is None else self._issue(r, fused, time_s)
         if self._frames % SHARPNESS_EVERY == 1:
             self._sharp.append(sharpness(image, points))
+        if self.healer is not None and issued is None:
+            issued = self._heal(image, points, rotation, translation, residuals, result,
+                                flags, time_s)
         novel = result.score > self.bound
         state = np.rint(result.q).astype(np.int64)
         for i in np.flatnonzero(~novel):
@@ -304,6 +315,42 @@ class Learner:
             return None
         fused = self._capture(r, held)
         return None if fused is None else self._issue(r, fused, time_s)
+
+    def _heal(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
+              translation: np.ndarray, residuals: np.ndarray, result: FrameClassification,
+              flags: Flag, time_s: float) -> TexturePatch | None:
+        """The healing's part of a frame (``sender.heal``): a clean frame read now and
+        then, a patch looked for after a read while the budget allows one (on the worker
+        in the background) and issued."""
+        healer = self.healer
+        assert healer is not None
+        clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
+        if healer.due(clean) and (not self._sharp or sharpness(image, points)
+                                  >= SHARP_RATIO * float(np.median(self._sharp))):
+            healer.read(image, points, rotation, translation, residuals, result.q)
+            self._fresh = True
+        made = None
+        if self._healing is not None:
+            if not self._healing.done():
+                return None
+            made, self._healing = self._healing.result(), None
+        elif self._fresh and time_s >= self._quiet_until and self._pending is None:
+            self._fresh = False
+            reads = healer.held()
+            if self._worker is not None:
+                self._healing = self._worker.submit(healer.patch, reads, self.base_sha256, 1)
+                return None
+            made = healer.patch(reads, self.base_sha256, 1)
+        if made is None or time_s < self._quiet_until:
+            return None
+        patch = dataclasses.replace(made, serial=self.serial + 1)
+        data = self.update_bytes[patch.serial] = encode_patch(patch)
+        self._quiet_until = time_s + 8 * len(data) / UPDATE_BPS
+        self.model = apply_update(self.model, patch)
+        self.serial = patch.serial
+        self.updates.append(patch)
+        healer.take(self.model)
+        return patch
 
     def _capture(self, r: int, held: list[_Held]) -> _Fused | None:
         """Region r's new state from the last ``CAPTURE_FRAMES`` of its held frames whose
@@ -411,6 +458,8 @@ class Learner:
         self.model = apply_update(self.model, update)
         self.serial = update.serial
         self.updates.append(update)
+        if self.healer is not None:
+            self.healer.take(self.model)
         for stats, value in ((self._cue_sum, cue), (self._cue_count, 1), (self._used, 0)):
             stats[r] = np.insert(stats[r][kept], position, value)
         return update

@@ -78,8 +78,9 @@ from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
+from facewire.models.patch import TexturePatch
 from facewire.models.rig import Rig
-from facewire.models.update import ModelUpdate
+from facewire.models.update import Update
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.packet import N_REGIONS, Flag, Frame
@@ -149,7 +150,7 @@ class SenderOutput:
     identified: bool = False
     clamped: int = 0
     grazing: int = 0
-    update: ModelUpdate | None = None
+    update: Update | None = None
     update_bytes: bytes | None = None
 
 
@@ -206,7 +207,7 @@ class SenderPipeline:
         self.reset()
 
     @property
-    def updates(self) -> list[ModelUpdate]:
+    def updates(self) -> list[Update]:
         """The model updates this session issued, in order (the transport sends them, the log
         keeps them); empty when not learning."""
         return [] if self.learner is None else self.learner.updates
@@ -307,11 +308,13 @@ class SenderPipeline:
             update_bytes=None if update is None or self.learner is None
             else self.learner.update_bytes[update.serial])
 
-    def _learned(self, update: ModelUpdate) -> None:
+    def _learned(self, update: Update) -> None:
         """Take the learner's new model: its region's templates into the classifier, its
         rest state into the eye gate, from the next frame on."""
         assert self.learner is not None and self.classifiers is not None
         self.model = self.learner.model
+        if isinstance(update, TexturePatch):  # the texture only: nothing to classify anew
+            return
         regions = self.model.regions[:N_REGIONS]
         changed = [r.name for r in regions].index(update.region)
         self.classifiers = RegionClassifiers([
