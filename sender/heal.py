@@ -16,8 +16,9 @@ the cell's surface point on the morphed, posed mesh, projected, read bilinearly)
 A read. One frame in ``EVERY`` is read when it is clean: a pose fitted and not just lost or
 re-acquired, the head within ``MAX_YAW_DEG`` of frontal, the face box sharp (the learner's
 test, ``sender.clean.sharpness``). A cell takes part when its normal faces the camera with
-cos at least ``FRONTAL_COS`` and it lies outside the eyes (the eyeball and eyelid regions,
-which move with the gaze). What the model draws there, E, is the base texture with the
+cos at least ``FRONTAL_COS`` and it lies outside the regions that move (``MOVING``: the
+eyeballs and eyelids, with the gaze, and the mouth's interior, with the jaw: their states
+are the learning's). What the model draws there, E, is the base texture with the
 regions composited at the frame's Q (``receiver.render``'s blend, at the grid's
 resolution); the read's colour V is scaled per channel to E's exposure (the ratio of their
 medians over the cells taking part whose confidence is at least ``TRUSTED``, clipped to
@@ -30,16 +31,19 @@ and either disagree with the model (|luma d| smoothed by a Gaussian of ``SMOOTH`
 over ``DEPART_LEVELS``) or the model saw it badly (confidence under ``LOW_CONFIDENCE``)
 and d is over ``NOISE_LEVELS``. The cells that need it, grown by ``GROW`` cells and
 feathered, take their d; a tile of ``TILE`` x ``TILE`` cells is patched when more than
-``TILE_SHARE`` of its seen cells need healing, at most ``MAX_TILES`` tiles a patch, the
-largest disagreements first. Before a patch is issued, the held frames it is made of are
+``TILE_SHARE`` of its seen cells need healing, the largest disagreements first, at most
+``MAX_TILES`` tiles and ``PATCH_BYTES`` of PNG a patch, none patched within the last
+``REPATCH_READS`` reads (the rest waits for the next, so the
+first reaches the viewers soon), the correction tapered to zero at the chosen tiles' outer
+edges and clipped to ``MAX_CHANGE``. Before a patch is issued, the held frames it is made of are
 asked for hands (``sender.enroll.occluders``, MediaPipe's hand tracker: a hand that
 moves with the face and agrees with itself would otherwise be painted in); a frame with a
 hand on the face is dropped and the correction waits for clean ones. A patch is applied at
 once to the learner's model; the held reads (differences against the old model) are then
 forgotten.
 
-The traffic's budget is the learner's (``sender.learn``): a patch of B bytes holds the next
-update back by 8 B / ``UPDATE_BPS`` seconds.
+The traffic's budget is the learner's (``sender.learn``: the transport's token bucket), which
+patches and learned states share.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from facewire.models.archive import png_bytes
 from facewire.models.geometry import Intrinsics
 from facewire.models.modelfile import PersonModel
 from facewire.models.patch import MAX_TILE_SIDE, TexturePatch, Tile, tile_diff
@@ -59,24 +64,28 @@ from facewire.models.rig import Rig
 from facewire.sender.enroll.occluders import OccluderFinder
 from facewire.sender.texels import AreaTexels, area_surface, welded_normals
 
-SCALE = 4  # texels per healing cell, a side
-TILE = 16  # cells per tile side (64 texels)
+SCALE = 8  # texels per healing cell, a side
+TILE = 16  # cells per tile side (128 texels)
 EVERY = 3  # frames between reads
 VIEWS = 5  # reads held
 MIN_VIEWS = 3  # reads a cell must be seen in
-FRONTAL_COS = 0.5  # a cell's normal towards the camera, at least
+FRONTAL_COS = 0.6  # a cell's normal towards the camera, at least
 TRUSTED = 128  # confidence (of 255) of the cells exposure is matched over
 SPREAD_LEVELS = 10.0  # grey levels: the views agree under this spread
-DEPART_LEVELS = 16.0  # grey levels: a disagreement with the model that counts
+DEPART_LEVELS = 20.0  # grey levels: a disagreement with the model that counts
 NOISE_LEVELS = 6.0  # grey levels: a low-confidence cell's difference that counts
 LOW_CONFIDENCE = 90  # of 255
 SMOOTH = 1.0  # cells, the disagreement's Gaussian
 GROW = 2  # cells the needing cells are grown by
-TILE_SHARE = 0.05  # of a tile's seen cells needing healing, over which it is patched
-MAX_TILES = 12  # tiles a patch
+TILE_SHARE = 0.2  # of a tile's seen cells needing healing, over which it is patched
+REPATCH_READS = 15  # reads before a patched tile may be patched again
+MAX_TILES = 32  # tiles a patch
+PATCH_BYTES = 6000  # a patch's tiles stop at this many bytes of PNG: at the wire's first
+#                     3.6 kB/s it reaches a receiver within some 2 s of its issue
+MAX_CHANGE = 120.0  # grey levels a cell may change by in one patch
 BOX_GROW = 0.25  # the landmarks' UV box grown by this of its size on each side ...
 BOX_UP = 0.8  # ... and by this upwards (the forehead)
-EYES = ("eyeball_right", "eyeball_left", "eyelid_right", "eyelid_left")
+MOVING = ("eyeball_right", "eyeball_left", "eyelid_right", "eyelid_left", "mouth")
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
@@ -118,6 +127,8 @@ class Healer:
         self.patches = 0
         self._frames = 0
         self._finder: OccluderFinder | None = None
+        self._patched: dict[tuple[int, int], int] = {}  # tile -> the read count it was patched at
+        self.wanting = False  # the last correction looked for found tiles to patch
         self.take(model)
 
     def take(self, model: PersonModel) -> None:
@@ -130,7 +141,7 @@ class Healer:
         self.confidence = cv2.resize(confidence, self.grid[::-1],
                                      interpolation=cv2.INTER_AREA)[self.rows, self.cols]
         self.parts: list[tuple[int, tuple[slice, slice], np.ndarray, np.ndarray]] = []
-        eyes = np.zeros(self.base.shape[:2], bool)
+        moving = np.zeros(self.base.shape[:2], bool)
         for r, region in enumerate(model.regions):
             for part in region.parts():
                 where = self._cells(part.uv_rect)
@@ -143,9 +154,9 @@ class Healer:
                 alpha = (np.asarray(region.opacity, np.float32)[:, None, None]
                          * mask.astype(np.float32) / 255.0)
                 self.parts.append((r, outer, layers[:, *inner], alpha[:, *inner]))
-                if region.name in EYES:
-                    eyes[outer] |= alpha[:, *inner].max(axis=0) > 0
-        self.eyes = eyes
+                if region.name in MOVING:
+                    moving[outer] |= alpha[:, *inner].max(axis=0) > 0
+        self.moving = moving
         self.reads.clear()
 
     def _cells(self, rect: tuple[float, float, float, float]
@@ -195,7 +206,7 @@ class Healer:
         colour, seen, _, _ = self.area.read(self.camera, image, rotation, translation,
                                             residuals)
         facing = (self.area.normals @ np.asarray(rotation, np.float32).T)[..., 2]
-        ok = seen & (facing >= FRONTAL_COS) & ~self.eyes
+        ok = seen & (facing >= FRONTAL_COS) & ~self.moving
         expected = self.expected(q)
         trusted = ok & (self.confidence >= TRUSTED)
         if trusted.sum() < 50:
@@ -211,6 +222,7 @@ class Healer:
         """The reads' correction: (h, w, 3) float32 d, feathered to zero outside the cells
         that need healing, and the tiles to patch (their first cells in the box), largest
         disagreement first; None when no tile needs it."""
+        self.wanting = False
         if len(reads) < MIN_VIEWS:
             return None
         stack = np.stack([r.diff for r in reads])
@@ -230,24 +242,33 @@ class Healer:
                         | ((self.confidence < LOW_CONFIDENCE) & (depart > NOISE_LEVELS)))
         if not need.any():
             return None
-        grow = 2 * GROW + 1
-        grown = cv2.dilate(need.astype(np.uint8), np.ones((grow, grow), np.uint8))
-        weight = cv2.GaussianBlur(grown.astype(np.float32), (0, 0), GROW / 2.0)
-        weight = np.where(enough, np.minimum(weight * 1.5, 1.0), 0.0)
-        d *= weight[..., None]
+        depart = np.where(need, depart, 0.0)
         tiles = []
         h, w = need.shape
         for r in range(0, h, TILE):
             for c in range(0, w, TILE):
                 seen = enough[r:r + TILE, c:c + TILE].sum()
                 needing = need[r:r + TILE, c:c + TILE].sum()
-                if seen and needing > TILE_SHARE * seen:
-                    tiles.append((float(depart[r:r + TILE, c:c + TILE][
-                        need[r:r + TILE, c:c + TILE]].sum()), r, c))
+                recent = self.read_count - self._patched.get((r, c), -REPATCH_READS)
+                if seen and needing > TILE_SHARE * seen and recent >= REPATCH_READS:
+                    tiles.append((float(depart[r:r + TILE, c:c + TILE].sum()), r, c))
         if not tiles:
             return None
         tiles.sort(reverse=True)
-        return d, [(r, c) for _, r, c in tiles[:MAX_TILES]]
+        chosen = [(r, c) for _, r, c in tiles[:MAX_TILES]]
+        self.wanting = True
+        inside = np.zeros(need.shape, np.uint8)
+        for r, c in chosen:
+            inside[r:r + TILE, c:c + TILE] = 1
+        grow = 2 * GROW + 1
+        grown = cv2.dilate(need.astype(np.uint8), np.ones((grow, grow), np.uint8))
+        weight = np.minimum(cv2.GaussianBlur(grown.astype(np.float32), (0, 0), GROW / 2.0)
+                            * 1.5, 1.0)
+        # to zero at the chosen tiles' outer edge, so no tile's edge shows
+        taper = cv2.distanceTransform(np.pad(inside, 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
+        weight = np.where(enough, np.minimum(weight, np.clip(taper / (GROW + 1), 0, 1)), 0.0)
+        d = np.clip(d, -MAX_CHANGE, MAX_CHANGE) * weight[..., None]
+        return d, chosen
 
     def held(self) -> list[_Read]:
         """The held reads no hand was found in."""
@@ -271,12 +292,17 @@ class Healer:
             return None
         d, where = found
         tiles = []
+        size = 0
         side = min(TILE, MAX_TILE_SIDE)
         for r, c in where:
             cells = (slice(r, min(r + side, d.shape[0])), slice(c, min(c + side, d.shape[1])))
             base = self.base[cells]
             diff = tile_diff(base + d[cells], base)
             tiles.append(Tile(SCALE * (self.rows.start + r), SCALE * (self.cols.start + c), diff))
+            self._patched[r, c] = self.read_count
+            size += len(png_bytes(diff))
+            if size >= PATCH_BYTES:
+                break
         self.patches += 1
         return TexturePatch(base_sha256, serial, SCALE, tuple(tiles))
 
