@@ -128,7 +128,6 @@ class Healer:
         self._frames = 0
         self._finder: OccluderFinder | None = None
         self._patched: dict[tuple[int, int], int] = {}  # tile -> the read count it was patched at
-        self.wanting = False  # the last correction looked for found tiles to patch
         self.take(model)
 
     def take(self, model: PersonModel) -> None:
@@ -158,6 +157,7 @@ class Healer:
                     moving[outer] |= alpha[:, *inner].max(axis=0) > 0
         self.moving = moving
         self.reads.clear()
+        self.wanting = True  # the last correction looked for found tiles (none yet: unknown)
 
     def _cells(self, rect: tuple[float, float, float, float]
                ) -> tuple[tuple[int, int], tuple[slice, slice], tuple[slice, slice]] | None:
@@ -222,9 +222,9 @@ class Healer:
         """The reads' correction: (h, w, 3) float32 d, feathered to zero outside the cells
         that need healing, and the tiles to patch (their first cells in the box), largest
         disagreement first; None when no tile needs it."""
-        self.wanting = False
         if len(reads) < MIN_VIEWS:
             return None
+        self.wanting = False
         stack = np.stack([r.diff for r in reads])
         count = np.isfinite(stack[..., 0]).sum(axis=0)
         enough = count >= MIN_VIEWS

@@ -34,8 +34,9 @@ meanwhile): the learning keeps the transport's own token bucket (``protocol.shap
 messages' fields), and issues an update (a state or a texture patch, ``sender.heal``) only
 while the bucket is not in debt: a first burst as deep as the wire's, then no faster, on
 average, than the wire may carry them (the transport paces each chunk within the budget over
-any second). While the healing's last look found tiles to patch (``Healer.wanting``), no
-capture is made: the texture heals first (a hand baked into it is what the viewer sees).
+any second). While the healing's last look found tiles to patch, or it has not looked since the model
+last changed (``Healer.wanting``), no capture is made: the texture heals first (a hand baked
+into it is what the viewer sees).
 
 Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
 images, one per area of the region, read the way enrollment reads them (``sender.texels``:
