@@ -22,7 +22,7 @@ import pytest
 from conftest import write_zip, zip_members
 
 from facewire.models.learned import learned_model
-from facewire.models.modelfile import Area, ModelFileError, Region, load_model, save_model
+from facewire.models.modelfile import ModelFileError, Region, load_model, save_model
 from facewire.models.patch import (
     DIFF_STEP,
     TexturePatch,
