@@ -13,7 +13,8 @@ landmark vertices grown by ``BOX_GROW`` (up by ``BOX_UP``, for the forehead): ce
 ``SCALE`` x ``SCALE`` texels, read from the frame like a region's layer (``sender.texels``:
 the cell's surface point on the morphed, posed mesh, projected, read bilinearly).
 
-A read. One frame in ``EVERY`` is read when it is clean: a pose fitted and not just lost or
+A read. One frame in ``EVERY`` is read when it is clean (none for ``HAND_REST`` frames after a
+hand was found on the face): a pose fitted and not just lost or
 re-acquired, the head within ``MAX_YAW_DEG`` of frontal, the face box sharp (the learner's
 test, ``sender.clean.sharpness``). A cell takes part when its normal faces the camera with
 cos at least ``FRONTAL_COS`` and it lies outside the regions that move (``MOVING``: the
@@ -22,7 +23,8 @@ are the learning's). What the model draws there, E, is the base texture with the
 regions composited at the frame's Q (``receiver.render``'s blend, at the grid's
 resolution); the read's colour V is scaled per channel to E's exposure (the ratio of their
 medians over the cells taking part whose confidence is at least ``TRUSTED``, clipped to
-[0.5, 2]), and its difference V - E is kept. The last ``VIEWS`` reads are held.
+[0.5, 2]), and its difference V - E is kept. The last ``VIEWS`` reads are held, and a
+correction is looked for after every ``LOOK_EVERY`` new ones.
 
 A correction. Per cell seen in at least ``MIN_VIEWS`` held reads: the median difference
 d (per channel) and the views' spread, the median absolute deviation of their luma
@@ -48,7 +50,6 @@ patches and learned states share.
 
 from __future__ import annotations
 
-import warnings
 from collections import deque
 from dataclasses import dataclass
 
@@ -67,6 +68,8 @@ from facewire.sender.texels import AreaTexels, area_surface, welded_normals
 SCALE = 8  # texels per healing cell, a side
 TILE = 16  # cells per tile side (128 texels)
 EVERY = 3  # frames between reads
+LOOK_EVERY = 2  # new reads before the healing looks for a correction again
+HAND_REST = 25  # frames without reads after a hand was found on the face
 VIEWS = 5  # reads held
 MIN_VIEWS = 3  # reads a cell must be seen in
 FRONTAL_COS = 0.6  # a cell's normal towards the camera, at least
@@ -99,6 +102,17 @@ class _Read:
     hand: bool | None = None  # a hand on the face (None: not asked yet)
 
 
+def _median(stack: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The median over axis 0 of ``stack`` (V, ...) ignoring its NaNs, ``count`` (...) the
+    values that are not NaN at each place (NaN sorts last): the mean of the sorted values
+    (c - 1) // 2 and c // 2; 0 where there are none."""
+    ordered = np.sort(stack, axis=0)
+    top = stack.shape[0] - 1
+    low = np.take_along_axis(ordered, np.clip((count - 1) // 2, 0, top)[None], axis=0)[0]
+    high = np.take_along_axis(ordered, np.clip(count // 2, 0, top)[None], axis=0)[0]
+    return np.where(count > 0, (low + high) / 2, 0.0)
+
+
 class Healer:
     """Corrects the base texture from clean views (module docstring).
 
@@ -126,6 +140,8 @@ class Healer:
         self.read_count = 0
         self.patches = 0
         self._frames = 0
+        self._rest_until = 0  # no read before this frame (a hand was found)
+        self.fresh = 0  # reads since the last look for a correction
         self._finder: OccluderFinder | None = None
         self._patched: dict[tuple[int, int], int] = {}  # tile -> the read count it was patched at
         self.take(model)
@@ -192,7 +208,7 @@ class Healer:
     def due(self, clean: bool) -> bool:
         """Whether this frame is read (one clean frame in ``EVERY``)."""
         self._frames += 1
-        return clean and self._frames % EVERY == 0
+        return clean and self._frames % EVERY == 0 and self._frames >= self._rest_until
 
     def read(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
              translation: np.ndarray, residuals: np.ndarray, q: np.ndarray) -> None:
@@ -217,6 +233,7 @@ class Healer:
         diff[~ok] = np.nan
         self.reads.append(_Read(image.copy(), np.asarray(points).copy(), diff))
         self.read_count += 1
+        self.fresh += 1
 
     def correction(self, reads: list[_Read]) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
         """The reads' correction: (h, w, 3) float32 d, feathered to zero outside the cells
@@ -230,12 +247,9 @@ class Healer:
         enough = count >= MIN_VIEWS
         if not enough.any():
             return None
-        with warnings.catch_warnings():  # all-NaN cells: NaN, not counted
-            warnings.simplefilter("ignore", RuntimeWarning)
-            d = np.nanmedian(stack, axis=0)
-            luma = stack @ _LUMA
-            spread = np.nanmedian(np.abs(luma - np.nanmedian(luma, axis=0)), axis=0)
-        d = np.where(enough[..., None], d, 0.0).astype(np.float32)
+        d = np.where(enough[..., None], _median(stack, count[..., None]), 0.0).astype(np.float32)
+        luma = stack @ _LUMA
+        spread = _median(np.abs(luma - _median(luma, count)), count)
         agree = enough & (spread < SPREAD_LEVELS)
         depart = cv2.GaussianBlur(np.abs(d @ _LUMA), (0, 0), SMOOTH)
         need = agree & ((depart > DEPART_LEVELS)
@@ -281,7 +295,10 @@ class Healer:
         for r in reads:
             if r.hand is None:
                 r.hand = self._finder.find(r.image, r.points).occluded
-        return any(r.hand for r in reads)
+        if any(r.hand for r in reads):
+            self._rest_until = self._frames + HAND_REST
+            return True
+        return False
 
     def patch(self, reads: list[_Read], base_sha256: str, serial: int
               ) -> TexturePatch | None:

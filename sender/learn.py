@@ -34,9 +34,9 @@ meanwhile): the learning keeps the transport's own token bucket (``protocol.shap
 messages' fields), and issues an update (a state or a texture patch, ``sender.heal``) only
 while the bucket is not in debt: a first burst as deep as the wire's, then no faster, on
 average, than the wire may carry them (the transport paces each chunk within the budget over
-any second). While the healing's last look found tiles to patch, or it has not looked since the model
-last changed (``Healer.wanting``), no capture is made: the texture heals first (a hand baked
-into it is what the viewer sees).
+any second). While the healing's last look found tiles to patch, or it has not looked
+since the model last changed (``Healer.wanting``), no capture is made: the texture heals
+first (a hand baked into it is what the viewer sees).
 
 Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
 images, one per area of the region, read the way enrollment reads them (``sender.texels``:
@@ -141,7 +141,7 @@ from facewire.sender.clean import (
     sharpness,
 )
 from facewire.sender.cues import region_cues
-from facewire.sender.heal import Healer
+from facewire.sender.heal import LOOK_EVERY, Healer
 from facewire.sender.texels import AreaTexels, area_surface, state_layers, welded_normals
 
 NOVEL_FACTOR = 2.5  # phi over this many times the region's template spacing is unseen ...
@@ -242,7 +242,6 @@ class Learner:
         self._pending: tuple[int, Future[_Fused | None]] | None = None
         self.healer = Healer(model, camera, rig) if heal else None
         self._healing: Future[TexturePatch | None] | None = None
-        self._fresh = False  # a read since the last correction was looked for
         # the worker's search for every region's texels, at session start (None: inline)
         self.prepared = None if self._worker is None else self._worker.submit(self._prepare)
 
@@ -333,14 +332,14 @@ class Learner:
         if healer.due(clean) and (not self._sharp or sharpness(image, points)
                                   >= SHARP_RATIO * float(np.median(self._sharp))):
             healer.read(image, points, rotation, translation, residuals, result.q)
-            self._fresh = True
         made = None
         if self._healing is not None:
             if not self._healing.done():
                 return None
             made, self._healing = self._healing.result(), None
-        elif self._fresh and self._budget.allows(time_s) and self._pending is None:
-            self._fresh = False
+        elif healer.fresh >= LOOK_EVERY and self._budget.allows(time_s) \
+                and self._pending is None:
+            healer.fresh = 0
             reads = healer.held()
             if self._worker is not None:
                 self._healing = self._worker.submit(healer.patch, reads, self.base_sha256, 1)
