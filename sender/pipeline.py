@@ -167,6 +167,7 @@ class SenderPipeline:
             loaded from its file, with the regions of ``models.regions.REGIONS``, can).
         background: capture learned states on a worker thread (a live stream: the frames
             go on meanwhile), not on the frame that makes them due.
+        heal: while learning, heal the base texture too (``sender.heal``: texture patches).
 
     Attributes:
         model: the model as learned so far (version ``serial``).
@@ -174,7 +175,7 @@ class SenderPipeline:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ,
-                 learn: bool = True, background: bool = False) -> None:
+                 learn: bool = True, background: bool = False, heal: bool = True) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
@@ -201,7 +202,7 @@ class SenderPipeline:
             else None
         self._landmarks = landmarks
         self.eye_gate = EyeGate(regions, landmarks)
-        self.learner = Learner(model, camera, self.rig, self.classifiers, background) \
+        self.learner = Learner(model, camera, self.rig, self.classifiers, background, heal) \
             if learn and self.classifiers is not None and can_learn(model) else None
         self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()
@@ -428,7 +429,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
                  progress: Progress = no_progress, learn: bool = True,
-                 warn: Callable[[str], None] | None = None) -> dict[str, Any]:
+                 warn: Callable[[str], None] | None = None, heal: bool = True
+                 ) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log, with
     each model update it learns after the packet of the frame that learned it.
 
@@ -443,6 +445,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         learn: learn unseen appearance (``sender.learn``); ``--no-learn`` turns it off.
         warn: called once, before encoding, with ``identity_warning``'s line when the model
             cannot hold its person.
+        heal: while learning, heal the base texture too (``sender.heal``).
 
     Returns:
         ``frames``, ``face_frames`` (the tracker saw a face), ``packets``, ``payload_kbps``
@@ -462,7 +465,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
-    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn)
+    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn,
+                              heal=heal)
     identity = identity_warning(model, model_path)
     if identity is not None and warn is not None:  # once the source is open
         warn(identity)
