@@ -155,8 +155,8 @@ def apply_patch(model: PersonModel, patch: TexturePatch) -> PersonModel:
             raise PatchError(f"patch {patch.serial}: tiles[{n}]: texels [{rows.start}:"
                              f"{rows.stop}, {cols.start}:{cols.stop}] lie outside the "
                              f"{height} x {width} texture")
-        d = DIFF_STEP * (tile.diff.astype(np.float32) - 128.0)
-        d = cv2.resize(d, (cols.stop - cols.start, rows.stop - rows.start),
+        stored = DIFF_STEP * (tile.diff.astype(np.float32) - 128.0)
+        d = cv2.resize(stored, (cols.stop - cols.start, rows.stop - rows.start),
                        interpolation=cv2.INTER_LINEAR)
         old = texture[rows, cols].astype(np.int16)
         new = np.clip(np.rint(old + d), 0, 255).astype(np.int16)
