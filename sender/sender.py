@@ -29,8 +29,9 @@ sender's clock, ``origin`` fixed at the first frame (``sender.slots.SlotClock``)
 play one slot per ``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a
 frame that is late (the machine was busy) is sent at once and the next ones catch up, rather
 than every later frame being shifted (which would leave the stream slower than announced and
-the receivers' buffers running dry). A slot more than ``MAX_LAG_S`` late (a stalled machine)
-is given up, its seq left unused, so that every packet's seq still names its capture time.
+the receivers' buffers running dry). A frame more than ``MAX_LAG_S`` late (a stalled machine)
+goes out as the present slot, the seqs in between unused, so that every packet's seq still
+names its capture time.
 
 Capture time (``sender.slots``, ``protocol.clock``). Each packet's seq is its slot, captured
 at ``origin + seq / rate_hz`` on the sender's clock (``clock``, the monotonic clock); once the
@@ -135,8 +136,9 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
 
     A camera delivers in real time and limits its own rate; its frames are numbered by
     ``sender.slots.camera_slot``. A file is resampled to the slots of the rate, slot ``k``
-    released at ``origin + k / rate_hz`` (``SlotClock.release``: a slot more than
-    ``MAX_LAG_S`` late is given up) and stamped with its media time ``t_0 + k / rate_hz``;
+    released at ``origin + k / rate_hz`` and numbered (``SlotClock.release``: a frame
+    more than ``MAX_LAG_S`` late takes the present slot's number) and stamped with its media
+    time ``t_0 + k / rate_hz``;
     a slot's frame is known once a frame stamped beyond its quarter-period tolerance has been
     read, or the file has ended. A looped file's times keep increasing across passes. Waits
     end early when ``stop`` is set (the caller checks it).
@@ -164,8 +166,7 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
                 if held is None:
                     t0 = t
                 while held is not None and t0 + (slot + 0.25) * period < t:
-                    if slots.release(slot):
-                        yield held, t0 + slot * period, slot
+                    yield held, t0 + slot * period, slots.release(slot)
                     slot += 1
                 held = frame.image
         if last is None:
@@ -175,8 +176,7 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
         offset += last + 1.0 / source.rate_hz
     assert held is not None  # the source held frames (above)
     while t0 + (slot - 0.25) * period <= offset + last:  # the slots of the last frame
-        if slots.release(slot):
-            yield held, t0 + slot * period, slot
+        yield held, t0 + slot * period, slots.release(slot)
         slot += 1
 
 
@@ -333,6 +333,7 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             if start is None:  # the stream's time counts from its first frame's arrival
                 start, cpu = time.monotonic(), time.process_time()
                 window = (start, 0)
+            if responder.hello.clock_origin_s != slots.origin_s:
                 responder.announce(dataclasses.replace(responder.hello,
                                                        clock_origin_s=slots.origin_s))
             pipeline.set_slot(slot)
