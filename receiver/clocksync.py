@@ -6,8 +6,8 @@ behind it) and keeps each valid exchange in a ``protocol.clock.OffsetEstimator``
 exchanges ``BURST_GAP_S`` apart at the start, then one every ``REFRESH_S``, each waiting at
 most ``TIMEOUT_S``. The estimate is the least-delay sample of the last
 ``protocol.clock.WINDOW`` (16 s at one a second: two hosts' clocks drift apart by tens of
-microseconds in that time). A sender that refuses the request (an older one answers an
-``Error``) is asked again only every ``REFUSED_S``.
+microseconds in that time). A sender that answers the request with an ``Error`` (an older
+one, which does not know it) is asked again only every ``REFUSED_S``.
 
 ``refused`` counts the replies dropped: malformed, an ``Error``, not a time reply, not the
 reply to the request asked (``t1`` not echoed), or not a valid exchange
@@ -22,7 +22,7 @@ from collections.abc import Callable
 from typing import ClassVar
 
 from facewire.protocol.clock import ClockError, OffsetEstimator, Sample, sample
-from facewire.protocol.control import TimeReply, TimeRequest
+from facewire.protocol.control import Error, TimeReply, TimeRequest
 from facewire.protocol.keys import CurveClient
 from facewire.receiver.acquire import ControlChannel
 
@@ -94,26 +94,28 @@ class ClockSync:
             channel.close()
 
     def _exchange(self, channel: ControlChannel) -> bool:
-        """One exchange; False when the sender refused it (an error or a bad reply)."""
+        """One exchange; False when the sender answered with an ``Error`` (an older sender
+        that does not know the request)."""
         errors = channel.errors
         t1 = self._clock()
-        reply = channel.ask(TimeRequest(t1), TimeReply, TIMEOUT_S)
+        reply = channel.ask(TimeRequest(t1), (TimeReply, Error), TIMEOUT_S)
         t4 = self._clock()
         if reply is None:
-            if channel.errors > errors:
-                self.refused += 1
-                return False
-            return True  # no answer: asked again at the usual pace
+            self.refused += channel.errors > errors
+            return True  # no answer, or a bad one: asked again at the usual pace
+        if isinstance(reply, Error):
+            self.refused += 1
+            return False
         if reply.t1 != t1:
             channel.reject(f"a time reply to t1 = {reply.t1!r}, asked {t1!r}")
             self.refused += 1
-            return False
+            return True
         try:
             s = sample(t1, reply.t2, reply.t3, t4)
         except ClockError as exc:
             channel.reject(str(exc))
             self.refused += 1
-            return False
+            return True
         with self._lock:
             self._estimator.add(s)
         return True

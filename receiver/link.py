@@ -157,7 +157,7 @@ class SenderLink:
         since = time.monotonic()
         while True:
             check_end()
-            answer = self.ask(min(HELLO_TIMEOUT_S, timeout_s))
+            answer = self.ask(min(HELLO_TIMEOUT_S, timeout_s()))
             if answer is not None:
                 cam = answer.hello.camera
                 say(f"sender at {self.connect}: model {answer.hello.model_sha256[:12]}, "

@@ -38,7 +38,8 @@ from facewire.protocol.transport import (
     control_endpoint,
 )
 from facewire.sender.capture import CaptureError, open_source
-from facewire.sender.sender import _frames, send, unencrypted_warning
+from facewire.sender.sender import MAX_LAG_S, _frames, send, unencrypted_warning
+from facewire.sender.slots import SlotClock
 
 TIMEOUT_MS = 30_000  # the first Hello waits for the sender to load the model and the tracker
 
@@ -278,12 +279,14 @@ def test_a_variable_rate_file_is_resampled_to_the_rate_s_slots(tmp_path: Path) -
         for packet in stream.encode():
             container.mux(packet)
     with open_source(str(path)) as source:
-        sent = list(_frames(source, 15.0, False, threading.Event()))
+        sent = list(_frames(source, SlotClock(15.0, MAX_LAG_S), False, threading.Event()))
     slots = np.arange(len(sent)) / 15.0
-    np.testing.assert_allclose([t for _, t in sent], slots, atol=1e-9)
+    np.testing.assert_allclose([t for _, t, _ in sent], slots, atol=1e-9)
     assert len(sent) == 13  # 0.813 s of frames: slots 0 .. 12
+    numbers = [n for _, _, n in sent]  # the slots' numbers: late ones skip ahead (slots.py)
+    assert numbers[0] == 0 and np.all(np.diff(numbers) > 0)
     expected = [max(j for j, t in enumerate(times_ms) if t / 1000 <= s + 0.25 / 15)
                 for s in slots]
-    got = [round((image.mean() - 10) / 20) for image, _ in sent]
+    got = [round((image.mean() - 10) / 20) for image, _, _ in sent]
     assert got == expected
     assert sorted(set(got)) == list(range(12))  # every frame sent, one of them twice
