@@ -506,7 +506,9 @@ class Gateway:
                     if link is not None:
                         link.note_packet(arrival)
                     continue
-                if link is not None and link.note_packet(arrival, frame.seq):
+                clocked = self.upstream is None or self.upstream.clock is None or \
+                    self.upstream.clock.answers is not False
+                if link is not None and link.note_packet(arrival, frame.seq, clocked):
                     assert self.upstream is not None  # it holds the link
                     self.upstream.recheck.set()  # perhaps a restarted sender: ask its Hello
                     if self._doubt is None:
