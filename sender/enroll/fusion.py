@@ -110,7 +110,8 @@ import numpy as np
 
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
-from facewire.sender.enroll.registration import doubled_fraction, local_misfit
+from facewire.sender.enroll.align import Registration, register_views
+from facewire.sender.enroll.registration import doubled_fraction, local_misfit, weighted_median
 from facewire.sender.enroll.texture import (
     TextureError,
     UVSurface,
@@ -152,6 +153,8 @@ class Fusion:
         judged: (H, W) bool, the texels that have a consensus.
         holds: (H, W) bool, where the consensus holds: most views judged there line up
             with it (``sender.enroll.registration.local_misfit``).
+        registration: how far each view was warped onto the first before the fusion
+            (``sender.enroll.align``).
     """
 
     texture: np.ndarray
@@ -164,6 +167,7 @@ class Fusion:
     consensus: np.ndarray
     judged: np.ndarray
     holds: np.ndarray
+    registration: Registration
 
     def doubled_fraction(self, area: np.ndarray) -> float:
         """The doubled-feature measure of the texture over ``area`` ((H, W) bool):
@@ -233,6 +237,7 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     colours, weights = sample_views(mesh, surface, views, sharpness=sharpness,
                                     cos_min=cos_min, feather_px=feather_px)
     _match_exposure(colours, weights)
+    registration = register_views(colours, weights, surface.covered)
     weight_v = np.stack(weights)
     luma = np.stack([c @ _LUMA_BGR for c in colours])
     seen = weight_v > 0
@@ -250,7 +255,7 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     judged_grid = np.zeros(covered.shape, bool)
     judged_grid[covered] = judged
     return Fusion(texture, weight, seen, kept, agreement, aligned, covered, consensus,
-                  judged_grid, holds)
+                  judged_grid, holds, registration)
 
 
 def _match_exposure(colours: list[np.ndarray], weights: list[np.ndarray]) -> None:
@@ -288,7 +293,7 @@ def _consensus(luma: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarra
     judged = (use > 0).sum(axis=0) >= MIN_VIEWS_FOR_CONSENSUS
     centre = np.zeros(luma.shape[1], np.float32)
     if judged.any():
-        centre[judged] = _weighted_median(luma[:, judged], use[:, judged])
+        centre[judged] = weighted_median(luma[:, judged], use[:, judged])
     return centre, judged
 
 
@@ -389,19 +394,6 @@ def _coherent(kept: np.ndarray, seen: np.ndarray, covered: np.ndarray, window: i
     return out
 
 
-def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(K,) the weighted median over axis 0 of (V, K) values with (V, K) weights >= 0: the
-    smallest value whose cumulative weight reaches half the total (NaN where it is 0)."""
-    order = np.argsort(np.where(weights > 0, values, np.inf), axis=0)
-    v = np.take_along_axis(values, order, axis=0)
-    w = np.take_along_axis(weights, order, axis=0)
-    cum = np.cumsum(w, axis=0)
-    half = 0.5 * cum[-1]
-    pick = np.argmax(cum >= half[None] - 1e-9 * np.maximum(half[None], 1.0), axis=0)
-    out = v[pick, np.arange(values.shape[1])]
-    return np.where(cum[-1] > 0, out, np.nan)
-
-
 def _robust_keep(luma: np.ndarray, weight: np.ndarray, aligned: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Per texel, which views take part (module docstring): (V, K) bool, and each view's
@@ -414,8 +406,8 @@ def _robust_keep(luma: np.ndarray, weight: np.ndarray, aligned: np.ndarray
     if not many.any():
         return kept, agreement
     y, ww = luma[:, many], w[:, many]
-    centre = _weighted_median(y, ww)
-    spread = np.maximum(1.4826 * _weighted_median(np.abs(y - centre), ww), SPREAD_FLOOR)
+    centre = weighted_median(y, ww)
+    spread = np.maximum(1.4826 * weighted_median(np.abs(y - centre), ww), SPREAD_FLOOR)
     kept[:, many] = (ww > 0) & (np.abs(y - centre) <= OUTLIER_KAPPA * spread)
     for i in range(len(luma)):
         shared = ww[i] > 0
@@ -442,7 +434,7 @@ def _exposure_gain(colour: np.ndarray, weight: np.ndarray, colour_sum: np.ndarra
     mean_before = colour_sum[shared] / weight_sum[shared, None]
     ratio = mean_before / np.maximum(colour[shared], 1.0)  # (S, 3)
     weights = np.repeat(m[shared, None], 3, axis=1)
-    gain = _weighted_median(ratio, weights)
+    gain = weighted_median(ratio, weights)
     gain = np.where(np.isfinite(gain), gain, 1.0)
     return np.clip(gain, *_GAIN_RANGE).astype(np.float32)
 

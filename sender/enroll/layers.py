@@ -48,7 +48,9 @@ the sender's pose and lift.
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there; step 7 puts the interior
-   back). Texels off the image or facing away keep the neutral texture. Each layer is
+   back). Texels off the image or facing away keep the neutral texture, and so do an eye
+   region's texels under glare (``sender.enroll.glare``: a lens's or the cornea's
+   reflection, bright and grey, is no eyelid or gaze state). Each layer is
    then scaled per colour channel by g = sum(base) / sum(layer) over the border ramp
    (clipped to [0.5, 2]), so an exposure change between frames leaves no step at the
    border. The skin regions' layers
@@ -115,6 +117,7 @@ from facewire.sender.enroll.coverage import (
     reference,
     state_measures,
 )
+from facewire.sender.enroll.glare import glare_free
 from facewire.sender.enroll.interior import (
     continued,
     disc_polar,
@@ -444,8 +447,11 @@ class _RegionTexels:
         """(h, w, 3) uint8 RGB per area of the region: its texels read from ``image``, with
         the exposure gain of its last area (module docstring, step 4)."""
         areas = self.areas[name]
-        return state_layers(name, [_read(a, self.camera, image, seen)[:2] for a in areas],
-                            [self.model.texture[a.slices] for a in areas])
+        base = [self.model.texture[a.slices] for a in areas]
+        reads = [_read(a, self.camera, image, seen)[:2] for a in areas]
+        if name.startswith(("eyelid", "eyeball")):  # a lens's or cornea's glare is no layer
+            reads = [(c, glare_free(c, ok, b)) for (c, ok), b in zip(reads, base)]
+        return state_layers(name, reads, base)
 
 
 class _Cavity:

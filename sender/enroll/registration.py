@@ -159,3 +159,16 @@ def doubled_fraction(texture_luma: np.ndarray, consensus: np.ndarray, judged: np
     if not ok.any():
         return 0.0
     return float((ncc[ok] < MIN_NCC).mean())
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(K,) the weighted median over axis 0 of (V, K) values with (V, K) weights >= 0: the
+    smallest value whose cumulative weight reaches half the total (NaN where it is 0)."""
+    order = np.argsort(np.where(weights > 0, values, np.inf), axis=0)
+    v = np.take_along_axis(values, order, axis=0)
+    w = np.take_along_axis(weights, order, axis=0)
+    cum = np.cumsum(w, axis=0)
+    half = 0.5 * cum[-1]
+    pick = np.argmax(cum >= half[None] - 1e-9 * np.maximum(half[None], 1.0), axis=0)
+    out = v[pick, np.arange(values.shape[1])]
+    return np.where(cum[-1] > 0, out, np.nan)

@@ -1,0 +1,208 @@
+"""Registration of the views on the texture before they are fused: each view's unwrapped
+texture warped onto the reference view's by a dense optical flow.
+
+Every view is projected onto the texels through the fitted mesh and its own head pose
+(``sender.enroll.texture``, 2). The mesh is the neutral face's and the pose is a fit to 68
+points, so a view's features land a few texels off where the reference's do: a pose a
+degree off, glasses that slid on the nose, a lid or brow a millimetre higher, a frame of
+fast motion. Fused as they are, the views show each such feature twice (a doubled glasses
+rim, two lash lines) or the consensus drops them where they disagree. So, before the
+fusion, every view i >= 1 is warped onto the texture of view 0 (the neutral frame: the
+build puts it first), within the ``box`` of texels where the reference sees the face
+frontally:
+
+1. Luma grids. Y_0 and Y_i, the two views' luma on the texel grid of the box, each
+   filled with the other's where it sees nothing (so the edge of a view's coverage is no
+   structure to follow), are box-averaged by ``SCALE`` (4: at some 3-5 texels per image
+   pixel, about one image pixel per cell).
+2. Flow. Dense inverse-search optical flow (Kroeger et al. 2016, OpenCV's DIS, its
+   medium preset) from Y_0 to Y_i gives f with Y_0(x) ~ Y_i(x + f(x)), smoothed by a
+   Gaussian of ``SMOOTH`` cells (a registration error varies slowly over the face; a flow
+   that follows single texels follows noise), its length clipped to ``MAX_SHIFT`` cells
+   (a larger offset is a different expression, not a misregistration: the fusion's
+   consensus handles that), scaled back to texels and faded to 0 where the two views
+   share no texel (within ``SMOOTH`` cells).
+3. Warp. View i's colours and weights are resampled at x + f(x) (bilinear; its weight
+   is 0 where the sample reaches a texel it does not see).
+4. Check. The warp is kept only when it raises the correlation of Y_i with Y_0 over the
+   shared, structured texels of the box (local standard deviation of Y_0 at least
+   ``sender.enroll.registration.STRUCTURE_STD``): a flow on a view that shows another
+   expression, or on a featureless face, must not make things worse.
+
+The reference stays as it is, so the texture's geometry is the neutral frame's: what is
+registered is every other view to it, never the mesh to the views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from facewire.sender.enroll.registration import STRUCTURE_STD, weighted_median
+
+SCALE = 4  # texels per flow cell
+SMOOTH = 2.0  # cells: the Gaussian the flow is smoothed by
+MAX_SHIFT = 3.0  # cells: the longest shift a registration may make
+FRONT_WEIGHT = 0.3  # the reference's weight for a texel to be in the registered box
+_MARGIN = 8  # cells around the box
+_MIN_SHARED = 400  # texels a view must share with the consensus to be registered
+MIN_GAIN = 0.01  # the least rise in correlation for a warp to be kept
+MIN_VIEWS = 3  # views needed for a consensus to register them to
+
+
+@dataclass(frozen=True)
+class Registration:
+    """What registering the views did.
+
+    Attributes:
+        shift: (V,) float64, the mean length of each view's kept flow over the texels it
+            shares with the reference, texels (0 for the reference and views left as they were).
+        gain: (V,) float64, the correlation with the reference after minus before over the
+            shared structured texels (0 where the warp was not kept).
+    """
+
+    shift: np.ndarray
+    gain: np.ndarray
+
+
+def register_views(colours: list[np.ndarray], weights: list[np.ndarray], covered: np.ndarray
+                   ) -> Registration:
+    """Warp every view onto the views' consensus, in place (module docstring).
+
+    Args:
+        colours: per view (K, 3) float32 BGR colours of the K covered texels (row-major);
+            the first view is the neutral frame.
+        weights: per view (K,) float32 weights (0: not seen), same order.
+        covered: (H, W) bool, the covered texels.
+
+    Returns:
+        The ``Registration`` (each view's shift and correlation gain).
+    """
+    count = len(colours)
+    shift, gain = np.zeros(count), np.zeros(count)
+    box = _box(weights[0], covered)
+    if box is None or count < MIN_VIEWS:
+        return Registration(shift, gain)
+    inside = covered[box]
+    index = _index(covered, box)
+    grids = [_grid(c, covered, box) for c in colours]
+    seen = [_grid(w[:, None], covered, box)[..., 0] for w in weights]
+    luma = np.stack([g @ _LUMA for g in grids])
+    weight = np.stack(seen)
+    any_seen = (weight > 0).any(axis=0)
+    centre = np.zeros(inside.shape, np.float32)
+    centre[any_seen] = weighted_median(luma[:, any_seen], weight[:, any_seen])
+    for i in range(count):
+        y, w = luma[i], weight[i]
+        shared = any_seen & (w > 0)
+        if shared.sum() < _MIN_SHARED:
+            continue
+        flow = _flow(np.where(any_seen, centre, y), np.where(w > 0, y, centre), shared)
+        map_x, map_y = _maps(flow)
+        warped = cv2.remap(grids[i], map_x, map_y, cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        whole = cv2.remap((w > 0).astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        moved = cv2.remap(w, map_x, map_y, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        moved = np.where(whole > 0.999, moved, 0.0).astype(np.float32)
+        both = shared & (moved > 0)
+        before = _structured_corr(y, centre, both)
+        after = _structured_corr(warped @ _LUMA, centre, both)
+        if before is None or after is None or after < before + MIN_GAIN:
+            continue
+        colours[i][index] = warped[inside]
+        weights[i][index] = moved[inside]
+        shift[i] = float(np.linalg.norm(flow, axis=2)[shared].mean())
+        gain[i] = after - before
+    return Registration(shift, gain)
+
+
+_LUMA = np.array([0.114, 0.587, 0.299], np.float32)  # BGR
+
+
+def _luma(colour: np.ndarray) -> np.ndarray:
+    """(K, 1) float32 luma of (K, 3) BGR colours."""
+    return (colour @ _LUMA)[:, None]
+
+
+def _box(reference: np.ndarray, covered: np.ndarray) -> tuple[slice, slice] | None:
+    """The texel rectangle where the reference sees the face frontally (weight at least
+    ``FRONT_WEIGHT``), grown by ``_MARGIN`` cells and rounded out to whole cells; None when
+    it sees no such texel."""
+    grid = np.zeros(covered.shape, bool)
+    grid[covered] = reference >= FRONT_WEIGHT
+    rows, cols = np.nonzero(grid)
+    if len(rows) == 0:
+        return None
+    pad = _MARGIN * SCALE
+    height, width = covered.shape
+
+    def span(lo: int, hi: int, size: int) -> slice:
+        a = max(0, lo - pad) // SCALE * SCALE
+        b = min(size, -(-(hi + 1 + pad) // SCALE) * SCALE)
+        return slice(a, b - (b - a) % SCALE)
+
+    return span(int(rows.min()), int(rows.max()), height), span(int(cols.min()),
+                                                               int(cols.max()), width)
+
+
+def _grid(values: np.ndarray, covered: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:
+    """(h, w, C) float32: the (K, C) values of the covered texels laid on the box's grid (0
+    where uncovered)."""
+    full = np.zeros((*covered.shape, values.shape[1]), np.float32)
+    full[covered] = values
+    return np.ascontiguousarray(full[box])
+
+
+def _index(covered: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:
+    """(K,) bool: which of the K covered texels lie in the box."""
+    inside = np.zeros(covered.shape, bool)
+    inside[box] = True
+    return inside[covered]
+
+
+def _flow(reference: np.ndarray, view: np.ndarray, shared: np.ndarray) -> np.ndarray:
+    """(h, w, 2) float32 texel offsets (x, y) with reference(p) ~ view(p + f(p)) (module
+    docstring, 2); h, w multiples of ``SCALE``."""
+    h, w = reference.shape
+
+    def small(a: np.ndarray) -> np.ndarray:
+        cells = a.reshape(h // SCALE, SCALE, w // SCALE, SCALE).mean(axis=(1, 3))
+        return np.clip(np.rint(cells), 0, 255).astype(np.uint8)
+
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow = dis.calc(small(reference), small(view), None)
+    flow = cv2.GaussianBlur(flow, (0, 0), SMOOTH)
+    length = np.linalg.norm(flow, axis=2, keepdims=True)
+    flow = flow * np.minimum(1.0, MAX_SHIFT / np.maximum(length, 1e-6))
+    share = shared.reshape(h // SCALE, SCALE, w // SCALE, SCALE).any(axis=(1, 3))
+    near = cv2.GaussianBlur(share.astype(np.float32), (0, 0), SMOOTH)
+    flow = flow * np.clip(2.0 * near, 0.0, 1.0)[..., None]
+    big = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+    return (big * SCALE).astype(np.float32)
+
+
+def _maps(flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap's (h, w) float32 maps x + f_x, y + f_y."""
+    h, w = flow.shape[:2]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return xs + flow[..., 0], ys + flow[..., 1]
+
+
+def _structured_corr(y: np.ndarray, ref: np.ndarray, shared: np.ndarray) -> float | None:
+    """The Pearson correlation of ``y`` and ``ref`` over the ``shared`` texels where ``ref``
+    varies locally (module docstring, 4); None when fewer than ``_MIN_SHARED`` such
+    texels."""
+    k = (9, 9)
+    mean = cv2.blur(ref, k)
+    var = cv2.blur(ref * ref, k) - mean * mean
+    use = shared & (var >= STRUCTURE_STD ** 2)
+    if use.sum() < _MIN_SHARED:
+        return None
+    a, b = y[use].astype(np.float64), ref[use].astype(np.float64)
+    if a.std() < 1e-6 or b.std() < 1e-6:
+        return None
+    return float(np.corrcoef(a, b)[0, 1])
