@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from facewire.models.regions import RAMP_TEXELS, ramp_mask
 from facewire.sender.enroll.registration import STRUCTURE_STD, weighted_median
 
 SCALE = 4  # texels per flow cell
@@ -166,8 +167,12 @@ def _index(covered: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:
 
 def _flow(reference: np.ndarray, view: np.ndarray, shared: np.ndarray) -> np.ndarray:
     """(h, w, 2) float32 texel offsets (x, y) with reference(p) ~ view(p + f(p)) (module
-    docstring, 2); h, w multiples of ``SCALE``."""
+    docstring, 2), of two (h, w) float32 luma images; 0 away from the ``shared`` texels."""
     h, w = reference.shape
+    if h % SCALE or w % SCALE:  # pad to whole cells, then crop the flow back
+        pad = ((0, -h % SCALE), (0, -w % SCALE))
+        return _flow(np.pad(reference, pad, mode="edge"), np.pad(view, pad, mode="edge"),
+                     np.pad(shared, pad))[:h, :w]
 
     def small(a: np.ndarray) -> np.ndarray:
         cells = a.reshape(h // SCALE, SCALE, w // SCALE, SCALE).mean(axis=(1, 3))
@@ -206,3 +211,33 @@ def _structured_corr(y: np.ndarray, ref: np.ndarray, shared: np.ndarray) -> floa
     if a.std() < 1e-6 or b.std() < 1e-6:
         return None
     return float(np.corrcoef(a, b)[0, 1])
+
+
+def register_layer(layer: np.ndarray, base: np.ndarray, rest: bool) -> np.ndarray:
+    """A region's layer warped onto the base texture under it where it meets it (module
+    docstring, layers).
+
+    Args:
+        layer: (h, w, 3) uint8 RGB, one state's layer image over an area.
+        base: (h, w, 3) uint8 RGB, the base texture over the same area.
+        rest: the layer is the rest state's (the neutral frame's expression): warped
+            everywhere, not only along its border.
+
+    Returns:
+        (h, w, 3) uint8 RGB: the warped layer, or ``layer`` itself when the warp does not
+        raise its correlation with the base over the border band.
+    """
+    y_layer = layer.astype(np.float32) @ _LUMA[::-1]
+    y_base = base.astype(np.float32) @ _LUMA[::-1]
+    flow = _flow(y_base, y_layer, np.ones(y_base.shape, bool))
+    band = ramp_mask(y_base.shape, 2 * RAMP_TEXELS) < 1.0
+    if not rest:  # full along the border band, none deeper than twice the ramp
+        reach = 1.0 - np.clip(2.0 * ramp_mask(y_base.shape, 2 * RAMP_TEXELS) - 1.0, 0.0, 1.0)
+        flow = flow * reach[..., None]
+    map_x, map_y = _maps(flow)
+    warped = cv2.remap(layer, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    before = _structured_corr(y_layer, y_base, band)
+    after = _structured_corr(warped.astype(np.float32) @ _LUMA[::-1], y_base, band)
+    if before is None or after is None or after < before + MIN_GAIN:
+        return layer
+    return np.asarray(warped, np.uint8)
