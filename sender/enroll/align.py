@@ -1,36 +1,49 @@
-"""Registration of the views on the texture before they are fused: each view's unwrapped
-texture warped onto the reference view's by a dense optical flow.
+"""Registration on the texture: the views warped onto their consensus before they are
+fused, and each region's layers onto the base texture where they meet it.
 
-Every view is projected onto the texels through the fitted mesh and its own head pose
-(``sender.enroll.texture``, 2). The mesh is the neutral face's and the pose is a fit to 68
-points, so a view's features land a few texels off where the reference's do: a pose a
-degree off, glasses that slid on the nose, a lid or brow a millimetre higher, a frame of
-fast motion. Fused as they are, the views show each such feature twice (a doubled glasses
-rim, two lash lines) or the consensus drops them where they disagree. So, before the
-fusion, every view i >= 1 is warped onto the texture of view 0 (the neutral frame: the
-build puts it first), within the ``box`` of texels where the reference sees the face
-frontally:
+Views (``register_views``). Every view is projected onto the texels through the fitted
+mesh and its own head pose (``sender.enroll.texture``, 2). The mesh is the neutral face's
+and the pose a fit to 68 points, so a view's features land a few texels off the others':
+a pose a degree off, glasses that slid on the nose, a lid or brow a millimetre higher, a
+frame of fast motion. Fused as they are, the views show such a feature twice (a doubled
+glasses rim, two lash lines), or the consensus drops them where they disagree and the
+texture is made of fewer views. So, before the fusion, every view is warped onto the
+views' consensus C (the weighted median of their luma, ``registration.weighted_median``:
+where most views put a feature), within the ``box`` of texels where the first view (the
+neutral frame) sees the face frontally (weight at least ``FRONT_WEIGHT``):
 
-1. Luma grids. Y_0 and Y_i, the two views' luma on the texel grid of the box, each
-   filled with the other's where it sees nothing (so the edge of a view's coverage is no
-   structure to follow), are box-averaged by ``SCALE`` (4: at some 3-5 texels per image
-   pixel, about one image pixel per cell).
+1. Luma grids. C and the view's luma Y on the texel grid of the box, each filled with
+   the other where it has nothing (so the edge of a view's coverage is no structure to
+   follow), averaged over cells of ``SCALE`` x ``SCALE`` texels (4: at some 3-5 texels per
+   image pixel, about one pixel of the image per cell).
 2. Flow. Dense inverse-search optical flow (Kroeger et al. 2016, OpenCV's DIS, its
-   medium preset) from Y_0 to Y_i gives f with Y_0(x) ~ Y_i(x + f(x)), smoothed by a
-   Gaussian of ``SMOOTH`` cells (a registration error varies slowly over the face; a flow
-   that follows single texels follows noise), its length clipped to ``MAX_SHIFT`` cells
-   (a larger offset is a different expression, not a misregistration: the fusion's
-   consensus handles that), scaled back to texels and faded to 0 where the two views
-   share no texel (within ``SMOOTH`` cells).
-3. Warp. View i's colours and weights are resampled at x + f(x) (bilinear; its weight
-   is 0 where the sample reaches a texel it does not see).
-4. Check. The warp is kept only when it raises the correlation of Y_i with Y_0 over the
-   shared, structured texels of the box (local standard deviation of Y_0 at least
-   ``sender.enroll.registration.STRUCTURE_STD``): a flow on a view that shows another
-   expression, or on a featureless face, must not make things worse.
+   medium preset) from C to Y gives f with C(x) ~ Y(x + f(x)), smoothed by a Gaussian of
+   ``SMOOTH`` cells (a registration error varies slowly over the face; a flow that follows
+   single texels follows noise), its length clipped to ``MAX_SHIFT`` cells (a larger
+   offset is another expression, not a misregistration: the fusion's consensus handles
+   that), faded to 0 where the view shares nothing with C (over ``SMOOTH`` cells) and
+   scaled back to texels.
+3. Warp. The view's colours and weights are resampled at x + f(x) (bilinear; the weight
+   is 0 where the sample reaches a texel the view does not see).
+4. Check. The warp is kept only when it raises the correlation of Y with C, over the
+   texels both see where C is structured (its local standard deviation at least
+   ``registration.STRUCTURE_STD``), by at least ``MIN_GAIN``: a flow on a view that shows
+   another expression, or on a featureless face, must not make things worse.
 
-The reference stays as it is, so the texture's geometry is the neutral frame's: what is
-registered is every other view to it, never the mesh to the views.
+With fewer than ``MIN_VIEWS`` views there is no consensus and nothing is moved.
+
+Layers (``register_layer``). A region's layer is read from its own frame with the pose and
+morph the sender found there (``sender.enroll.layers``, step 4), the base texture from the
+fitted views: the two lay a brow or a lash line a few texels apart, and the layer, blended
+in over its ramp (``models.regions.ramp_mask``), then shows the base's feature and its own
+side by side along the region's edge: a crack, in every frame that draws the layer (the rest
+state: every frame). So each layer is warped onto the base under it by the same flow (base
+as C, layer as Y, every texel shared), applied in full within ``RAMP_TEXELS`` of the
+layer's border and fading to nothing at twice that; the rest state's layer (the neutral
+frame's expression, as the base's) is warped all over. Inside, the layer keeps its own
+expression; at its border it meets the base. The warp is kept only when it raises the
+layer's correlation with the base over the border band (within twice the ramp) by at
+least ``MIN_GAIN``.
 """
 
 from __future__ import annotations

@@ -9,6 +9,11 @@ passing expression over part of the face, or not line up with the fitted model (
 slip: every feature lands a few pixels off), and a mean bakes both in: an occluder as a dark
 patch, a slip as doubled features (ghosting).
 
+Registration next (``sender.enroll.align``): after the exposure is matched (below), every
+view is warped onto the views' consensus by a dense optical flow on the texture, so a
+feature a few texels off in one view (a pose a degree off, glasses that slid, a frame of
+fast motion) is moved onto the others' before anything below compares or blends them.
+
 Exposure first: a camera's automatic exposure and white balance change between frames,
 and a view a fifth darker leaves a soft but visible step where only it sees the skin. So
 views are taken in order, the first (the neutral frame) as the reference, and each later
@@ -142,8 +147,13 @@ class Fusion:
     Attributes:
         texture: (H, W, 3) uint8 RGB, black where no kept view saw the texel.
         weight: (H, W) float32 summed weights of the views that took part (0: none).
-        seen: (V, K) bool, view i sees covered texel k (K: the covered texels, row-major).
-        kept: (V, K) bool, view i took part at texel k (seen and not an outlier).
+        seen: (V, K) bool, view i sees covered texel k (K: the covered texels, row-major),
+            as projected (before registration).
+        kept: (V, K) bool, view i takes part at texel k as projected (seen, not an outlier,
+            lined up locally): what ``outlier_fraction`` and so the build's occlusion
+            evidence judge by (a view that differs from the others only by where its
+            features lie, such as a frame whose lips or brows moved, stays an outlier
+            there, as it was before registration).
         agreement: (V,) float64 r_i, the correlation of each view with the consensus (NaN
             when it shares too few texels with it).
         aligned: (V,) bool, the view lined up with the others (False: dropped whole).
@@ -237,25 +247,40 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     colours, weights = sample_views(mesh, surface, views, sharpness=sharpness,
                                     cos_min=cos_min, feather_px=feather_px)
     _match_exposure(colours, weights)
-    registration = register_views(colours, weights, surface.covered)
+    covered = surface.covered
+    as_seen = _take_part(np.stack([c @ _LUMA_BGR for c in colours]), np.stack(weights),
+                         covered, features)  # before registration: the evidence's judgement
+    registration = register_views(colours, weights, covered)
     weight_v = np.stack(weights)
     luma = np.stack([c @ _LUMA_BGR for c in colours])
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
-    covered = surface.covered
     centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
     misfit, holds = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
                                  features)
     first = len(views) if primary is None else primary
-    blend, total, kept = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
-                                 covered, first, misfit)
+    blend, total, _ = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
+                              covered, first, misfit)
     texture, weight = _to_texture(blend, total, covered)
     consensus = np.zeros(covered.shape, np.float32)
     consensus[covered] = np.where(judged, centre, 0.0)
     judged_grid = np.zeros(covered.shape, bool)
     judged_grid[covered] = judged
-    return Fusion(texture, weight, seen, kept, agreement, aligned, covered, consensus,
-                  judged_grid, holds, registration)
+    return Fusion(texture, weight, as_seen[0], as_seen[1], agreement, aligned, covered,
+                  consensus, judged_grid, holds, registration)
+
+
+def _take_part(luma: np.ndarray, weight_v: np.ndarray, covered: np.ndarray,
+               features: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Which views see each covered texel (V, K) bool, and which take part there (V, K)
+    bool: not outliers, lined up locally, coherent over ``OUTLIER_WINDOW`` (module
+    docstring), judged on the (V, K) luma and weights given."""
+    seen = weight_v > 0
+    kept, _, aligned = _judge(luma, weight_v)
+    centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
+    lined_up = seen & aligned[:, None]
+    misfit, _ = local_misfit(luma, lined_up, centre, judged, covered, features)
+    return seen, _coherent(kept & ~misfit, lined_up, covered, OUTLIER_WINDOW)
 
 
 def _match_exposure(colours: list[np.ndarray], weights: list[np.ndarray]) -> None:
