@@ -129,7 +129,7 @@ def test_a_model_without_an_open_mouth_opens_onto_a_dark_interior(
     near = np.minimum(np.linalg.norm(inside - lip, axis=1), np.linalg.norm(inside - skin, axis=1))
     assert (near < 20).mean() < 0.2, (near < 20).mean()
     grey = _grey(inside)
-    assert np.median(grey) < 0.6 * _grey(lip[None])[0]  # a dark inside
+    assert np.percentile(grey, 25) < 0.6 * _grey(lip[None])[0]  # a dark inside
     assert (grey > 0.8 * _grey(skin[None])[0]).mean() < 0.1  # no light plate
     if drop_mm >= 14.0:
         assert (grey > 0.6 * _grey(skin[None])[0]).mean() > 0.02  # and teeth

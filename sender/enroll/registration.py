@@ -122,6 +122,7 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
     """
     m = np.zeros(covered.shape, np.float32)
     m[covered] = np.where(consensus, centre, 0.0)
+    box = _around(features, covered.shape)  # the windows that can be judged
     good = np.zeros(covered.shape, np.int32)
     count = np.zeros(covered.shape, np.int32)
     bads = []
@@ -130,7 +131,9 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
         shared[covered] = seen[i] & consensus
         y = np.zeros(covered.shape, np.float32)
         y[covered] = luma[i]
-        ncc, judged = local_ncc(y, m, shared)
+        judged = np.zeros(covered.shape, bool)
+        ncc = np.zeros(covered.shape, np.float32)
+        ncc[box], judged[box] = local_ncc(y[box], m[box], shared[box])
         if features is not None:
             judged &= features
         bad = judged & (ncc < MIN_NCC)
@@ -145,6 +148,17 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
         if bad.any():
             out[i] = cv2.dilate(bad.astype(np.uint8), grow)[covered].astype(bool) & seen[i]
     return out, holds
+
+
+def _around(features: np.ndarray | None, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The rectangle of an (H, W) texture holding the ``features`` (H, W) bool texels and
+    every texel within ``WINDOW`` of them (all of it when None): outside it no window is
+    judged, and the windows inside it see the same texels as on the whole texture."""
+    if features is None or not features.any():
+        return slice(0, shape[0]), slice(0, shape[1])
+    rows, cols = np.nonzero(features)
+    return (slice(max(int(rows.min()) - WINDOW, 0), min(int(rows.max()) + WINDOW + 1, shape[0])),
+            slice(max(int(cols.min()) - WINDOW, 0), min(int(cols.max()) + WINDOW + 1, shape[1])))
 
 
 def doubled_fraction(texture_luma: np.ndarray, consensus: np.ndarray, judged: np.ndarray,
