@@ -7,10 +7,14 @@ and the pose a fit to 68 points, so a view's features land a few texels off the 
 a pose a degree off, glasses that slid on the nose, a lid or brow a millimetre higher, a
 frame of fast motion. Fused as they are, the views show such a feature twice (a doubled
 glasses rim, two lash lines), or the consensus drops them where they disagree and the
-texture is made of fewer views. So, before the fusion, every view is warped onto the
-views' consensus C (the weighted median of their luma, ``registration.weighted_median``:
-where most views put a feature), within the ``box`` of texels where the first view (the
-neutral frame) sees the face frontally (weight at least ``FRONT_WEIGHT``):
+texture is made of fewer views. So, before the fusion, every view but the first is warped
+onto the views' consensus C (the weighted median of their luma,
+``registration.weighted_median``: where most views put a feature), within the ``box`` of
+texels where the first view sees the face frontally (weight at least ``FRONT_WEIGHT``).
+The first view, the neutral frame, stays as it is: the mesh is fitted to its points, so
+its features lie where the mesh's do (warped onto a consensus of talking frames, its lips
+would move off the mesh's); where the others agree with it, as around still eyes and
+glasses, C is its own picture:
 
 1. Luma grids. C and the view's luma Y on the texel grid of the box, each filled with
    the other where it has nothing (so the edge of a view's coverage is no structure to
@@ -83,7 +87,7 @@ class Registration:
 
 def register_views(colours: list[np.ndarray], weights: list[np.ndarray], covered: np.ndarray
                    ) -> Registration:
-    """Warp every view onto the views' consensus, in place (module docstring).
+    """Warp every view but the first onto the views' consensus, in place (module docstring).
 
     Args:
         colours: per view (K, 3) float32 BGR colours of the K covered texels (row-major);
@@ -108,7 +112,7 @@ def register_views(colours: list[np.ndarray], weights: list[np.ndarray], covered
     any_seen = (weight > 0).any(axis=0)
     centre = np.zeros(inside.shape, np.float32)
     centre[any_seen] = weighted_median(luma[:, any_seen], weight[:, any_seen])
-    for i in range(count):
+    for i in range(1, count):  # the first view stays: the mesh is fitted to its points
         y, w = luma[i], weight[i]
         shared = any_seen & (w > 0)
         if shared.sum() < _MIN_SHARED:
