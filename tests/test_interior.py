@@ -182,7 +182,8 @@ def test_skin_seen_through_the_opening_is_not_the_interior(
     blocks = [image[y0 + dy:y1 + dy, x0 + dx:half + dx].astype(np.float32)
               for dx, dy in ((-2 * width, 0), (3 * width, 0), (0, 2 * height),
                              (width // 2, 2 * height))]  # beside and below the mouth
-    cheek = max(blocks, key=lambda b: float(skin_like(b[..., ::-1], skin).mean()))
+    whole = [b for b in blocks if b.shape == (height, width, 3)]  # on the image
+    cheek = max(whole, key=lambda b: float(skin_like(b[..., ::-1], skin).mean()))
     image[y0:y1, x0:half] = cheek.astype(np.uint8)  # the person's own skin, as a finger
     cavity = texels.cavity
     colour, ok, x, y = cavity.area.read(model.camera, image, o.rotation, o.translation,
