@@ -195,13 +195,14 @@ def _flow(reference: np.ndarray, view: np.ndarray, shared: np.ndarray) -> np.nda
         cells = a.reshape(h // SCALE, SCALE, w // SCALE, SCALE).mean(axis=(1, 3))
         return np.clip(np.rint(cells), 0, 255).astype(np.uint8)
 
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    flow = dis.calc(small(reference), small(view), None)
-    flow = cv2.GaussianBlur(flow, (0, 0), SMOOTH)
+    dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    raw = np.asarray(dis.calc(small(reference), small(view), None),  # type: ignore[call-overload]
+                     np.float32)
+    flow = np.asarray(cv2.GaussianBlur(raw, (0, 0), SMOOTH), np.float32)
     length = np.linalg.norm(flow, axis=2, keepdims=True)
     flow = flow * np.minimum(1.0, MAX_SHIFT / np.maximum(length, 1e-6))
     share = shared.reshape(h // SCALE, SCALE, w // SCALE, SCALE).any(axis=(1, 3))
-    near = cv2.GaussianBlur(share.astype(np.float32), (0, 0), SMOOTH)
+    near = cv2.GaussianBlur(np.asarray(share, np.float32), (0, 0), SMOOTH)
     flow = flow * np.clip(2.0 * near, 0.0, 1.0)[..., None]
     big = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
     return (big * SCALE).astype(np.float32)
