@@ -17,6 +17,8 @@ clip the model never saw:
     hand      hdtf_edmarkey.mp4 with a real hand (latentsync_demo2's, 0:120 of    the clip
               ``bench.handover``) held over the mouth and cheek in   the copy    120:
               its first 96 frames
+    glasses   retalk_5.mp4: a woman with glasses talks and moves     0:60        60:
+              her head, 2.4 s (``sender.enroll.align``)
     ========  ====================================================  ==========  ===========
 
 The motion segment: the clip's front man moves across the frame between frames 130 and
@@ -31,8 +33,8 @@ NME over all 68 points and over the mouth, face SSIM, the packets' held-out NME,
 x264 reference's render NME and SSIM at about our bit rate (``bench.quality``'s names).
 ``--models DIR`` scores ``DIR/KEY.fwm`` where it exists instead of building (a model
 built by another commit, say), ``--limit N`` scores only the first N held-out frames (a
-quick check of the plumbing), ``--only KEY`` runs some. Heavy: four builds (15-90 s each
-on the shared machine) and about 680 scored frames (some 0.3 s each, the x264 reference's
+quick check of the plumbing), ``--only KEY`` runs some. Heavy: five builds (15-90 s each
+on the shared machine) and about 740 scored frames (some 0.3 s each, the x264 reference's
 two passes included).
 
     facewire bench reproductions --data ../shared/data [--work DIR] [--models DIR] [--json]
@@ -81,6 +83,7 @@ REPRODUCTIONS = (
                  slice(272, 452)),
     Reproduction("hand", "real hand on mouth", "hdtf_edmarkey.mp4", slice(0, 120),
                  slice(120, None), hand="back"),
+    Reproduction("glasses", "glasses, short", "retalk_5.mp4", slice(0, 60), slice(60, None)),
 )
 HAND_PART = 0.8
 COLUMNS = ("render_nme_mean", "render_nme_mouth", "face_ssim_mean", "nme_heldout_mean",

@@ -43,10 +43,10 @@ def test_the_synthetic_interior_is_dark_with_teeth_under_the_upper_lip() -> None
     back, rim = inside[:, 0], inside[:, -1]
     assert (_grey(back) < 0.25 * _grey(LIP)).all()  # the back of the mouth: in shadow
     side = np.abs(np.degrees(alpha[:, 0])) < 10  # the corners' walls: no teeth, darkened lip
-    assert (_grey(rim[side]) <= 0.61 * _grey(LIP) + 1e-3).all()
+    assert (_grey(rim[side]) <= 0.41 * _grey(LIP) + 1e-3).all()
     upper = inside[180 + 90, 22]  # under the upper lip's middle (rho 0.22)
     lower = inside[180 - 90, 22]
-    assert _grey(upper) > _grey(SKIN[None])[0] * 0.9 > _grey(lower) > 2 * _grey(back[0])
+    assert _grey(upper) > _grey(SKIN[None])[0] * 0.6 > _grey(lower) > 2 * _grey(back[0])
 
 
 def test_disc_coordinates_are_centred_on_the_cavity_disc() -> None:
@@ -86,6 +86,9 @@ def closed_mouth_model(shared_data: Path, tmp_path_factory: pytest.TempPathFacto
     return path
 
 
+BACKGROUND = (0, 255, 0)  # the renderer's colour where no triangle is
+
+
 def _opened(model: PersonModel, drop_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The front preview of the model with its jaw dropped: (480, 480, 3) RGB and the
     morphed inner-lip polygon (8, 2) px."""
@@ -97,28 +100,38 @@ def _opened(model: PersonModel, drop_mm: float) -> tuple[np.ndarray, np.ndarray]
     camera = preview_cameras(model.mesh)[0]
     q = np.array([r.rest for r in model.regions], np.float32)
     q[[r.name for r in model.regions].index("mouth")] = len(model.regions[-1].layers) - 1
-    with FaceRenderer(model, camera.intrinsics.width, camera.intrinsics.height) as renderer:
+    with FaceRenderer(model, camera.intrinsics.width, camera.intrinsics.height,
+                      background=BACKGROUND) as renderer:
         image = renderer.render(vertices, q, camera)
     lips = project(vertices[model.mesh.landmarks[60:68]].astype(np.float64), camera.pose,
                    camera.intrinsics)
     return image, lips
 
 
+@pytest.mark.parametrize("drop_mm", [6.0, 14.0, 31.75])
 def test_a_model_without_an_open_mouth_opens_onto_a_dark_interior(
-        closed_mouth_model: Path) -> None:
+        closed_mouth_model: Path, drop_mm: float) -> None:
+    """From a slightly open mouth to the widest the packet can carry (the lower lip and the
+    chin down by its residuals' limit): the cavity is behind the lips (no background shows
+    between them) and dark, with shadowed teeth, never a flat light plate (main at bcc747b:
+    the made-up lower teeth, half opaque, filled a slightly open mouth with one)."""
     model = load_model(closed_mouth_model)
-    image, lips = _opened(model, 14.0)
+    image, lips = _opened(model, drop_mm)
     mask = np.zeros(image.shape[:2], np.uint8)
     cv2.fillPoly(mask, [np.rint(lips).astype(np.int32)], 1)
     mask = cv2.erode(mask, np.ones((5, 5), np.uint8)).astype(bool)
-    assert mask.sum() > 300  # the mouth is open on the screen
+    assert mask.sum() > 40  # the mouth is open on the screen
+    assert not (image[mask] == BACKGROUND).all(axis=1).any()  # the cavity fills it
     lip, skin = palette(model.texture, model.mesh)
     inside = image[mask].astype(np.float32)
     # neither lips nor skin: the old code showed them stretched there (all of it near them)
     near = np.minimum(np.linalg.norm(inside - lip, axis=1), np.linalg.norm(inside - skin, axis=1))
     assert (near < 20).mean() < 0.2, (near < 20).mean()
-    assert (_grey(inside) < 0.6 * _grey(lip[None])[0]).mean() > 0.1  # a dark inside (0 %)
-    assert (_grey(inside) > 0.9 * _grey(skin[None])[0]).mean() > 0.03  # and teeth
+    grey = _grey(inside)
+    assert np.percentile(grey, 25) < 0.7 * _grey(lip[None])[0]  # a dark inside
+    assert (grey > 0.9 * _grey(skin[None])[0]).mean() < 0.05  # no light plate
+    if drop_mm >= 14.0:
+        assert (grey > 0.6 * _grey(skin[None])[0]).mean() > 0.02  # and teeth
 
 
 def test_an_open_mouth_frame_gives_the_persons_own_teeth_where_it_saw_them(
@@ -145,3 +158,4 @@ def test_an_open_mouth_frame_gives_the_persons_own_teeth_where_it_saw_them(
     assert (w[~cavity.inside] == 0).all()
     unseen = cavity.inside & (c == 0)
     assert np.abs(walls[unseen] - cavity.synthetic[unseen]).max() > 20  # not the made-up ones
+

@@ -18,7 +18,8 @@ The steps, in order (``build_model``):
 3. Texture: score the frames and choose up to nine clean views, spread in time, the neutral
    frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
    blur, pose and expression; frames whose landmarks do not line up are not candidates),
-   decode them again, project them onto the fitted mesh's UV layout and fuse them robustly
+   decode them again, project them onto the fitted mesh's UV layout, register them onto
+   their consensus (``sender.enroll.align``) and fuse them robustly
    per texel (``sender.enroll.fusion.fuse_views``: a weighted median's consensus, views
    departing from it or not lining up with it locally take no part there, misaligned
    views none at all) at

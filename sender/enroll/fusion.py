@@ -9,6 +9,11 @@ passing expression over part of the face, or not line up with the fitted model (
 slip: every feature lands a few pixels off), and a mean bakes both in: an occluder as a dark
 patch, a slip as doubled features (ghosting).
 
+Registration next (``sender.enroll.align``): after the exposure is matched (below), every
+view is warped onto the views' consensus by a dense optical flow on the texture, so a
+feature a few texels off in one view (a pose a degree off, glasses that slid, a frame of
+fast motion) is moved onto the others' before anything below compares or blends them.
+
 Exposure first: a camera's automatic exposure and white balance change between frames,
 and a view a fifth darker leaves a soft but visible step where only it sees the skin. So
 views are taken in order, the first (the neutral frame) as the reference, and each later
@@ -110,7 +115,8 @@ import numpy as np
 
 from facewire.models.infra.raster import Camera
 from facewire.models.mesh import Mesh
-from facewire.sender.enroll.registration import doubled_fraction, local_misfit
+from facewire.sender.enroll.align import Registration, register_views
+from facewire.sender.enroll.registration import doubled_fraction, local_misfit, weighted_median
 from facewire.sender.enroll.texture import (
     TextureError,
     UVSurface,
@@ -141,8 +147,13 @@ class Fusion:
     Attributes:
         texture: (H, W, 3) uint8 RGB, black where no kept view saw the texel.
         weight: (H, W) float32 summed weights of the views that took part (0: none).
-        seen: (V, K) bool, view i sees covered texel k (K: the covered texels, row-major).
-        kept: (V, K) bool, view i took part at texel k (seen and not an outlier).
+        seen: (V, K) bool, view i sees covered texel k (K: the covered texels, row-major),
+            as projected (before registration).
+        kept: (V, K) bool, view i takes part at texel k as projected (seen, not an outlier,
+            lined up locally): what ``outlier_fraction`` and so the build's occlusion
+            evidence judge by (a view that differs from the others only by where its
+            features lie, such as a frame whose lips or brows moved, stays an outlier
+            there, as it was before registration).
         agreement: (V,) float64 r_i, the correlation of each view with the consensus (NaN
             when it shares too few texels with it).
         aligned: (V,) bool, the view lined up with the others (False: dropped whole).
@@ -152,6 +163,8 @@ class Fusion:
         judged: (H, W) bool, the texels that have a consensus.
         holds: (H, W) bool, where the consensus holds: most views judged there line up
             with it (``sender.enroll.registration.local_misfit``).
+        registration: how far each view was warped onto the first before the fusion
+            (``sender.enroll.align``).
     """
 
     texture: np.ndarray
@@ -164,6 +177,7 @@ class Fusion:
     consensus: np.ndarray
     judged: np.ndarray
     holds: np.ndarray
+    registration: Registration
 
     def doubled_fraction(self, area: np.ndarray) -> float:
         """The doubled-feature measure of the texture over ``area`` ((H, W) bool):
@@ -233,24 +247,40 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     colours, weights = sample_views(mesh, surface, views, sharpness=sharpness,
                                     cos_min=cos_min, feather_px=feather_px)
     _match_exposure(colours, weights)
+    covered = surface.covered
+    as_seen = _take_part(np.stack([c @ _LUMA_BGR for c in colours]), np.stack(weights),
+                         covered, features)  # before registration: the evidence's judgement
+    registration = register_views(colours, weights, covered)
     weight_v = np.stack(weights)
     luma = np.stack([c @ _LUMA_BGR for c in colours])
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
-    covered = surface.covered
     centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
     misfit, holds = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
                                  features)
     first = len(views) if primary is None else primary
-    blend, total, kept = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
-                                 covered, first, misfit)
+    blend, total, _ = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
+                              covered, first, misfit)
     texture, weight = _to_texture(blend, total, covered)
     consensus = np.zeros(covered.shape, np.float32)
     consensus[covered] = np.where(judged, centre, 0.0)
     judged_grid = np.zeros(covered.shape, bool)
     judged_grid[covered] = judged
-    return Fusion(texture, weight, seen, kept, agreement, aligned, covered, consensus,
-                  judged_grid, holds)
+    return Fusion(texture, weight, as_seen[0], as_seen[1], agreement, aligned, covered,
+                  consensus, judged_grid, holds, registration)
+
+
+def _take_part(luma: np.ndarray, weight_v: np.ndarray, covered: np.ndarray,
+               features: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Which views see each covered texel (V, K) bool, and which take part there (V, K)
+    bool: not outliers, lined up locally, coherent over ``OUTLIER_WINDOW`` (module
+    docstring), judged on the (V, K) luma and weights given."""
+    seen = weight_v > 0
+    kept, _, aligned = _judge(luma, weight_v)
+    centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
+    lined_up = seen & aligned[:, None]
+    misfit, _ = local_misfit(luma, lined_up, centre, judged, covered, features)
+    return seen, _coherent(kept & ~misfit, lined_up, covered, OUTLIER_WINDOW)
 
 
 def _match_exposure(colours: list[np.ndarray], weights: list[np.ndarray]) -> None:
@@ -288,7 +318,7 @@ def _consensus(luma: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarra
     judged = (use > 0).sum(axis=0) >= MIN_VIEWS_FOR_CONSENSUS
     centre = np.zeros(luma.shape[1], np.float32)
     if judged.any():
-        centre[judged] = _weighted_median(luma[:, judged], use[:, judged])
+        centre[judged] = weighted_median(luma[:, judged], use[:, judged])
     return centre, judged
 
 
@@ -389,19 +419,6 @@ def _coherent(kept: np.ndarray, seen: np.ndarray, covered: np.ndarray, window: i
     return out
 
 
-def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(K,) the weighted median over axis 0 of (V, K) values with (V, K) weights >= 0: the
-    smallest value whose cumulative weight reaches half the total (NaN where it is 0)."""
-    order = np.argsort(np.where(weights > 0, values, np.inf), axis=0)
-    v = np.take_along_axis(values, order, axis=0)
-    w = np.take_along_axis(weights, order, axis=0)
-    cum = np.cumsum(w, axis=0)
-    half = 0.5 * cum[-1]
-    pick = np.argmax(cum >= half[None] - 1e-9 * np.maximum(half[None], 1.0), axis=0)
-    out = v[pick, np.arange(values.shape[1])]
-    return np.where(cum[-1] > 0, out, np.nan)
-
-
 def _robust_keep(luma: np.ndarray, weight: np.ndarray, aligned: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Per texel, which views take part (module docstring): (V, K) bool, and each view's
@@ -414,8 +431,8 @@ def _robust_keep(luma: np.ndarray, weight: np.ndarray, aligned: np.ndarray
     if not many.any():
         return kept, agreement
     y, ww = luma[:, many], w[:, many]
-    centre = _weighted_median(y, ww)
-    spread = np.maximum(1.4826 * _weighted_median(np.abs(y - centre), ww), SPREAD_FLOOR)
+    centre = weighted_median(y, ww)
+    spread = np.maximum(1.4826 * weighted_median(np.abs(y - centre), ww), SPREAD_FLOOR)
     kept[:, many] = (ww > 0) & (np.abs(y - centre) <= OUTLIER_KAPPA * spread)
     for i in range(len(luma)):
         shared = ww[i] > 0
@@ -442,7 +459,7 @@ def _exposure_gain(colour: np.ndarray, weight: np.ndarray, colour_sum: np.ndarra
     mean_before = colour_sum[shared] / weight_sum[shared, None]
     ratio = mean_before / np.maximum(colour[shared], 1.0)  # (S, 3)
     weights = np.repeat(m[shared, None], 3, axis=1)
-    gain = _weighted_median(ratio, weights)
+    gain = weighted_median(ratio, weights)
     gain = np.where(np.isfinite(gain), gain, 1.0)
     return np.clip(gain, *_GAIN_RANGE).astype(np.float32)
 

@@ -26,8 +26,13 @@ cavity texel takes one of two colours:
    frame's weight w_f in [0, 1] (0 for a texel facing away, off the image, or under
    ``MIN_WEIGHT``). Several such frames are fused per texel and channel by the weighted
    median of their colours (weights w_f), which keeps the person's own teeth and tongue
-   and drops a frame where a hand, a lip or a misplaced landmark crossed the opening. The
-   texel's coverage is c = max_f w_f.
+   and drops a frame where a hand, a lip or a misplaced landmark crossed the opening. A
+   frame with a hand on the face gives none (``sender.enroll.occluders``: the layers'
+   occluded frames), and a texel that looks like the person's lit skin (``skin_like``: its
+   chromaticity (r, g) / (r + g + b) within ``SKIN_CHROMA`` of the cheeks' and its grey at
+   least ``SKIN_GREY`` of theirs: a finger the hand detector missed, a lip crossing the
+   opening) is not seen by that frame: teeth are greyer, the tongue and the dark behind
+   them darker. The texel's coverage is c = max_f w_f.
 2. Made up, everywhere else. When at least ``MIN_SEEN`` cavity texels were seen, the seen
    interior is carried over the unseen ones (``continued``: the push-pull fill of
    ``sender.enroll.texture`` from the texels of coverage c >= 1/2): the person's own
@@ -35,19 +40,20 @@ cavity texel takes one of two colours:
    as fangs at the mouth's corners). Else (``synthetic``) a mouth in shadow, from the
    person's own lip colour L (``palette``; RGB), much darker toward the back,
 
-       I = L (0.2 + 0.4 s(0, 0.25, rho)),     s the smoothstep,
+       I = L (0.12 + 0.28 s(0, 0.25, rho)),     s the smoothstep,
 
-   at most 0.6 of the lip's colour, with two teeth bands. The teeth have the colour
-   T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's mean grey, so the teeth
-   are lit like the face): the upper one over rho > 0.15 + ``TEETH_CORNER`` cos^2 alpha
-   and 50 < alpha < 130 degrees, the lower one over rho > 0.14 + ``TEETH_CORNER`` cos^2
-   alpha and -130 < alpha < -50 degrees (the opening shows rho up to 0.2 under the lips'
-   middle and 0.29 toward the corners, so the bands' inner edge follows it out; bands from
-   rho 0.2 over 40 to 140 degrees showed only at the corners, as fangs), each
-   with smoothstep edges (0.03 in rho, 25 degrees in alpha) and shaded toward the mouth
-   corners (0.55 + 0.45 |sin alpha|) and toward the back (0.75 at the band's inner edge,
-   1 from 0.05 further out): I <- I + m (T shade - I) with m the band's soft mask, at most
-   0.9 above and 0.5 below (the lower teeth lie deeper in shadow).
+   at most 0.4 of the lip's colour, with two teeth bands in the shadow of the lips. The
+   teeth have the colour T = min(1.35 Y_skin, 235) (1.0, 0.95, 0.82) (Y_skin the skin's
+   mean grey, so the teeth are lit like the face): the upper one over rho > 0.15 +
+   ``TEETH_CORNER`` cos^2 alpha and 50 < alpha < 130 degrees, the lower one over rho > 0.14
+   + ``TEETH_CORNER`` cos^2 alpha and -130 < alpha < -50 degrees (the opening shows rho up
+   to 0.2 under the lips' middle and 0.29 toward the corners, so the bands' inner edge
+   follows it out; bands from rho 0.2 over 40 to 140 degrees showed only at the corners, as
+   fangs), each with smoothstep edges (0.03 in rho, 25 degrees in alpha) and shaded toward
+   the mouth corners (0.55 + 0.45 |sin alpha|) and toward the back (0.75 at the band's
+   inner edge, 1 from 0.05 further out): I <- I + m (T shade - I) with m the band's soft
+   mask, at most ``UPPER_TEETH`` (0.55) above and ``LOWER_TEETH`` (0.2) below (the lower
+   teeth lie deeper in shadow): a made-up mouth is a dark cavity, never a flat light plate.
 
 The interior is then c * seen + (1 - c) * synthetic: soft where the seen part ends, never
 the lips' or the skin's colour where nothing was seen.
@@ -67,8 +73,12 @@ from facewire.sender.enroll.texture import fill_holes
 INSET = 0.08  # the inner-lip polygon shrinks by this fraction of the gap
 SOFT = 0.04  # and its edge softens over a Gaussian of this fraction of the gap
 MIN_WEIGHT = 0.05  # a frame's weight below this: it did not see the texel
+SKIN_CHROMA = 0.025  # chromaticity distance under which a colour is the skin's hue ...
+SKIN_GREY = 0.75  # ... and, at least this bright against the cheeks, lit skin
 MIN_SEEN = 200  # cavity texels seen: fewer, and the walls under the teeth stay the lip's
 TEETH = np.array([1.0, 0.95, 0.82], np.float32)  # RGB of the teeth over the skin's grey
+UPPER_TEETH = 0.55  # the made-up upper teeth's most opacity over the dark cavity
+LOWER_TEETH = 0.2  # and the lower teeth's, deeper in shadow
 TEETH_CORNER = 0.08  # the teeth bands' inner edge moves out by this toward the corners
 _UPPER_LIP = ((50, 61), (51, 62), (52, 63))  # outer, inner landmark pairs across the lips
 _LOWER_LIP = ((58, 67), (57, 66), (56, 65))
@@ -131,10 +141,11 @@ def synthetic(rho: np.ndarray, alpha: np.ndarray, lip: np.ndarray, skin: np.ndar
         (h, w, 3) float32 RGB.
     """
     lip = np.asarray(lip, np.float32)
-    out = lip * (0.2 + 0.4 * sstep(0.0, 0.25, rho))[..., None]
+    out = lip * (0.12 + 0.28 * sstep(0.0, 0.25, rho))[..., None]
     teeth = min(1.35 * float(np.mean(skin)), 235.0) * TEETH
     degrees = np.degrees(alpha)
-    for middle, a0, a1, most in ((0.15, 50.0, 130.0, 0.9), (0.14, -130.0, -50.0, 0.5)):
+    for middle, a0, a1, most in ((0.15, 50.0, 130.0, UPPER_TEETH),
+                                 (0.14, -130.0, -50.0, LOWER_TEETH)):
         lo = middle + TEETH_CORNER * np.cos(alpha) ** 2  # the opening reaches further out there
         band = sstep(lo - 0.03, lo, rho) * sstep(a0 - 25.0, a0, degrees) \
             * sstep(a1 + 25.0, a1, degrees)
@@ -162,6 +173,26 @@ def continued(fused: np.ndarray, coverage: np.ndarray, cavity: np.ndarray
         return None
     colour = np.clip(np.rint(fused), 0, 255).astype(np.uint8)
     return fill_holes(colour, valid).astype(np.float32)
+
+
+def skin_like(colour: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """Where colours look like the person's lit skin (module docstring, 1).
+
+    Args:
+        colour: (..., 3) float32 RGB.
+        skin: (3,) RGB, the cheeks' colour (``palette``).
+
+    Returns:
+        (...) bool.
+    """
+    skin = np.asarray(skin, np.float32)
+
+    def chroma(c: np.ndarray) -> np.ndarray:
+        return c[..., :2] / np.maximum(c.sum(axis=-1, keepdims=True), 1.0)
+
+    grey = colour @ np.array([0.299, 0.587, 0.114], np.float32)
+    near = np.linalg.norm(chroma(colour) - chroma(skin), axis=-1) < SKIN_CHROMA
+    return near & (grey >= SKIN_GREY * float(skin @ np.array([0.299, 0.587, 0.114])))
 
 
 def seen_weight(lips: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -48,7 +48,9 @@ the sender's pose and lift.
    of the neutral mesh) is moved by that frame's morph, posed, projected and read from the
    frame bilinearly, with no occlusion test (a closed mouth paints its lips into the hidden
    mouth interior, which is what the sender's camera sees there; step 7 puts the interior
-   back). Texels off the image or facing away keep the neutral texture. Each layer is
+   back). Texels off the image or facing away keep the neutral texture, and so do an eye
+   region's texels under glare (``sender.enroll.glare``: a lens's or the cornea's
+   reflection, bright and grey, is no eyelid or gaze state). Each layer is
    then scaled per colour channel by g = sum(base) / sum(layer) over the border ramp
    (clipped to [0.5, 2]), so an exposure change between frames leaves no step at the
    border. The skin regions' layers
@@ -73,7 +75,9 @@ the sender's pose and lift.
    rectangle, the texels on ``MOUTH_INTERIOR`` triangles) are read from each of the mouth
    states' frames as in step 4, with each frame's weight: how far the texel's projection
    lies inside that frame's inner-lip polygon (0 unless the frame's mouth cue is at least
-   ``sender.enroll.coverage.OPEN_GAP`` and its mouth is not occluded). Their weighted median
+   ``sender.enroll.coverage.OPEN_GAP`` and its mouth is not occluded: by the ring test or a
+   hand, ``covered``; 0 too where the texel looks like lit skin,
+   ``sender.enroll.interior.skin_like``). Their weighted median
    where seen, the seen colours carried over the rest (or, with too little seen, the
    made-up interior) elsewhere, is the interior; it replaces the base texture's cavity
    (``Enrollment.texture``), and in each mouth layer a texel takes
@@ -108,6 +112,7 @@ from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler
 from facewire.sender.clean import REGION_PARTS, ring_mask, ring_occluded
 from facewire.sender.cues import EYEBALL_LEFT, EYEBALL_RIGHT, region_cues
+from facewire.sender.enroll.align import register_layer
 from facewire.sender.enroll.coverage import (
     OPEN_GAP,
     Coverage,
@@ -115,6 +120,7 @@ from facewire.sender.enroll.coverage import (
     reference,
     state_measures,
 )
+from facewire.sender.enroll.glare import glare_free
 from facewire.sender.enroll.interior import (
     continued,
     disc_polar,
@@ -122,6 +128,7 @@ from facewire.sender.enroll.interior import (
     interior,
     palette,
     seen_weight,
+    skin_like,
     synthetic,
 )
 from facewire.sender.enroll.routine import Guide
@@ -269,7 +276,8 @@ def enroll_regions(model: PersonModel, video: str | os.PathLike[str],
         picks = chosen[region.name]
         rest = report[region.name]["rest"]
         parts = [np.stack(stack) for stack in zip(*(
-            texels.layers(region.name, images[i], observations[i]) for i in picks))]
+            texels.layers(region.name, images[i], observations[i], j == rest)
+            for j, i in enumerate(picks)))]
         masks = [np.rint(255 * ramp_mask(p.shape[1:3])).astype(np.uint8) for p in parts]
         templates = np.stack([observations[i].samples[r] for i in picks]).astype(np.float32)
         opacity = tuple(0.0 if (region.transparent_open and j <= rest) or not usage[
@@ -440,12 +448,20 @@ class _RegionTexels:
                 out.add(part)
         return frozenset(out)
 
-    def layers(self, name: str, image: np.ndarray, seen: Observation) -> list[np.ndarray]:
+    def layers(self, name: str, image: np.ndarray, seen: Observation, rest: bool
+               ) -> list[np.ndarray]:
         """(h, w, 3) uint8 RGB per area of the region: its texels read from ``image``, with
-        the exposure gain of its last area (module docstring, step 4)."""
+        the exposure gain of its last area, registered onto the base texture (module
+        docstring, step 4; ``rest``: the rest state's, registered all over)."""
         areas = self.areas[name]
-        return state_layers(name, [_read(a, self.camera, image, seen)[:2] for a in areas],
-                            [self.model.texture[a.slices] for a in areas])
+        base = [self.model.texture[a.slices] for a in areas]
+        reads = [_read(a, self.camera, image, seen)[:2] for a in areas]
+        if name.startswith(("eyelid", "eyeball")):  # a lens's or cornea's glare is no layer
+            reads = [(c, glare_free(c, ok, b)) for (c, ok), b in zip(reads, base)]
+        layers = state_layers(name, reads, base)
+        if name == "mouth":  # behind the lips: its layers show what the base cannot
+            return layers
+        return [register_layer(layer, b, rest) for layer, b in zip(layers, base)]
 
 
 class _Cavity:
@@ -463,8 +479,8 @@ class _Cavity:
         tri = surface.triangles[rows, cols]
         tags = np.asarray(model.mesh.tags)
         self.inside = (tri >= 0) & (tags[np.maximum(tri, 0)] == Tag.MOUTH_INTERIOR)
-        self.synthetic = synthetic(*disc_polar(rows, cols, shape),
-                                   *palette(model.texture, model.mesh))
+        lip, self.skin = palette(model.texture, model.mesh)
+        self.synthetic = synthetic(*disc_polar(rows, cols, shape), lip, self.skin)
         self.camera = camera
         self.shape = shape
 
@@ -478,7 +494,8 @@ class _Cavity:
             colour, ok, x, y = _read(self.area, self.camera, image, seen)
             weight = np.zeros(ok.shape, np.float32)
             if seen.cues[_MOUTH] >= OPEN_GAP and REGION_PARTS["mouth"] not in seen.occluded:
-                weight = np.where(ok & self.inside, seen_weight(seen.lips, x, y), 0.0)
+                weight = np.where(ok & self.inside & ~skin_like(colour, self.skin),
+                                  seen_weight(seen.lips, x, y), 0.0)
             colours.append(colour)
             weights.append(weight.astype(np.float32))
         fused, coverage = fuse_seen(np.stack(colours), np.stack(weights))

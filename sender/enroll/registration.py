@@ -122,6 +122,7 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
     """
     m = np.zeros(covered.shape, np.float32)
     m[covered] = np.where(consensus, centre, 0.0)
+    box = _around(features, covered.shape)  # the windows that can be judged
     good = np.zeros(covered.shape, np.int32)
     count = np.zeros(covered.shape, np.int32)
     bads = []
@@ -130,7 +131,9 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
         shared[covered] = seen[i] & consensus
         y = np.zeros(covered.shape, np.float32)
         y[covered] = luma[i]
-        ncc, judged = local_ncc(y, m, shared)
+        judged = np.zeros(covered.shape, bool)
+        ncc = np.zeros(covered.shape, np.float32)
+        ncc[box], judged[box] = local_ncc(y[box], m[box], shared[box])
         if features is not None:
             judged &= features
         bad = judged & (ncc < MIN_NCC)
@@ -147,6 +150,17 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
     return out, holds
 
 
+def _around(features: np.ndarray | None, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The rectangle of an (H, W) texture holding the ``features`` (H, W) bool texels and
+    every texel within ``WINDOW`` of them (all of it when None): outside it no window is
+    judged, and the windows inside it see the same texels as on the whole texture."""
+    if features is None or not features.any():
+        return slice(0, shape[0]), slice(0, shape[1])
+    rows, cols = np.nonzero(features)
+    return (slice(max(int(rows.min()) - WINDOW, 0), min(int(rows.max()) + WINDOW + 1, shape[0])),
+            slice(max(int(cols.min()) - WINDOW, 0), min(int(cols.max()) + WINDOW + 1, shape[1])))
+
+
 def doubled_fraction(texture_luma: np.ndarray, consensus: np.ndarray, judged: np.ndarray,
                      area: np.ndarray) -> float:
     """The doubled-feature measure (module docstring, 3): of the texels in ``area`` where
@@ -159,3 +173,16 @@ def doubled_fraction(texture_luma: np.ndarray, consensus: np.ndarray, judged: np
     if not ok.any():
         return 0.0
     return float((ncc[ok] < MIN_NCC).mean())
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(K,) the weighted median over axis 0 of (V, K) values with (V, K) weights >= 0: the
+    smallest value whose cumulative weight reaches half the total (NaN where it is 0)."""
+    order = np.argsort(np.where(weights > 0, values, np.inf), axis=0)
+    v = np.take_along_axis(values, order, axis=0)
+    w = np.take_along_axis(weights, order, axis=0)
+    cum = np.cumsum(w, axis=0)
+    half = 0.5 * cum[-1]
+    pick = np.argmax(cum >= half[None] - 1e-9 * np.maximum(half[None], 1.0), axis=0)
+    out = v[pick, np.arange(values.shape[1])]
+    return np.where(cum[-1] > 0, out, np.nan)
