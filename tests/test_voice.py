@@ -1,0 +1,192 @@
+"""The voice's parts on real speech: the Opus codec, the voice packet, a file's sound track,
+and the jitter buffer under loss, reordering and jitter."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facewire.models.infra.sound import SoundError, read_sound
+from facewire.protocol import opus, voice
+from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
+
+SPEECH = "hdtf_edmarkey.mp4"
+
+
+@pytest.fixture(scope="module")
+def speech(shared_data: Path) -> np.ndarray:
+    """(F, 960) int16: the clip's sound in 20-ms frames."""
+    sound = read_sound(shared_data / "video" / SPEECH)
+    assert sound is not None
+    n = len(sound.pcm) // opus.FRAME_SAMPLES
+    return sound.pcm[:n * opus.FRAME_SAMPLES].reshape(n, opus.FRAME_SAMPLES)
+
+
+def _envelope(frames: np.ndarray) -> np.ndarray:
+    """(F,) dB level per 20-ms frame."""
+    rms = np.sqrt(np.mean(frames.astype(np.float64) ** 2, axis=1))
+    return 20 * np.log10(rms + 1.0)
+
+
+def _packets(frames: np.ndarray, bitrate: int = opus.DEFAULT_BITRATE) -> list[bytes]:
+    encoder = opus.Encoder(bitrate)
+    return [encoder.encode(frame) for frame in frames]
+
+
+def test_the_sound_track_is_read_on_the_files_timeline(shared_data: Path) -> None:
+    sound = read_sound(shared_data / "video" / SPEECH)
+    assert sound is not None
+    assert sound.seconds == pytest.approx(8.0, abs=0.05)
+    assert np.abs(sound.pcm).max() > 1000  # speech, not silence
+    cut = sound.between(sound.start - 0.5, sound.start + 0.5)
+    assert len(cut) == opus.SAMPLE_RATE
+    assert not cut[:opus.SAMPLE_RATE // 2].any()  # before the track: silence
+    assert np.array_equal(cut[opus.SAMPLE_RATE // 2:], sound.pcm[:opus.SAMPLE_RATE // 2])
+    assert read_sound(shared_data / "video" / "openface_gaze.avi") is None  # no sound track
+
+
+def test_a_file_that_is_not_media_is_refused_naming_it(tmp_path: Path) -> None:
+    bad = tmp_path / "noise.mp4"
+    bad.write_bytes(b"not a video" * 100)
+    with pytest.raises(SoundError, match="noise.mp4"):
+        read_sound(bad)
+
+
+def test_opus_packets_have_the_constant_size_and_follow_the_speech(speech: np.ndarray) -> None:
+    packets = _packets(speech)
+    assert {len(p) for p in packets} == {opus.packet_bytes(opus.DEFAULT_BITRATE)}
+    decoder = opus.Decoder()
+    out = np.stack([decoder.decode(p) for p in packets])
+    # Opus keeps the speech's level per frame, after its look-ahead (6.5 ms: one frame).
+    r = np.corrcoef(_envelope(speech[:-1]), _envelope(out[1:]))[0, 1]
+    assert r > 0.9
+
+
+def test_fec_recovers_a_lost_frame_better_than_concealment(speech: np.ndarray) -> None:
+    packets = _packets(speech, 20_000)  # libopus adds FEC from about 20 kbit/s (protocol.opus)
+    lost = np.arange(20, len(packets) - 1, 7)  # one frame in seven, never two in a row
+    outs = {}
+    for mode in ("recover", "conceal"):
+        decoder, frames = opus.Decoder(), []
+        for k, packet in enumerate(packets):
+            if k in lost:
+                frames.append(decoder.recover(packets[k + 1]) if mode == "recover"
+                              else decoder.conceal())
+            else:
+                frames.append(decoder.decode(packet))
+        outs[mode] = np.stack(frames)
+    reference = opus.Decoder()
+    clean = np.stack([reference.decode(p) for p in packets])
+    err = {mode: np.mean([np.abs(_envelope(out[k:k + 1]) - _envelope(clean[k:k + 1]))
+                          for k in lost]) for mode, out in outs.items()}
+    assert err["recover"] < err["conceal"]
+
+
+def test_a_voice_packet_round_trips_and_any_bytes_decode_or_raise() -> None:
+    packet = voice.VoicePacket(65535, bytes(range(24)))
+    data = voice.encode(packet)
+    assert len(data) == voice.HEADER_BYTES + 24 + voice.CRC_BYTES
+    assert voice.is_voice(data) and voice.decode(data) == packet
+    # every single-bit error is caught by the CRC (or the kind and reserved checks)
+    for bit in range(len(data) * 8):
+        flipped = bytearray(data)
+        flipped[bit // 8] ^= 0x80 >> (bit % 8)
+        with pytest.raises(voice.VoiceError):
+            voice.decode(bytes(flipped))
+    rng = np.random.default_rng(7)
+    decoded = 0
+    for _ in range(5000):
+        junk = rng.integers(0, 256, rng.integers(0, 80), dtype=np.uint8).tobytes()
+        try:
+            voice.decode(junk)
+            decoded += 1
+        except voice.VoiceError:
+            pass
+    assert decoded == 0
+    with pytest.raises(voice.VoiceError, match="bytes"):
+        voice.encode(voice.VoicePacket(0, bytes(voice.MAX_OPUS_BYTES + 1)))
+
+
+def test_unwrap_follows_the_wrap() -> None:
+    assert voice.unwrap(3, 65534) == 65539
+    assert voice.unwrap(65534, 65539) == 65534
+    assert voice.unwrap(10, None) == 10
+
+
+def _play(packets: list[bytes], arrivals: np.ndarray, buffer: JitterBuffer,
+          start_seq: int = 0) -> np.ndarray:
+    """Deliver each packet whose arrival is finite at that time and pull every 20 ms until
+    0.1 s after the last arrival; (pulls, 960) int16."""
+    order = [int(i) for i in np.argsort(arrivals, kind="stable") if np.isfinite(arrivals[i])]
+    out, k = [], 0
+    for tick in np.arange(0.0, arrivals[order[-1]] + 0.1, opus.FRAME_S):
+        while k < len(order) and arrivals[order[k]] <= tick + 1e-9:
+            i = order[k]
+            buffer.push(voice.VoicePacket((start_seq + i) % voice.SEQ_MODULO, packets[i]),
+                        float(arrivals[i]))
+            k += 1
+        out.append(buffer.pull())
+    return np.stack(out)
+
+
+def _aligned_r(source: np.ndarray, played: np.ndarray) -> float:
+    """The best envelope correlation of the played sound with the source over small lags."""
+    a = _envelope(source)
+    b = _envelope(played)
+    best = -1.0
+    for lag in range(0, len(b) - len(a) + 1):
+        best = max(best, float(np.corrcoef(a, b[lag:lag + len(a)])[0, 1]))
+    return best
+
+
+def test_the_buffer_plays_through_jitter_reordering_loss_and_a_wrap(
+        speech: np.ndarray) -> None:
+    frames = speech[:300]
+    packets = _packets(frames)
+    rng = np.random.default_rng(3)
+    # 50 ms of transit and up to 60 ms of jitter (so packets overtake each other), 10 % lost
+    arrivals = np.arange(len(packets)) * opus.FRAME_S + 0.05 + rng.uniform(0, 0.06, len(packets))
+    lost = rng.random(len(packets)) < 0.1
+    buffer = JitterBuffer()
+    played = _play(packets, np.where(lost, np.inf, arrivals), buffer, start_seq=65500)
+    stats = buffer.stats
+    assert stats["received"] == int((~lost).sum())
+    assert stats["resets"] == 0 and stats["duplicate"] == 0
+    assert stats["late"] <= 0.02 * len(packets)  # the depth followed the jitter
+    assert 3 <= buffer.target <= MAX_DEPTH
+    assert stats["played"] >= int((~lost).sum()) - stats["late"] - stats["dropped"]
+    assert _aligned_r(frames, played) > 0.85
+
+
+def test_lost_packets_are_recovered_or_concealed_and_the_sound_goes_on(
+        speech: np.ndarray) -> None:
+    frames = speech[:300]
+    packets = _packets(frames)
+    arrivals = np.arange(len(packets)) * opus.FRAME_S + 0.03
+    lost = set(range(40, len(packets), 10)) | {100, 101, 102}
+    buffer = JitterBuffer()
+    played = _play(packets, np.where(np.isin(np.arange(len(packets)), list(lost)), np.inf,
+                                     arrivals), buffer)
+    stats = buffer.stats
+    assert stats["recovered"] >= len(lost) - 3  # each single loss rebuilt from the next packet
+    assert stats["concealed"] >= 2  # 100 and 101 have no following packet to rebuild from
+    assert stats["played"] == len(packets) - len(lost)
+    assert _aligned_r(frames, played) > 0.85
+
+
+def test_a_stopped_stream_turns_to_silence_and_a_new_one_primes_again(
+        speech: np.ndarray) -> None:
+    packets = _packets(speech[:100])
+    buffer = JitterBuffer()
+    for i in range(50):
+        buffer.push(voice.VoicePacket(i, packets[i]), i * opus.FRAME_S)
+    outs = [buffer.pull() for _ in range(80)]
+    assert buffer.stats["resets"] == 1
+    assert not np.concatenate(outs[-10:]).any()  # silence, not a fading concealment
+    # the sender comes back at another number: a new stream, in real time
+    played = _play(packets[50:], np.arange(50) * opus.FRAME_S, buffer, start_seq=5000)
+    assert buffer.stats["resets"] == 1
+    assert buffer.stats["played"] == 100 - buffer.stats["dropped"]
+    assert np.abs(played[-30:]).max() > 1000
