@@ -1,8 +1,10 @@
 """The voice's parts on real speech: the Opus codec, the voice packet, a file's sound track,
-and the jitter buffer under loss, reordering and jitter."""
+the jitter buffer under loss, reordering and jitter, and the sender's voice thread on real
+ZeroMQ sockets."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +12,9 @@ import pytest
 
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
+from facewire.protocol.transport import PacketPublisher, PacketSubscriber, free_loopback_endpoint
 from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
+from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
 
 SPEECH = "hdtf_edmarkey.mp4"
 
@@ -190,3 +194,37 @@ def test_a_stopped_stream_turns_to_silence_and_a_new_one_primes_again(
     assert buffer.stats["resets"] == 1
     assert buffer.stats["played"] == 100 - buffer.stats["dropped"]
     assert np.abs(played[-30:]).max() > 1000
+
+
+def test_a_files_voice_goes_out_paced_on_real_sockets_and_plays_back(
+        shared_data: Path, speech: np.ndarray) -> None:
+    sound = read_sound(shared_data / "video" / SPEECH)
+    assert sound is not None
+    source = FileVoice(sound, sound.start)
+    assert np.array_equal(source.frame(7), speech[7])
+    with PacketPublisher(free_loopback_endpoint()) as publisher, \
+            PacketSubscriber(publisher.endpoint) as subscriber:
+        time.sleep(0.3)  # the subscription reaches the publisher
+        origin = time.monotonic() + 0.1
+        thread = VoiceThread(source, opus.Encoder(), origin, publisher.send)
+        thread.start()
+        got: list[tuple[float, voice.VoicePacket]] = []
+        while time.monotonic() < origin + 2.0:
+            data = subscriber.recv(100)
+            if data is not None:
+                got.append((time.monotonic(), voice.decode(data)))
+        thread.stop()
+    seqs = [p.seq for _, p in got]
+    assert seqs[:80] == list(range(80))  # numbered from the origin, none lost on loopback
+    # frame j leaves once its 20 ms have passed, never before (a generous bound after)
+    assert all(t >= origin + (p.seq + 1) * opus.FRAME_S - 0.002 for t, p in got)
+    assert thread.packets >= 80 and thread.bytes == sum(len(voice.encode(p)) for _, p in got)
+    decoder = opus.Decoder()
+    out = np.stack([decoder.decode(p.opus) for _, p in got[:80]])
+    r = np.corrcoef(_envelope(speech[:79]), _envelope(out[1:80]))[0, 1]
+    assert r > 0.9
+
+
+def test_a_missing_microphone_is_one_clear_line() -> None:
+    with pytest.raises(VoiceSourceError, match="microphone mic:9"):
+        MicVoice("mic:9")
