@@ -5,6 +5,7 @@ ZeroMQ sockets."""
 from __future__ import annotations
 
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -12,11 +13,16 @@ import pytest
 
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
+from facewire.protocol.control import Camera, Hello
+from facewire.protocol.log import RECORD_BYTES, VOICE_TAG, LogWriter, read_log
+from facewire.protocol.packet import FRAME_DTYPE, encode_frames
 from facewire.protocol.transport import PacketPublisher, PacketSubscriber, free_loopback_endpoint
 from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
 from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
 
 SPEECH = "hdtf_edmarkey.mp4"
+LOG_HELLO = Hello("0f" * 32, 4096, 30.0, Camera(500.0, 500.0, 320.0, 240.0, 640, 480),
+                  ("forehead", "mouth"))
 
 
 @pytest.fixture(scope="module")
@@ -228,3 +234,55 @@ def test_a_files_voice_goes_out_paced_on_real_sockets_and_plays_back(
 def test_a_missing_microphone_is_one_clear_line() -> None:
     with pytest.raises(VoiceSourceError, match="microphone mic:9"):
         MicVoice("mic:9")
+
+
+def _voice_log(path: Path, speech: np.ndarray, n: int = 60) -> list[bytes]:
+    """A log of n face packets with a voice packet after each (real Opus of the speech)."""
+    frames = np.zeros(n, FRAME_DTYPE)
+    frames["seq"] = np.arange(n)
+    frames["translation"][:, 2] = -600
+    packets, _ = encode_frames(frames)
+    encoder = opus.Encoder()
+    sent = []
+    with LogWriter(path, LOG_HELLO) as log:
+        for i, packet in enumerate(packets):
+            log.write(packet.tobytes(), 100.0 + i / 30)
+            sent.append(voice.encode(voice.VoicePacket(i, encoder.encode(speech[i]))))
+            log.write_voice(sent[-1], 100.0 + i / 30 + 0.001)
+        assert (log.records, log.voice) == (n, n)
+    return sent
+
+
+def test_a_log_keeps_the_voice_and_recovers_around_a_damaged_record(
+        tmp_path: Path, speech: np.ndarray) -> None:
+    path = tmp_path / "v.fwlog"
+    sent = _voice_log(path, speech)
+    log = read_log(path)
+    assert [v.data for v in log.voice] == sent
+    assert [v.before for v in log.voice] == list(range(1, 61))
+    assert (len(log.packets), log.lost, log.lost_voice) == (60, 0, 0)
+    data = bytearray(path.read_bytes())
+    start = len(data) - 30 * (len(sent[0]) + 14 + RECORD_BYTES)  # a voice record's middle
+    offset = data.index(bytes([VOICE_TAG]), start) - 8
+    data[offset + 15] ^= 0xFF
+    path.write_bytes(bytes(data))
+    damaged = read_log(path)
+    assert (len(damaged.packets), len(damaged.voice), damaged.lost_voice) == (60, 59, 1)
+
+
+def test_a_log_written_before_the_voice_still_reads(tmp_path: Path, speech: np.ndarray) -> None:
+    path = tmp_path / "old.fwlog"
+    frames = np.zeros(10, FRAME_DTYPE)
+    frames["seq"] = np.arange(10)
+    frames["translation"][:, 2] = -600
+    packets, _ = encode_frames(frames)
+    with LogWriter(path, LOG_HELLO) as log:
+        for i, packet in enumerate(packets):
+            log.write(packet.tobytes(), float(i))
+    data = bytearray(path.read_bytes())
+    data[8:10] = (2).to_bytes(2, "big")  # format 2: the same bytes without voice records
+    end = 16 + int.from_bytes(data[12:16], "big")
+    data[end:end + 4] = zlib.crc32(data[:end]).to_bytes(4, "big")
+    path.write_bytes(bytes(data))
+    old = read_log(path)
+    assert (len(old.packets), old.voice, old.lost) == (10, (), 0)
