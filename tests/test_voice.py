@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from facewire.bench.inspect import inspect_log
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
 from facewire.protocol.control import Camera, Hello
@@ -286,3 +287,15 @@ def test_a_log_written_before_the_voice_still_reads(tmp_path: Path, speech: np.n
     path.write_bytes(bytes(data))
     old = read_log(path)
     assert (len(old.packets), old.voice, old.lost) == (10, (), 0)
+
+
+def test_inspect_lists_the_voice(tmp_path: Path, speech: np.ndarray) -> None:
+    path = tmp_path / "v.fwlog"
+    sent = _voice_log(path, speech)
+    summary, lines = inspect_log(path)
+    assert (summary["voice_packets"], summary["voice_gaps"], summary["lost_voice"]) == (60, 0, 0)
+    assert summary["voice_s"] == pytest.approx(1.2)
+    span = 59 / 30 + 0.0  # the face packets' times
+    assert summary["voice_kbps"] == pytest.approx(sum(map(len, sent)) * 8 / span / 1000,
+                                                  rel=1e-3)
+    assert any(line.startswith("voice: 60 packets") for line in lines)
