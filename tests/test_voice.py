@@ -19,6 +19,8 @@ from facewire.protocol.log import RECORD_BYTES, VOICE_TAG, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, encode_frames
 from facewire.protocol.transport import PacketPublisher, PacketSubscriber, free_loopback_endpoint
 from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
+from facewire.receiver.output import VideoWriter
+from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
 from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
 
 SPEECH = "hdtf_edmarkey.mp4"
@@ -299,3 +301,44 @@ def test_inspect_lists_the_voice(tmp_path: Path, speech: np.ndarray) -> None:
     assert summary["voice_kbps"] == pytest.approx(sum(map(len, sent)) * 8 / span / 1000,
                                                   rel=1e-3)
     assert any(line.startswith("voice: 60 packets") for line in lines)
+
+
+def test_a_missing_speaker_is_one_clear_line() -> None:
+    with pytest.raises(SpeakerError, match="speaker 7"):
+        Speaker(lambda: np.zeros(opus.FRAME_SAMPLES, np.int16), "7")
+
+
+def test_the_sound_clock_pulls_every_frame_in_order() -> None:
+    pulled: list[float] = []
+    heard: list[float] = []
+    clock = SoundClock(lambda: pulled.append(time.monotonic()) or
+                       np.zeros(opus.FRAME_SAMPLES, np.int16),
+                       lambda pcm, t: heard.append(t))
+    clock.start()
+    time.sleep(0.5)
+    clock.stop()
+    assert 15 <= clock.frames == len(pulled) == len(heard)
+    assert np.allclose(np.diff(heard), opus.FRAME_S)  # due times, one frame apart
+    assert all(p >= t - 1e-3 for p, t in zip(pulled, heard))  # never before its time
+
+
+def test_a_video_file_gets_the_sound_where_it_was_placed(tmp_path: Path,
+                                                         speech: np.ndarray) -> None:
+    path = tmp_path / "out.mp4"
+    with VideoWriter(path, 64, 48, 25.0, sound=True) as writer:
+        for i in range(50):
+            writer.write(np.full((48, 64, 3), i * 4, np.uint8))
+            writer.write_sound(speech[i].reshape(-1) if i else speech[0], 0.4 if i == 0
+                               else None)
+    sound = read_sound(path)
+    assert sound is not None
+    assert sound.start == pytest.approx(0.4, abs=0.002)
+    assert sound.seconds == pytest.approx(50 * opus.FRAME_S, abs=0.03)
+    # the file's sound is the speech (Opus at 64 kbit/s): same level per frame
+    n = len(sound.pcm) // opus.FRAME_SAMPLES
+    got = sound.pcm[:n * opus.FRAME_SAMPLES].reshape(n, -1)
+    assert np.corrcoef(_envelope(speech[:n - 1]), _envelope(got[:n - 1]))[0, 1] > 0.9
+    with VideoWriter(tmp_path / "silent.mp4", 64, 48, 25.0) as silent:
+        silent.write(np.zeros((48, 64, 3), np.uint8))
+        with pytest.raises(ValueError, match="without a sound track"):
+            silent.write_sound(speech[0])
