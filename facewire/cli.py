@@ -690,10 +690,12 @@ def _bench_reproductions(args: argparse.Namespace) -> int:
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
     from facewire.receiver.speaker import check_sound
+    from facewire.receiver.speaker import check_sound
     from facewire.sender.enroll.occluders import check_hand_model
 
     print(check_egl())
     print(check_hand_model())
+    print(check_sound())
     print(check_sound())
     return 0
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from facewire.bench.inspect import inspect_log
+from facewire.bench.speech import SpeechError, speech_quality
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
 from facewire.protocol.control import Camera, Hello
@@ -342,3 +343,17 @@ def test_a_video_file_gets_the_sound_where_it_was_placed(tmp_path: Path,
         silent.write(np.zeros((48, 64, 3), np.uint8))
         with pytest.raises(ValueError, match="without a sound track"):
             silent.write_sound(speech[0])
+
+
+def test_speech_quality_falls_with_loss_and_the_codec_alone_holds_speech(
+        shared_data: Path) -> None:
+    summary, lines = speech_quality(shared_data / "video" / "retalk_2.mp4", losses=(0, 30))
+    assert summary["pesq_wb_source"] == pytest.approx(4.64, abs=0.01)  # PESQ-WB's ceiling
+    assert 3.0 <= summary["pesq_wb_opus"] < summary["pesq_wb_source"]
+    assert summary["pesq_wb"]["30"] < summary["pesq_wb"]["0"] - 0.5
+    assert summary["audio_kbps"] == pytest.approx(
+        (opus.packet_bytes(opus.DEFAULT_BITRATE) + voice.HEADER_BYTES + voice.CRC_BYTES)
+        * 8 / opus.FRAME_S / 1000, rel=0.01)
+    assert "30 % loss" in lines[-1]
+    with pytest.raises(SpeechError, match="no sound track"):
+        speech_quality(shared_data / "video" / "openface_gaze.avi")
