@@ -687,6 +687,19 @@ def _bench_reproductions(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_clips(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from facewire.bench.cliptable import format_clip_table, run_clip_table
+    from facewire.report import report
+
+    with tempfile.TemporaryDirectory(prefix="facewire-clips-") as scratch:
+        summary = run_clip_table(args.data, args.work or scratch, models=args.models,
+                                 only=args.only, limit=args.limit, progress=_progress)
+    report(summary, format_clip_table(summary), args.json)
+    return 0
+
+
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
     from facewire.receiver.speaker import check_sound
@@ -927,6 +940,18 @@ def _add_bench(sub: Commands) -> None:
                     help="score only the first N held-out frames of each")
     _add_json(br)
     br.set_defaults(run=_bench_reproductions)
+    bc = bsub.add_parser("clips", help="every single-person shared clip: a model from its first "
+                         "40 %%, scored on the rest beside x264 at its floor, one table")
+    bc.add_argument("--data", required=True, help="the shared data folder (holds video/)")
+    bc.add_argument("--work", help="folder to keep the models in (default: a temporary one)")
+    bc.add_argument("--models", help="folder of models CLIP.fwm (the clip's name without its "
+                    "suffix) to score instead of building")
+    bc.add_argument("--only", action="append", metavar="CLIP",
+                    help="run this clip only (its file name; repeatable)")
+    bc.add_argument("--limit", type=int, metavar="N",
+                    help="score only the first N held-out frames of each")
+    _add_json(bc)
+    bc.set_defaults(run=_bench_clips)
 
 
 def _add_tools(sub: Commands) -> None:
