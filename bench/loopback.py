@@ -14,6 +14,14 @@ on this machine. Frames of the first ``SETTLE_S`` are left out (the sender's fir
 come while it warms up). ``latency_ms_median`` and ``latency_ms_p95``; the target is a
 median of 25 ms or less.
 
+Glass-to-glass. ``glass_to_glass_ms_median`` and ``glass_to_glass_ms_p95`` are the
+receiver's own (``receiver.receiver``: a frame's capture at the sender, from the Hello's
+clock and the packet's seq, to its frame out, the clocks aligned over the control channel,
+``protocol.clock``), over the receiver's last ``receiver.scene.STATS_FRAMES`` played frames;
+``clock_offset_ms`` and ``clock_delay_ms`` are its estimate of the sender's clock (both
+processes read this host's monotonic clock, so the offset is 0 give or take half the
+delay).
+
 Memory. The resident set size (``VmRSS`` of ``/proc/PID/status``) of the sender process and
 of this process (the receiver's) every ``SAMPLE_S``. The growth is the median of the last
 ``WINDOW`` samples minus the median of the first ``WINDOW`` samples after ``warm-up =
@@ -68,6 +76,8 @@ def measure_loopback(model_path: str | os.PathLike[str], source: str | os.PathLi
 
     Returns:
         ``latency_ms_median``, ``latency_ms_p95``, ``latency_frames`` (frames timed),
+        ``glass_to_glass_ms_median``, ``glass_to_glass_ms_p95``, ``clock_offset_ms``,
+        ``clock_delay_ms``,
         ``loopback_s``, ``sender_rss_mb``, ``sender_rss_growth_mb``, ``receiver_rss_mb``,
         ``receiver_rss_growth_mb`` (None when the run was too short for two windows), and
         ``loopback`` (the receiver's counts: received, lost, late, skipped, restarts).
@@ -110,6 +120,8 @@ def measure_loopback(model_path: str | os.PathLike[str], source: str | os.PathLi
         "latency_ms_median": round(float(np.median(lat)), 2) if len(lat) else None,
         "latency_ms_p95": round(float(np.percentile(lat, 95)), 2) if len(lat) else None,
         "latency_frames": len(lat),
+        **{k: summary.get(k) for k in ("glass_to_glass_ms_median", "glass_to_glass_ms_p95",
+                                       "clock_offset_ms", "clock_delay_ms")},
         "loopback_s": round(seconds, 1),
         **_memory("sender", [(t, s) for t, s, _ in samples], warm),
         **_memory("receiver", [(t, r) for t, _, r in samples], warm),

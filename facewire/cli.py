@@ -145,7 +145,9 @@ def _receive(args: argparse.Namespace) -> int:
                f"{s['late']} late, {s['corrupt']} corrupt, {s['duplicates']} duplicates; "
                f"{s['restarts']} resyncs (sender restarts, or falling behind)",
                f"rendered {s['frames']} frames at {s['fps']} fps ({s['width']}x{s['height']}); "
-               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95",
+               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95; "
+               f"glass-to-glass {s['glass_to_glass_ms_median']} ms median, "
+               f"{s['glass_to_glass_ms_p95']} ms p95",
                f"model {s['model_sha256'][:16]}... ({s['model_source']}"
                + (f", {s['model_bytes']} bytes in {s['model_fetch_s']} s" if s["model_fetch_s"]
                   else "") + ")"
@@ -311,7 +313,9 @@ def _demo(args: argparse.Namespace) -> int:
                f"bandwidth: {s['bandwidth_plot']}: {s['payload_kbps']} kbit/s payload, "
                f"{s['wire_kbps']} on the wire at 30 Hz ({s['packet_bytes']}-byte packets)",
                f"speed:     sender {s['sender_fps']} fps, receiver {s['render_fps']} fps; "
-               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95",
+               f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95; "
+               f"glass-to-glass {s['glass_to_glass_ms_median']} ms median, "
+               f"{s['glass_to_glass_ms_p95']} ms p95",
                f"model:     {s['model']} ({s['model_bytes']} bytes, preview {s['preview']})",
                f"time:      {s['seconds']['total']} s"], args.json)
     return 0

@@ -170,6 +170,8 @@ class DemoResult:
             "render_fps": round(1000 / render_ms, 1) if render_ms else None,
             "latency_ms_median": got["latency_ms_median"],
             "latency_ms_p95": got["latency_ms_p95"],
+            "glass_to_glass_ms_median": got["glass_to_glass_ms_median"],
+            "glass_to_glass_ms_p95": got["glass_to_glass_ms_p95"],
             "model_bytes": self.build.model.file_bytes, "regions": len(self.build.model.regions),
             "seconds": {k: round(v, 1) for k, v in self.seconds.items()},
         }

@@ -9,15 +9,26 @@ hello_request  -
 hello          protocol (int), model_sha256 (str, 64 hex), model_bytes (int), rate_hz
                (float), camera (map: fx, fy, cx, cy (float), width, height (int)), regions
                (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``),
-               model_serial (int, 0 .. ``MAX_SERIAL``; optional, default 0)
+               model_serial (int, 0 .. ``MAX_SERIAL``; optional, default 0), clock_origin_s
+               (float; optional: absent until the stream's first frame, and from older
+               senders)
 model_request  sha256 (str), index (int): ask for one chunk of the model file
 model_chunk    sha256 (str), index, count, total (int), data (bin), data_sha256 (str)
 update_request model_sha256 (str), serial, index (int): ask for one chunk of model update
                ``serial`` of the session that started from model ``model_sha256``
 update_chunk   model_sha256 (str), serial, index, count, total (int), data (bin),
                data_sha256 (str), sha256 (str: the whole update's)
+time_request   t1 (float): the receiver's clock when it asked (``protocol.clock``)
+time_reply     t1 (float, the request's), t2, t3 (float): the sender's clock on receiving
+               the request and on replying
 error          message (str)
 ============== ============================================================================
+
+The Hello's ``clock_origin_s`` is the capture time, on the sender's monotonic clock, of the
+stream's slot 0: slot ``n`` (its packet's ``seq`` is ``n mod 65536``) was captured at
+``clock_origin_s + n / rate_hz`` (``protocol.clock``). A time exchange (``time_request``,
+``time_reply``) gives the offset between the two hosts' clocks. Every time is a finite
+number of at most ``MAX_CLOCK_S`` in magnitude.
 
 A model travels as ``count`` chunks of at most ``CHUNK_BYTES``; each chunk carries the sha256
 of its own data, and the reassembled file must hash to the announced model sha256.
@@ -69,6 +80,7 @@ MAX_TEXT_CHARS = 1000
 MAX_FOCAL_PX = 1e6
 MAX_PRINCIPAL_PX = 1e5
 MAX_IMAGE_SIDE = 16384
+MAX_CLOCK_S = 1e12
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -134,8 +146,11 @@ class Hello:
     quantisers: tuple[dict[str, Any], ...] = field(
         default_factory=lambda: tuple(quantiser_table()))
     model_serial: int = 0
+    clock_origin_s: float | None = None
 
     def __post_init__(self) -> None:
+        if self.clock_origin_s is not None:
+            _check_time("hello.clock_origin_s", self.clock_origin_s)
         _require(self.protocol == VERSION, f"hello.protocol: the sender speaks protocol version "
                                            f"{self.protocol}, this facewire version {VERSION}")
         _require(bool(_HEX64.fullmatch(self.model_sha256)),
@@ -237,6 +252,32 @@ def _check_chunk(chunk: ModelChunk | UpdateChunk, size: int, most: int) -> None:
 
 
 @dataclass(frozen=True)
+class TimeRequest:
+    """Ask the sender's clock; ``t1`` is the receiver's when asking (``protocol.clock``)."""
+
+    TYPE: ClassVar[str] = "time_request"
+    t1: float
+
+    def __post_init__(self) -> None:
+        _check_time("time_request.t1", self.t1)
+
+
+@dataclass(frozen=True)
+class TimeReply:
+    """The sender's clock: ``t2`` when the request came, ``t3`` when replying; ``t1`` the
+    request's, echoed."""
+
+    TYPE: ClassVar[str] = "time_reply"
+    t1: float
+    t2: float
+    t3: float
+
+    def __post_init__(self) -> None:
+        for name in ("t1", "t2", "t3"):
+            _check_time(f"time_reply.{name}", getattr(self, name))
+
+
+@dataclass(frozen=True)
 class Error:
     """A refusal; ``message`` is kept ``printable`` (escaped and cut, never refused)."""
 
@@ -248,20 +289,24 @@ class Error:
 
 
 Message = (HelloRequest | Hello | ModelRequest | ModelChunk | UpdateRequest | UpdateChunk
-           | Error)
+           | TimeRequest | TimeReply | Error)
 _TYPES: dict[str, type] = {t.TYPE: t for t in (HelloRequest, Hello, ModelRequest, ModelChunk,
-                                                 UpdateRequest, UpdateChunk, Error)}
+                                                 UpdateRequest, UpdateChunk, TimeRequest,
+                                                 TimeReply, Error)}
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "model_sha256": (str,), "sha256": (str,), "data_sha256": (str,), "message": (str,),
     "model_bytes": (int,), "index": (int,), "count": (int,), "total": (int,),
     "protocol": (int,), "rate_hz": (float, int), "camera": (dict,), "regions": (list,),
     "quantisers": (list,), "data": (bytes,), "model_serial": (int,), "serial": (int,),
+    "clock_origin_s": (float, int), "t1": (float, int), "t2": (float, int), "t3": (float, int),
 }
 
 
 def encode_message(message: Message) -> bytes:
     """Serialise a message to msgpack bytes."""
     body = {"type": message.TYPE, **asdict(message)}
+    if body.get("clock_origin_s", 0) is None:  # optional: absent, as from older senders
+        del body["clock_origin_s"]
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -386,6 +431,12 @@ def _camera_fields(camera: dict[Any, Any]) -> dict[str, Any]:
         if isinstance(camera[key], float) and not math.isfinite(camera[key]):
             raise ControlError(f"hello.camera.{key}: not finite")
     return camera
+
+
+def _check_time(name: str, value: float) -> None:
+    _require(isinstance(value, (int, float)) and not isinstance(value, bool)
+             and math.isfinite(value) and abs(value) <= MAX_CLOCK_S,
+             f"{name}: expected a finite time of at most {MAX_CLOCK_S:g} s")
 
 
 def _no_ext(code: int, data: bytes) -> None:

@@ -15,19 +15,21 @@ Upstream (what a receiver does, with the receiver's own parts)
   session's updates fetched, verified and applied in order on the fetcher's own thread
   (``receiver.updates.UpdateFetcher``), up to the newest serial the Hello or the last packet
   names. CURVE with ``curve_dir`` (``protocol.keys.client_keys``) on every socket.
-- The sender's presence. With no sender the Hello is asked again and again
-  (``HELLO_TIMEOUT_S`` each); once one answers the sender is *connected*. The Hello is asked
-  again every ``RECHECK_S``, at once when packets resume after ``RESUME_GAP_S`` of silence or
-  a packet's seq is not among the ``FAR_SLOTS`` after the last one's (a restarted sender), and
-  when none has come for ``SILENT_S``; a sender that does not answer
-  while no packet has come for ``SILENT_S`` is *lost*, and the gateway waits again. The
-  packets that came after such a sign are held (at most ``MAX_DOUBT``) until the Hello
-  answers: with the same model they go out; with another they are dropped (``held``), since
-  the pages do not have that model yet; with no answer they go out (nothing tells). A Hello
-  with another model sha256 brings that model (cache or fetch) and announces it; one whose
-  ``model_serial`` is below the versions fetched is a new session of the same model: its
-  updates are fetched anew and the model announced again (the page starts again from
-  version 0).
+- The sender's presence (``receiver.link.SenderLink``, as ``receive`` has it). With no sender
+  the Hello is asked again and again (``link.HELLO_TIMEOUT_S`` each); once one answers the
+  sender is *connected*. The Hello is asked again every ``link.RECHECK_EVERY_S``, at once at
+  a sign of the link (packets resuming after a silence, a seq far from the last one's, a
+  Hello without the clock), and when no packet has come for ``SILENT_S``; a sender that does
+  not answer while no packet has come for ``SILENT_S`` is *lost*, and the gateway waits
+  again. The packets that came after a sign of a restart are held (at most ``MAX_DOUBT``)
+  until the Hello answers: with the same model they go out; with another they are dropped
+  (``held``), since the pages do not have that model yet; with no answer they go out
+  (nothing tells). A Hello with another model sha256 brings that model (cache or fetch) and
+  announces it; one whose ``model_serial`` is below the versions fetched is a new session of
+  the same model: its updates are fetched anew and the model announced again (the page
+  starts again from version 0).
+- The sender's clock (``receiver.clocksync``, on its own thread): the pages get it in
+  ``clock`` messages (below), so that a page can say how late its face is.
 
 Each packet is checked with ``protocol.packet.decode`` (size, version, CRC, reserved bits):
 a corrupt one is dropped and counted by its reason (``corrupt``), never forwarded. A packet
@@ -65,6 +67,10 @@ under their names), ``model`` (``sha256``, ``glb`` and ``rig`` URLs, ``bytes``: 
 total) and one ``update`` per version held (``serial``, ``url``, ``bytes``), in order; then it
 joins the stream. The same messages go to every page when they change. These first messages
 and the joining happen in one step of the event loop, so no packet can come between them.
+Every ``STATUS_S``, once the sender's clock is estimated, a ``clock`` message: ``origin_s``
+and ``rate_hz`` (the Hello's clock: slot ``n`` captured at ``origin_s + n / rate_hz``) on the
+gateway's monotonic clock (the offset applied), and ``now_s``, the gateway's clock when
+sent; a page aligns its own clock to the gateway's from these (``receiver/web/stats.js``).
 
 Bounds. A page need send nothing: a message over ``MAX_MESSAGE_BYTES`` closes its connection
 (1009, by ``websockets``' ``max_size``), more than ``MAX_MESSAGES_PER_S`` in a second closes
@@ -131,23 +137,21 @@ from websockets.http11 import Request, Response
 
 from facewire.models.modelfile import PersonModel
 from facewire.models.webmodel import model_glb, rig_bin, update_bin
-from facewire.protocol.control import Hello, HelloRequest
+from facewire.protocol.control import Hello
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.keys import CurveClient, client_keys
 from facewire.protocol.loopback import host_header_is_loopback, is_loopback
-from facewire.protocol.packet import SEQ_MODULO, PacketError, decode
+from facewire.protocol.packet import PacketError, decode
 from facewire.protocol.transport import PacketSubscriber, control_endpoint
-from facewire.receiver.acquire import ControlChannel, ModelAcquirer
+from facewire.receiver.acquire import ModelAcquirer
+from facewire.receiver.clocksync import ClockSync
+from facewire.receiver.link import HELLO_TIMEOUT_S, RECHECK_EVERY_S, Change, SenderLink
 from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.serverguard import Admission, FailureThrottle, QuietErrors, open_file_caps
 from facewire.receiver.updates import UpdateFetcher
 
 DEFAULT_HTTP = "127.0.0.1:8080"
-HELLO_TIMEOUT_S = 1.0
-RECHECK_S = 2.0
-RESUME_GAP_S = 0.5
-FAR_SLOTS = 60  # a packet's seq this far from the last one's, or behind it: a new stream?
 MAX_DOUBT = 256  # packets held while the Hello is asked again; beyond, dropped (held)
 SILENT_S = 1.0
 QUEUE_PACKETS = 4096
@@ -409,8 +413,6 @@ class Gateway:
         self.viewers_max = 0
         self.url = ""
         self.error: BaseException | None = None
-        self._last_arrival: float | None = None
-        self._last_seq: int | None = None
         self._doubt: list[bytes] | None = None  # packets held until a Hello says whose
         self._doubt_since = 0.0
         self._scheduled = False
@@ -449,9 +451,12 @@ class Gateway:
                 self._forward()
                 self._sweep()
                 self.admission.tidy()
-                if self._status_to is not None and time.monotonic() >= next_status:
+                if time.monotonic() >= next_status:
                     next_status = time.monotonic() + STATUS_S
-                    self._status_to(self.status())
+                    if (clock := self._clock_json()) is not None:
+                        self._send_all(clock)
+                    if self._status_to is not None:
+                        self._status_to(self.status())
         finally:
             server.close()
             await server.wait_closed()
@@ -492,22 +497,20 @@ class Gateway:
         try:
             while (item := self.reader.take()) is not None:
                 data, arrival = item
-                resumed = self._last_arrival is not None and \
-                    arrival - self._last_arrival > RESUME_GAP_S
-                self._last_arrival = arrival
+                link = self.upstream.link if self.upstream is not None else None
                 try:
                     frame = decode(data)
                 except PacketError as exc:
                     self.counts["corrupt"] += 1
                     self.counts[f"corrupt_{exc.reason}"] += 1
+                    if link is not None:
+                        link.note_packet(arrival)
                     continue
-                jumped = self._last_seq is not None and \
-                    not 0 < (frame.seq - self._last_seq) % SEQ_MODULO <= FAR_SLOTS
-                if (resumed or jumped) and self.upstream is not None:
+                if link is not None and link.note_packet(arrival, frame.seq):
+                    assert self.upstream is not None  # it holds the link
                     self.upstream.recheck.set()  # perhaps a restarted sender: ask its Hello
                     if self._doubt is None:
                         self._doubt, self._doubt_since = [], time.monotonic()
-                self._last_seq = frame.seq
                 self.latest_serial = frame.serial
                 if self.model_json is None or self._doubt is not None and \
                         len(self._doubt) >= MAX_DOUBT:
@@ -534,6 +537,17 @@ class Gateway:
 
     def _send_all(self, text: str) -> None:
         broadcast(self.viewers, text)
+
+    def _clock_json(self) -> str | None:
+        """The ``clock`` message (module docstring), or None before the Hello's clock and an
+        offset estimate."""
+        upstream = self.upstream
+        best = upstream.clock.best() if upstream is not None and upstream.clock else None
+        hello = upstream.link.hello if upstream is not None else None
+        if best is None or hello is None or hello.clock_origin_s is None:
+            return None
+        return json.dumps({"type": "clock", "origin_s": hello.clock_origin_s - best.offset_s,
+                           "rate_hz": hello.rate_hz, "now_s": time.monotonic()})
 
     # -- what the upstream thread hands over -------------------------------------------------
 
@@ -720,7 +734,8 @@ class Gateway:
         viewers: ``viewers_total``, ``viewers_max``, ``dropped_junk``, ``dropped_slow``;
         ``http_served``, ``http_refused``; the model: ``model_sha256``, ``model_serial``,
         ``glb_bytes``, ``rig_bytes`` and as sent gzipped ``glb_bytes_gzip``,
-        ``rig_bytes_gzip`` (None when sent as they are), ``model_file_bytes`` (the ``.fwm``)."""
+        ``rig_bytes_gzip`` (None when sent as they are), ``model_file_bytes`` (the ``.fwm``);
+        the sender's clock: ``receiver.clocksync.ClockSync.summary``'s keys."""
         files = self.models.get(self.sha256 or "", {})
         counts = {k: self.counts[k] for k in (
             "forwarded", "forwarded_bytes", "held", "corrupt", "viewers_total",
@@ -733,6 +748,8 @@ class Gateway:
                 "viewers_max": self.viewers_max, "model_sha256": self.sha256,
                 "model_serial": self.serial,
                 "model_file_bytes": upstream.model_bytes if upstream else None,
+                **(upstream.clock.summary() if upstream and upstream.clock
+                   else ClockSync.EMPTY),
                 **{f"{k}_bytes": len(b.raw) for k, b in files.items()},
                 **{f"{k}_bytes_gzip": b.gz and len(b.gz) for k, b in files.items()}}
 
@@ -742,7 +759,9 @@ class Upstream:
     docstring); hands each result to the gateway's loop.
 
     Attributes:
-        recheck: set to have the Hello asked at once (packets resumed after a silence).
+        link: the link to the sender (``receiver.link``); the loop notes packets in it.
+        recheck: set to wake the thread at once (a sign of the link).
+        clock: the sender's clock (``receiver.clocksync``), from the first Hello.
         model_bytes: the current model file's size.
     """
 
@@ -750,10 +769,11 @@ class Upstream:
         self.gateway = gateway
         self.recheck = threading.Event()
         self.model_bytes: int | None = None
+        self.clock: ClockSync | None = None
         self._closing = threading.Event()
-        self._control = ControlChannel(control_endpoint(gateway.connect), gateway.curve)
-        self._acquirer = ModelAcquirer(gateway.connect, self._control, gateway.cache, None,
-                                       gateway.say, self._check_end, lambda: None)
+        self.link = SenderLink(gateway.connect, gateway.curve)
+        self._acquirer = ModelAcquirer(gateway.connect, self.link.control, gateway.cache,
+                                       None, gateway.say, self._check_end, lambda: None)
         self._fetcher: UpdateFetcher | None = None
         self._thread = threading.Thread(target=self._run, name="facewire gateway upstream",
                                         daemon=True)
@@ -765,7 +785,9 @@ class Upstream:
         self._thread.join()
         if self._fetcher is not None:
             self._fetcher.close()
-        self._control.close()
+        if self.clock is not None:
+            self.clock.close()
+        self.link.close()
 
     def _check_end(self) -> None:
         if self._closing.is_set() or self.gateway.stop.is_set():
@@ -781,7 +803,7 @@ class Upstream:
 
     def _session(self) -> None:
         gw = self.gateway
-        hello: Hello | None = None
+        link = self.link
         files: dict[str, Body] = {}
         connected, announced, next_ask = False, 0, 0.0
         gw.say(f"waiting for a sender at {gw.connect}")
@@ -790,23 +812,27 @@ class Upstream:
             now = time.monotonic()
             last = gw.reader.last_arrival if gw.reader is not None else None
             silent = last is None or now - last > SILENT_S
-            if not connected or now >= next_ask or self.recheck.is_set() or silent:
+            if not connected or now >= next_ask or link.check_due(now) or silent:
                 self.recheck.clear()
                 asked = time.monotonic()
-                got = self._control.ask(HelloRequest(), Hello, HELLO_TIMEOUT_S)
-                if got is None:
+                fetched = self._fetcher.fetched if self._fetcher is not None else None
+                answer = link.ask(HELLO_TIMEOUT_S, fetched)
+                if answer is None:
                     if connected and silent:
                         connected = False
                         gw.post(gw.set_status, "waiting",
                                 "the sender stopped answering: waiting for it")
-                    next_ask = time.monotonic() + RECHECK_S
+                    next_ask = time.monotonic() + RECHECK_EVERY_S
                     gw.post(gw.confirm, asked)  # cannot tell: what was held goes out
                     continue
-                next_ask = time.monotonic() + (SILENT_S if silent else RECHECK_S)
+                got = answer.hello
+                next_ask = time.monotonic() + (SILENT_S if silent else RECHECK_EVERY_S)
                 if not connected:
                     connected = True
                     gw.post(gw.set_status, "connected", "the sender is connected")
-                if hello is None or got.model_sha256 != hello.model_sha256:
+                if self.clock is None:
+                    self.clock = ClockSync(link.endpoint, gw.curve)
+                if answer.change in (Change.FIRST, Change.MODEL):
                     gw.post(gw.set_status, "connected", "fetching the sender's model")
                     gw.post(gw.unready)
                     model = self._acquirer.obtain(got)
@@ -817,29 +843,35 @@ class Upstream:
                     self.model_bytes = model.file_bytes
                     announced = 0
                     gw.post(gw.adopt, got, model.sha256, files)
-                elif self._fetcher is not None and got.model_serial < self._fetcher.fetched:
+                elif answer.new_session and self._fetcher is not None:
                     gw.say(f"the sender is at model version {got.model_serial}, the gateway "
                            f"at {self._fetcher.fetched}: a new session, its updates fetched "
                            f"anew")
                     self._start_updates(self._fetcher.version(0))
                     announced = 0
                     gw.post(gw.adopt, got, got.model_sha256, files)
-                elif dataclasses.replace(got, model_serial=0) != \
-                        dataclasses.replace(hello, model_serial=0):
+                elif answer.change in (Change.DETAILS, Change.RATE):
                     gw.post(gw.set_hello, got)
                 gw.post(gw.confirm, asked)
-                hello = got
-            fetcher = self._fetcher
-            if fetcher is not None and hello is not None:
-                fetcher.want(max(hello.model_serial, gw.latest_serial))
-                while fetcher.fetched > announced:
-                    before, after = fetcher.version(announced), fetcher.version(announced + 1)
-                    assert before is not None and after is not None  # fetched, so held
-                    announced += 1
-                    body = Body.make(update_bin(before, after), "application/octet-stream",
-                                     "no-store")
-                    gw.post(gw.add_update, fetcher.base_sha256, announced, body)
+                link.take(got)
+            announced = self._announce(announced)
             self.recheck.wait(_WAKE_S)
+
+    def _announce(self, announced: int) -> int:
+        """Hand the loop the bodies of the updates fetched beyond ``announced``; the newest
+        announced."""
+        gw, fetcher, hello = self.gateway, self._fetcher, self.link.hello
+        if fetcher is None or hello is None:
+            return announced
+        fetcher.want(max(hello.model_serial, gw.latest_serial))
+        while fetcher.fetched > announced:
+            before, after = fetcher.version(announced), fetcher.version(announced + 1)
+            assert before is not None and after is not None  # fetched, so held
+            announced += 1
+            body = Body.make(update_bin(before, after), "application/octet-stream",
+                             "no-store")
+            gw.post(gw.add_update, fetcher.base_sha256, announced, body)
+        return announced
 
     def _start_updates(self, model: PersonModel | None) -> None:
         assert model is not None  # version 0 is always held
@@ -900,7 +932,11 @@ def _status_json(sender: str, text: str) -> str:
 
 
 def _hello_json(hello: Hello) -> str:
-    return json.dumps({"type": "hello", **dataclasses.asdict(hello)})
+    """The Hello as pages get it: its clock travels in ``clock`` messages instead, on the
+    gateway's clock."""
+    fields = dataclasses.asdict(hello)
+    del fields["clock_origin_s"]
+    return json.dumps({"type": "hello", **fields})
 
 
 def _accepts_gzip(header: str) -> bool:

@@ -8,8 +8,10 @@ Session
    reconnects by itself: a sender may start after the receiver, stop, and come back. The
    packet socket is opened anew after ``REOPEN_S`` without a packet, since libzmq does not
    reconnect one whose peer broke the protocol (a frame over its size limit).
-2. Hello. Asked again every ``HELLO_TIMEOUT_S`` until a sender answers; meanwhile the status
-   says that the receiver waits, where, and for how long. ``idle_timeout_s`` ends the wait.
+2. Hello (``receiver.link.SenderLink``: the Hello, and when to ask it again). Asked until a
+   sender answers; meanwhile the status says that the receiver waits, where, and for how
+   long. ``idle_timeout_s`` ends the wait. From here on the sender's clock is estimated on a
+   thread of its own (``receiver.clocksync``).
 3. Model (``receiver.acquire.ModelAcquirer``): with ``model_path``, the file's sha256 must
    be the Hello's, or ``ReceiveError``; without, the model cache by the Hello's sha256, else
    the sender's file, fetched in chunks over the control channel by its sha256 and verified
@@ -88,15 +90,21 @@ another camera is rendered at that size (its intrinsics scaled, ``sender_view``)
 Sender restart
 --------------
 A restarted sender numbers its packets from 0 again (or from anywhere): the playout resyncs
-(``receiver.playout``, restart rules) and the receiver asks for the Hello again, as it does
-when packets resume after a silence of ``RESUME_GAP_S`` (a restart that the sequence numbers
-alone may not show). An identical Hello changes nothing. Another rate means a new playout; a
-new model sha256 means that model (cache, else fetched; with ``model_path``:
-``ReceiveError``), a new renderer and a new playout. A new playout starts like the first one:
-the packets the old one still held count as ``discarded``, and those that arrived meanwhile
-(while the model was fetched) are played late or ``ignored``, as above. Until the Hello is
-answered the loop goes on rendering with what it has, asking every ``RECHECK_EVERY_S`` (each
-try waits at most ``RECHECK_TIMEOUT_S``).
+(``receiver.playout``, restart rules) and the receiver asks for the Hello again, as it does at
+the other signs of ``receiver.link`` (packets resuming after a silence, a Hello without the
+clock). An identical Hello changes nothing; another camera or clock is used from the next
+frame (``Change.DETAILS``). Another rate means a new playout; a new model sha256 means that
+model (cache, else fetched; with ``model_path``: ``ReceiveError``), a new renderer and a new
+playout. A new playout starts like the first one: the packets the old one still held count as
+``discarded``, and those that arrived meanwhile (while the model was fetched) are played late
+or ``ignored``, as above. Until the Hello is answered the loop goes on rendering with what it
+has, asking again as ``receiver.link`` says.
+
+Glass-to-glass latency (``protocol.clock``): for each frame played from a packet, the time it
+is out (written, shown and handed to ``on_frame``) minus its capture time, which the Hello's
+clock and the packet's seq give on the sender's clock, moved to this host's by the
+``receiver.clocksync`` estimate. None while either is missing (a sender that announces no
+clock, or answers no time request).
 
 Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
 counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
@@ -121,10 +129,13 @@ from typing import Any
 import numpy as np
 
 from facewire.models.modelfile import PersonModel, load_model
-from facewire.protocol.control import Hello, HelloRequest
+from facewire.protocol.clock import capture_s
+from facewire.protocol.control import Hello
 from facewire.protocol.keys import CurveClient, client_keys
-from facewire.protocol.transport import PacketSubscriber, control_endpoint
-from facewire.receiver.acquire import ControlChannel, ModelAcquirer, ReceiveError
+from facewire.protocol.transport import PacketSubscriber
+from facewire.receiver.acquire import ModelAcquirer, ReceiveError
+from facewire.receiver.clocksync import ClockSync
+from facewire.receiver.link import RECHECK_EVERY_S, RECHECK_TIMEOUT_S, Change, SenderLink
 from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.output import FrameFolderWriter, VideoWriter
 from facewire.receiver.packetreader import PacketReader
@@ -133,10 +144,6 @@ from facewire.receiver.scene import StateRenderer, rest_q
 from facewire.receiver.stats import ReceiveStats
 from facewire.receiver.updates import UpdateFetcher
 
-HELLO_TIMEOUT_S = 1.0
-RECHECK_TIMEOUT_S = 0.5
-RECHECK_EVERY_S = 2.0
-RESUME_GAP_S = 0.5
 REOPEN_S = 8.0
 MAX_GAP_S = 10.0
 QUEUE_PACKETS = 4096
@@ -269,7 +276,6 @@ class _Session:
                  idle_timeout_s: float | None, on_frame: OnFrame | None,
                  on_packet: OnPacket | None, ready: threading.Event | None) -> None:
         self.connect = connect
-        self.control_endpoint = control_endpoint(connect)
         self.curve, self.local, self.cache = curve, local, cache
         self.out, self.frames_dir, self.view, self.size = out, frames_dir, view, size
         self.on_frame, self.on_packet, self.ready = on_frame, on_packet, ready
@@ -285,8 +291,6 @@ class _Session:
         self.played = 0  # packets played by the current playout
         self.restarts_seen = 0  # the current playout's restarts already handled
         self.stream_played = False  # a stream is open: its next packet writes the pending
-        self.hello_due = False
-        self.next_check = 0.0
         self.playing_since = 0.0  # when the current playout was set up
         self.last_contact = time.monotonic()  # the last control reply or ready loop
         self.stats = ReceiveStats()
@@ -299,10 +303,11 @@ class _Session:
             self.reader = PacketReader(lambda: PacketSubscriber(self.connect, self.curve),
                                        QUEUE_PACKETS, REOPEN_S)
             links.callback(self.reader.close)
-            self.control = ControlChannel(self.control_endpoint, self.curve)
-            links.callback(self.control.close)
+            self.link = SenderLink(self.connect, self.curve)
+            links.callback(self.link.close)
             self._links = links.pop_all()
-        self.acquirer = ModelAcquirer(self.connect, self.control, self.cache, self.local,
+        self.clock: ClockSync | None = None  # from the first Hello
+        self.acquirer = ModelAcquirer(self.connect, self.link.control, self.cache, self.local,
                                       self.say, self._check_end, self._touch)
 
     # -- the session -----------------------------------------------------------------------
@@ -313,6 +318,8 @@ class _Session:
             try:
                 while True:  # until _End: _play returns only by raising it
                     hello = self._await_hello()
+                    if self.clock is None:
+                        self.clock = ClockSync(self.link.endpoint, self.curve)
                     model = self.acquirer.obtain(hello)
                     if model is not None:
                         self._adopt(hello, model)
@@ -324,6 +331,8 @@ class _Session:
         return self._summary(ended, time.monotonic() - self.started)
 
     def _release(self) -> None:
+        if self.clock is not None:
+            self.clock.close()
         if self.updates is not None:
             self.updates.close()
         if self.writer is not None:
@@ -347,27 +356,17 @@ class _Session:
             raise _End("idle_timeout")
 
     def _await_hello(self) -> Hello:
-        """Ask until a sender answers, saying that the receiver waits."""
-        since = time.monotonic()
-        while True:
-            self._check_end()
-            timeout = HELLO_TIMEOUT_S
-            if self.idle_timeout_s is not None:
-                timeout = min(timeout, max(0.05, self.idle_timeout_s - self._idle_s()))
-            hello = self.control.ask(HelloRequest(), Hello, timeout)
-            if hello is not None:
-                self._touch()
-                self.stats.counts["hellos"] += 1
-                cam = hello.camera
-                self.say(f"sender at {self.connect}: model {hello.model_sha256[:12]}, "
-                         f"{hello.rate_hz:g} Hz, camera {cam.width}x{cam.height}, "
-                         f"{len(hello.regions)} regions")
-                return hello
-            why = f"; last reply: {self.control.last_error}" if self.control.last_error \
-                else ""
-            self.say(f"waiting for a sender at {self.connect} (control "
-                     f"{self.control_endpoint}): no answer for "
-                     f"{time.monotonic() - since:.0f} s{why}")
+        """Ask until a sender answers, saying that the receiver waits (``receiver.link``)."""
+
+        def timeout() -> float:
+            if self.idle_timeout_s is None:
+                return float("inf")
+            return max(0.05, self.idle_timeout_s - self._idle_s())
+
+        answer = self.link.await_hello(self._check_end, timeout, self.say)
+        self._touch()
+        self.stats.counts["hellos"] += 1
+        return answer.hello
 
     # -- playing ---------------------------------------------------------------------------
 
@@ -391,6 +390,7 @@ class _Session:
         if self.playout is not None:
             self.stats.retire(self.playout, self.played)
         self.hello = hello
+        self.link.take(hello)
         self.playout = Playout(hello.rate_hz, rest_q=rest_q(model), skip=self.view is not None)
         self.played, self.restarts_seen, self.stream_played = 0, 0, False
         self.pending.clear()
@@ -460,15 +460,14 @@ class _Session:
             self.restarts_seen = restarts
             self.pending.clear()
             self.stream_played = False
-            self.hello_due, self.next_check = True, 0.0
+            self.link.note_restart()
             self.say(f"the stream from {self.connect} restarted: asking for its Hello")
 
     def _tick(self, live: bool) -> None:
         """Check the Hello if due (only ``live``: not while draining), pop one state and
         show it. A changed Hello adopted (a new playout) ends the tick without a pop."""
         assert self.hello is not None and self.scene is not None and self.playout is not None
-        if live and self.hello_due and time.monotonic() >= self.next_check \
-                and self._recheck():
+        if live and self.link.check_due(time.monotonic()) and self._recheck():
             return
         state = self.playout.pop()
         if state.seq is None:
@@ -489,28 +488,28 @@ class _Session:
             self.stats.counts["streams"] += 1
         for concealed in self.pending:
             self.stats.counts["lost"] += 1
-            self._emit(concealed, None, None)
+            self._emit(concealed, None, None, None)
         self.pending.clear()
         image = self.scene.render(state)
         latency = time.monotonic() - state.arrival_s
         if self.view is not None:
             self.view(image, self._live(state))
-        self._emit(state, image, latency)
+        self._emit(state, image, latency, self._capture(state))
 
     def _recheck(self) -> bool:
-        """Ask for the Hello again (a restart, or a stream resumed); True when a changed one
-        was adopted."""
+        """Ask for the Hello again (``receiver.link``: a restart, a stream resumed, a Hello
+        without the clock); True when a changed one was adopted."""
         assert self.hello is not None and self.scene is not None  # _adopt came first
-        hello = self.control.ask(HelloRequest(), Hello, RECHECK_TIMEOUT_S)
-        if hello is None:
-            self.next_check = time.monotonic() + RECHECK_EVERY_S
+        fetched = self.updates.fetched if self.updates is not None else None
+        answer = self.link.ask(RECHECK_TIMEOUT_S, fetched)
+        if answer is None:
             return False
         self._touch()
         self.stats.counts["hellos"] += 1
-        self.hello_due = False
-        same_model = hello.model_sha256 == self.hello.model_sha256
-        if same_model and self.updates is not None and self.base is not None:
-            if hello.model_serial < self.updates.fetched:  # a new session of the same model
+        hello = answer.hello
+        if answer.change is not Change.MODEL and self.updates is not None \
+                and self.base is not None:
+            if answer.new_session:
                 self.say(f"the sender at {self.connect} is at model version "
                          f"{hello.model_serial}, this receiver at {self.updates.fetched}: "
                          f"a new session, its updates fetched anew")
@@ -519,15 +518,17 @@ class _Session:
                 if self.playout is not None:
                     self.playout.rest_q = rest_q(self.base)
             self.updates.want(hello.model_serial)
-        if same_model and hello.rate_hz == self.hello.rate_hz:
-            self.hello = hello  # at most another camera: the next frames use it
+        if answer.change in (Change.SAME, Change.DETAILS):
+            self.hello = hello  # at most another camera or clock: the next frames use it
+            self.link.take(hello)
             self.scene.hello_camera = hello.camera
             return False
         self.say(f"the sender at {self.connect} now sends model {hello.model_sha256[:12]} "
                  f"at {hello.rate_hz:g} Hz")
-        model = self.scene.model if same_model else self.acquirer.obtain(hello)
+        model = self.scene.model if answer.change is Change.RATE \
+            else self.acquirer.obtain(hello)
         if model is None:
-            self.hello_due, self.next_check = True, time.monotonic() + RECHECK_EVERY_S
+            self.link.due, self.link.next_check = True, time.monotonic() + RECHECK_EVERY_S
             return False
         self._adopt(hello, model)
         return True
@@ -538,7 +539,7 @@ class _Session:
             self.stats.retire_updates(self.updates)
             self.updates.close()
         self.base, self.version = model, 0
-        self.updates = UpdateFetcher(self.control_endpoint, self.curve, model, self.say)
+        self.updates = UpdateFetcher(self.link.endpoint, self.curve, model, self.say)
 
     def _follow(self, serial: int) -> None:
         """Render the slot with the model version its packet's Q values refer to: the newest
@@ -558,15 +559,24 @@ class _Session:
             self.stats.clamped(serial, self.version)
 
     def _note_packet(self, data: bytes, arrival: float) -> None:
-        last = self.stats.last_packet
-        if last is not None and arrival - last > RESUME_GAP_S:
-            self.hello_due, self.next_check = True, 0.0
+        self.link.note_packet(arrival)
         self.stats.packet(len(data), arrival)
         if self.on_packet is not None:
             self.on_packet(data, arrival)
 
+    def _capture(self, state: FrameState) -> float | None:
+        """A played slot's capture time on this host's clock (``protocol.clock``), or None
+        without the Hello's clock or an offset estimate."""
+        assert self.hello is not None and state.seq is not None and state.arrival_s is not None
+        best = self.clock.best() if self.clock is not None else None
+        origin = self.hello.clock_origin_s
+        if best is None or origin is None:
+            return None
+        return capture_s(state.seq, origin, self.hello.rate_hz,
+                         state.arrival_s + best.offset_s) - best.offset_s
+
     def _emit(self, state: FrameState, image: np.ndarray | None,
-              latency: float | None) -> None:
+              latency: float | None, capture: float | None) -> None:
         """One output frame: written if there is a file and handed to ``on_frame`` (rendered
         now if ``image`` is None), counted, and the end of the session at ``max_frames``."""
         assert self.hello is not None and self.scene is not None and self.size is not None
@@ -582,7 +592,8 @@ class _Session:
                 self.writer.write(image)
             if self.on_frame is not None:
                 self.on_frame(image, state)
-        frames = self.stats.frame(time.monotonic(), latency)
+        now = time.monotonic()
+        frames = self.stats.frame(now, latency, None if capture is None else now - capture)
         if self.max_frames is not None and frames >= self.max_frames:
             raise _End("max_frames")
 
@@ -596,8 +607,9 @@ class _Session:
             "connect": self.connect, "out": None if out is None else str(out),
             "width": width, "height": height,
             **self.stats.summary(self.playout, ended, seconds, self.reader.overflow,
-                                 self.control.timeouts, self.control.errors,
+                                 self.link.control.timeouts, self.link.control.errors,
                                  self.scene.render_seconds if self.scene else ()),
             **self.stats.update_summary(self.updates, self.version),
             **self.acquirer.info,
+            **(self.clock.summary() if self.clock is not None else ClockSync.EMPTY),
         }

@@ -10,7 +10,10 @@ frames), ``hellos`` (Hellos answered), ``control_timeouts``, ``control_errors``,
 after the first, ``8 bytes / 1000 / (a_last - a_first)`` over the packets' arrival times),
 ``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
 rendered: the frame's own time, plus the wait behind a missing slot or a frame still
-rendering, and any backlog of a loop that fell behind), ``render_ms_median`` (morph, view and
+rendering, and any backlog of a loop that fell behind), ``glass_to_glass_ms_median`` and
+``glass_to_glass_ms_p95`` (a played packet's capture at the sender to its frame out here,
+clocks aligned: ``receiver.receiver``; None when the sender gives no clock),
+``render_ms_median`` (morph, view and
 render with readback), ``seconds`` and ``ended``: stop, max_frames or idle_timeout.
 
 Model updates (``update_summary``, ``receiver.updates``): ``model_serial`` (the model version
@@ -23,7 +26,8 @@ The status line says the version rendered and, while slots are clamped, the vers
 Live statistics (``ReceiveStats.live``, keys ``LIVE_KEYS``: the second argument of a
 receiver's ``view``, and the status line every ``STATUS_EVERY_S``) measure fps and kbit/s
 over the last ``WINDOW_S``: ``fps = frames in the window / WINDOW_S``, ``kbps = 8 bytes in the
-window / 1000 / WINDOW_S``, and the median latency of the window's played frames.
+window / 1000 / WINDOW_S``, and the median latency and glass-to-glass latency of the
+window's played frames (``latency_ms``, ``glass_ms``).
 
 Each playout's counts are added to the totals when it is retired (a new Hello, the end);
 what a retired playout still held, neither played nor otherwise dropped, is ``discarded``.
@@ -44,7 +48,7 @@ from facewire.receiver.updates import UpdateFetcher
 STATUS_EVERY_S = 1.0
 WINDOW_S = 1.0
 LIVE_KEYS = ("state", "seq", "fps", "kbps", "frames", "received", "lost", "late", "corrupt",
-             "duplicates", "latency_ms")
+             "duplicates", "latency_ms", "glass_ms")
 UPDATE_KEYS = ("updates", "update_bytes", "updates_refused", "update_chunks",
                "update_control_timeouts", "update_control_errors")
 PLAYOUT_KEYS = ("received", "corrupt", "duplicate", "late", "stray", "discarded", "skipped",
@@ -73,8 +77,10 @@ class ReceiveStats:
         self.first_frame: float | None = None
         self.last_frame: float | None = None
         self.latencies: deque[float] = deque(maxlen=STATS_FRAMES)
+        self.glass: deque[float] = deque(maxlen=STATS_FRAMES)
         self.recent_packets: deque[tuple[float, int]] = deque()  # arrival, bytes
-        self.recent_frames: deque[tuple[float, float | None]] = deque()  # time, latency
+        # time, latency, glass-to-glass
+        self.recent_frames: deque[tuple[float, float | None, float | None]] = deque()
         self.next_status = 0.0
 
     def packet(self, size: int, arrival: float) -> None:
@@ -85,15 +91,18 @@ class ReceiveStats:
         self.bytes_total += size
         self.recent_packets.append((arrival, size))
 
-    def frame(self, now: float, latency: float | None) -> int:
+    def frame(self, now: float, latency: float | None, glass: float | None = None) -> int:
         """Count an output frame made at ``now`` (``latency`` s for a played packet, None
-        for a concealed slot); the number of output frames so far."""
+        for a concealed slot; ``glass`` its glass-to-glass latency, s, when known); the
+        number of output frames so far."""
         self.counts["frames"] += 1
         self.first_frame = self.first_frame or now
         self.last_frame = now
         if latency is not None:
             self.latencies.append(latency)
-        self.recent_frames.append((now, latency))
+        if glass is not None:
+            self.glass.append(glass)
+        self.recent_frames.append((now, latency, glass))
         return self.counts["frames"]
 
     def clamped(self, needed: int, held: int) -> None:
@@ -144,7 +153,8 @@ class ReceiveStats:
         while self.recent_frames and self.recent_frames[0][0] < now - WINDOW_S:
             self.recent_frames.popleft()
         counts = self.playout_counts(playout)
-        latencies = [x for _, x in self.recent_frames if x is not None]
+        latencies = [x for _, x, _ in self.recent_frames if x is not None]
+        glass = [g for _, _, g in self.recent_frames if g is not None]
         return {"state": "playing" if state is None else state.status,
                 "seq": None if state is None else state.seq,
                 "fps": round(len(self.recent_frames) / WINDOW_S, 1),
@@ -153,7 +163,8 @@ class ReceiveStats:
                 "lost": self.counts["lost"], "late": counts["late"],
                 "corrupt": counts["corrupt"], "duplicates": counts["duplicate"],
                 "latency_ms": round(1000 * float(np.median(latencies)), 1) if latencies
-                else None}
+                else None,
+                "glass_ms": round(1000 * float(np.median(glass)), 1) if glass else None}
 
     def status_line(self, now: float, playout: Playout | None, connect: str,
                     last_arrival: float | None, playing_since: float,
@@ -177,9 +188,10 @@ class ReceiveStats:
             return f"no packets from {connect} for {quiet:.0f} s: waiting for the sender"
         s = self.live(now, None, playout)
         latency = "-" if s["latency_ms"] is None else f"{s['latency_ms']:.0f} ms"
+        glass = "-" if s["glass_ms"] is None else f"{s['glass_ms']:.0f} ms"
         line = (f"{s['fps']:.1f} fps, {s['kbps']:.1f} kbit/s; received {s['received']}, "
                 f"lost {s['lost']}, late {s['late']}, corrupt {s['corrupt']}; latency "
-                f"{latency}")
+                f"{latency}, glass-to-glass {glass}")
         if updates is None:
             return line
         line += f"; model v{version}, {updates.counts['updates']} updates " \
@@ -214,6 +226,7 @@ class ReceiveStats:
             packet_span = self.last_packet - self.first_packet[0]
             first_bytes = self.first_packet[1]
         latencies = np.asarray(self.latencies) * 1000
+        glass = np.asarray(self.glass) * 1000
         renders = np.asarray(list(render_seconds)) * 1000
 
         def ms(values: np.ndarray, q: float) -> float | None:
@@ -233,6 +246,7 @@ class ReceiveStats:
             "kbps": round((self.bytes_total - first_bytes) * 8 / 1000 / packet_span, 3)
             if packet_span > 0 else None,
             "latency_ms_median": ms(latencies, 50), "latency_ms_p95": ms(latencies, 95),
+            "glass_to_glass_ms_median": ms(glass, 50), "glass_to_glass_ms_p95": ms(glass, 95),
             "render_ms_median": round(float(np.median(renders)), 2) if len(renders) else None,
             "seconds": round(seconds, 2),
         }

@@ -260,7 +260,11 @@ class FolderSource(Source):
 
 
 class CameraSource(Source):
-    """An OpenCV capture device; frames stamped with the monotonic clock when read."""
+    """An OpenCV capture device; frames stamped with the monotonic clock when read.
+
+    Attributes:
+        origin_s: the clock's reading at frame time 0 (the first frame read), None before.
+    """
 
     live = True
 
@@ -286,7 +290,7 @@ class CameraSource(Source):
         self._capture = capture
         self._first: np.ndarray | None = image
         self._limiter = RateLimiter(rate_hz) if pace else None
-        self._start: float | None = None
+        self.origin_s: float | None = None
         self._index = 0
 
     def _frames(self) -> Iterator[VideoFrame]:
@@ -298,9 +302,9 @@ class CameraSource(Source):
                 if not ok or image is None:
                     raise CaptureError(f"{self.name}: the camera stopped delivering frames")
             now = self._clock()
-            if self._start is None:
-                self._start = now
-            t = now - self._start
+            if self.origin_s is None:
+                self.origin_s = now
+            t = now - self.origin_s
             index = self._index
             self._index += 1
             if self._limiter is None or self._limiter.keep(t):

@@ -239,6 +239,11 @@ class SenderPipeline:
         self._q = np.zeros(len(self.sampler.names), np.float32)
         self._q_serial = self.serial  # the model version self._q refers to
 
+    def set_slot(self, slot: int) -> None:
+        """Number the next packet ``slot`` (mod 65536): the slots of a stream that had no
+        frame (``sender.slots``) leave their numbers unused."""
+        self._seq = slot % (1 << 16)
+
     def process(self, image: np.ndarray, time_s: float) -> SenderOutput:
         """Process one frame: the module docstring's nine stages, each timed.
 

@@ -8,6 +8,8 @@ Requests (``protocol.control``) arrive at the sender's ROUTER socket
 - ``model_request(sha256, index)``: chunk ``index`` of the model file, split once from the
   bytes the model was loaded from (``protocol.control.model_chunks``);
 - ``update_request(model_sha256, serial, index)``: chunk ``index`` of update ``serial``;
+- ``time_request(t1)``: ``time_reply(t1, t2, t3)``, ``t2`` the sender's clock when the request
+  was read, ``t3`` when answered (``protocol.clock``; never held);
 - anything malformed, another model, an update not issued, an index out of range, or a
   message that is no request: an ``Error`` naming the field (counted: ``errors``).
 
@@ -51,6 +53,7 @@ import itertools
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 
 from facewire.protocol.control import (
     ControlError,
@@ -60,6 +63,8 @@ from facewire.protocol.control import (
     Message,
     ModelChunk,
     ModelRequest,
+    TimeReply,
+    TimeRequest,
     UpdateChunk,
     UpdateRequest,
     decode_message,
@@ -79,7 +84,8 @@ Peer = tuple[bytes, ...]
 
 
 def answer_request(raw: bytes, hello: Hello, chunks: list[ModelChunk],
-                   updates: UpdateStore | None = None) -> Message:
+                   updates: UpdateStore | None = None,
+                   clock: Callable[[], float] = time.monotonic) -> Message:
     """The reply to one raw control request (module docstring).
 
     Args:
@@ -88,7 +94,9 @@ def answer_request(raw: bytes, hello: Hello, chunks: list[ModelChunk],
         chunks: the model file's chunks (``protocol.control.model_chunks``), index order.
         updates: the session's updates, or None (no updates: every ``update_request`` is
             refused).
+        clock: the sender's clock (``protocol.clock``).
     """
+    received = clock()
     try:
         request = decode_message(raw)
     except ControlError as exc:
@@ -105,6 +113,8 @@ def answer_request(raw: bytes, hello: Hello, chunks: list[ModelChunk],
             return Error(f"model_request.index: {request.index} is out of range (the model "
                          f"has {len(chunks)} chunks)")
         return chunks[request.index]
+    if isinstance(request, TimeRequest):
+        return TimeReply(request.t1, received, clock())
     if isinstance(request, UpdateRequest):
         if updates is None:
             return Error("update_request: this sender issues no updates")
@@ -124,18 +134,22 @@ class Responder:
         chunks: the model file's chunks.
         updates: the session's updates (published from any thread).
         shaper: the update traffic shaper (``protocol.shaper``'s limits by default).
+        clock: the sender's clock (``protocol.clock``).
 
     Attributes:
+        hello: the Hello answered (``announce``).
         counts: ``hello_requests``, ``chunk_requests``, ``update_requests`` (update chunks
-            sent), ``update_bytes`` (their message bytes), ``errors``.
+            sent), ``update_bytes`` (their message bytes), ``time_requests``, ``errors``.
     """
 
     def __init__(self, server: ControlServer, hello: Hello, chunks: list[ModelChunk],
-                 updates: UpdateStore, shaper: UpdateShaper | None = None) -> None:
+                 updates: UpdateStore, shaper: UpdateShaper | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.server, self.hello, self.chunks, self.updates = server, hello, chunks, updates
+        self.clock = clock
         self.shaper = shaper if shaper is not None else UpdateShaper()
         self.counts = dict.fromkeys(("hello_requests", "chunk_requests", "update_requests",
-                                     "update_bytes", "errors"), 0)
+                                     "update_bytes", "time_requests", "errors"), 0)
         self._held: list[tuple[float, int, Peer, UpdateChunk, int]] = []
         self._held_by: Counter[Peer] = Counter()
         self._held_on: Counter[bytes] = Counter()  # held replies per connection
@@ -146,6 +160,10 @@ class Responder:
 
     def start(self) -> None:
         self.thread.start()
+
+    def announce(self, hello: Hello) -> None:
+        """Answer Hello requests with ``hello`` from now on (from any thread)."""
+        self.hello = hello
 
     def stop(self) -> None:
         self._done.set()
@@ -162,7 +180,7 @@ class Responder:
                 self._answer(*request)
 
     def _answer(self, peer: Peer, raw: bytes) -> None:
-        reply = answer_request(raw, self.hello, self.chunks, self.updates)
+        reply = answer_request(raw, self.hello, self.chunks, self.updates, self.clock)
         if isinstance(reply, UpdateChunk):
             refusal = self._refusal(peer)
             if refusal is None:
@@ -173,8 +191,8 @@ class Responder:
                 self._held_on[peer[0]] += 1
                 return
             reply = Error(f"update_request: {refusal}; ask one at a time")
-        key = {Hello: "hello_requests", ModelChunk: "chunk_requests"}.get(type(reply),
-                                                                           "errors")
+        key = {Hello: "hello_requests", ModelChunk: "chunk_requests",
+               TimeReply: "time_requests"}.get(type(reply), "errors")
         self.counts[key] += 1
         self.server.reply(peer, self._encoded[reply.index] if isinstance(reply, ModelChunk)
                           else reply)

@@ -24,14 +24,19 @@ The stream's rate is the smaller of the target rate and the source's: a 25 Hz fi
 rate_hz`` (``t_0`` the first frame's time), gets the latest frame stamped at most a quarter
 period after it, so frames are dropped where the file has several per slot and repeated where
 it has none (a variable-rate file whose container states 15 Hz but holds stretches at
-12.5 Hz still goes out at 15 Hz). Slot ``k`` is released at wall time ``origin + t_0 + k /
-rate_hz``, ``origin`` fixed at the first frame. Receivers play one slot per
-``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a frame that is late
-(the machine was busy) is sent at once and the next ones catch up, rather than every later
-frame being shifted (``sender.capture.Pacer``'s default rule, which would leave the stream
-slower than announced and the receivers' buffers running dry). Only when more than
-``MAX_LAG_S`` behind (a stalled machine) does the schedule restart from the late frame
-(``Pacer(catch_up_s=MAX_LAG_S)``).
+12.5 Hz still goes out at 15 Hz). Slot ``k`` is released at ``origin + k / rate_hz`` on the
+sender's clock, ``origin`` fixed at the first frame (``sender.slots.SlotClock``). Receivers
+play one slot per ``1 / rate_hz`` on their own clock, so the sender keeps that schedule: a
+frame that is late (the machine was busy) is sent at once and the next ones catch up, rather
+than every later frame being shifted (which would leave the stream slower than announced and
+the receivers' buffers running dry). A frame more than ``MAX_LAG_S`` late (a stalled machine)
+goes out as the present slot, the seqs in between unused, so that every packet's seq still
+names its capture time.
+
+Capture time (``sender.slots``, ``protocol.clock``). Each packet's seq is its slot, captured
+at ``origin + seq / rate_hz`` on the sender's clock (``clock``, the monotonic clock); once the
+first frame has set ``origin`` the Hello carries it (``clock_origin_s``), and the control
+thread answers time requests, so that a receiver measures glass-to-glass latency.
 
 Control requests (``protocol.control``) are answered on a second thread, at the control
 endpoint (the bind port plus one), by ``sender.responder.Responder``: the Hello, the model
@@ -64,6 +69,7 @@ finished record is on disk, so ``protocol.log.read_log`` reads it), and the sock
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import threading
@@ -88,10 +94,11 @@ from facewire.protocol.transport import (
     control_endpoint,
     unencrypted_warning,
 )
-from facewire.sender.capture import CaptureError, Pacer, Source, open_source
+from facewire.sender.capture import CameraSource, CaptureError, Source, open_source
 from facewire.sender.framethread import FrameThread
 from facewire.sender.pipeline import SenderPipeline, identity_warning, sender_camera
 from facewire.sender.responder import Responder
+from facewire.sender.slots import Clock, SlotClock, camera_slot
 from facewire.sender.updates import UpdateStore
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
@@ -122,26 +129,32 @@ def _log_writer(path: str | os.PathLike[str], hello: Hello) -> LogWriter:
                        ) from None
 
 
-def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
-            ) -> Iterator[tuple[np.ndarray, float]]:
-    """(image, time s) of the frames to send, released in real time (module docstring).
+def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
+            ) -> Iterator[tuple[np.ndarray, float, int]]:
+    """(image, time s, slot) of the frames to send, released in real time (module
+    docstring); ``slots.origin_s`` is set by the first frame (``sender.slots``).
 
-    A camera delivers in real time and limits its own rate. A file is resampled to the slots
-    of ``rate_hz``, slot ``k`` released at ``origin + t_0 + k / rate_hz`` (``Pacer``,
-    catching up lateness up to ``MAX_LAG_S``) and stamped with that time; a slot's frame is
-    known once a frame stamped beyond its quarter-period tolerance has been read, or the file
-    has ended. A looped file's times keep increasing across passes. Waits end early when
-    ``stop`` is set (the caller checks it).
+    A camera delivers in real time and limits its own rate; its frames are numbered by
+    ``sender.slots.camera_slot``. A file is resampled to the slots of the rate, slot ``k``
+    released at ``origin + k / rate_hz`` and numbered (``SlotClock.release``: a frame
+    more than ``MAX_LAG_S`` late takes the present slot's number) and stamped with its media
+    time ``t_0 + k / rate_hz``;
+    a slot's frame is known once a frame stamped beyond its quarter-period tolerance has been
+    read, or the file has ended. A looped file's times keep increasing across passes. Waits
+    end early when ``stop`` is set (the caller checks it).
 
     Raises:
         CaptureError: a pass yields no frame (an empty video).
     """
-    if source.live:
+    if isinstance(source, CameraSource):
         with FrameThread(source, latest=True) as frames:
-            yield from ((frame.image, frame.time) for frame in frames)
+            for frame in frames:
+                if slots.origin_s is None:
+                    assert source.origin_s is not None  # set by the first frame read
+                    slots.origin_s = source.origin_s + slots.skew_s()
+                yield frame.image, frame.time, camera_slot(frame.time, slots.rate_hz)
         return
-    period = 1.0 / rate_hz
-    pacer = Pacer(sleep=stop.wait, catch_up_s=MAX_LAG_S)
+    period = 1.0 / slots.rate_hz
     offset, t0, slot = 0.0, 0.0, 0
     held: np.ndarray | None = None  # the latest frame read: the current slot's
     while True:
@@ -153,8 +166,7 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
                 if held is None:
                     t0 = t
                 while held is not None and t0 + (slot + 0.25) * period < t:
-                    pacer.wait(t0 + slot * period)
-                    yield held, t0 + slot * period
+                    yield held, t0 + slot * period, slots.release(slot)
                     slot += 1
                 held = frame.image
         if last is None:
@@ -164,8 +176,7 @@ def _frames(source: Source, rate_hz: float, loop: bool, stop: threading.Event
         offset += last + 1.0 / source.rate_hz
     assert held is not None  # the source held frames (above)
     while t0 + (slot - 0.25) * period <= offset + last:  # the slots of the last frame
-        pacer.wait(t0 + slot * period)
-        yield held, t0 + slot * period
+        yield held, t0 + slot * period, slots.release(slot)
         slot += 1
 
 
@@ -176,7 +187,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          frames: slice = slice(0, None), start: threading.Event | None = None,
          learn: bool = True, updates: UpdateStore | None = None,
          insecure: bool = False,
-         warn: Callable[[str], None] | None = None) -> dict[str, Any]:
+         warn: Callable[[str], None] | None = None,
+         clock: Clock = time.monotonic) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -205,6 +217,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         warn: called once, before streaming (the model, source and sockets accepted),
             with ``sender.pipeline.identity_warning``'s line when the model cannot hold its
             person (no face descriptors).
+        clock: the sender's clock (``protocol.clock``): capture times and the answers to
+            time requests; ``time.monotonic`` but in tests.
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -252,12 +266,13 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         if store.model_sha256 != hello.model_sha256:
             raise ValueError(f"updates: a store of model {store.model_sha256[:12]}, this "
                              f"sender's model is {hello.model_sha256[:12]}")
-        responder = Responder(server, hello, chunks, store)
+        responder = Responder(server, hello, chunks, store, clock=clock)
         responder.start()
         stack.callback(responder.stop)
+        slots = SlotClock(rate, MAX_LAG_S, clock, stop.wait)
         try:
-            counts, stopped = _stream(src, pipeline, publisher, log, peers, rate, loop, stop,
-                                      report, start, store)
+            counts, stopped = _stream(src, pipeline, publisher, log, peers, slots, loop, stop,
+                                      report, start, store, responder)
         except CaptureError:
             if log is not None and log.records == 0:
                 log.close()
@@ -291,13 +306,15 @@ def _rates(counts: dict[str, Any]) -> dict[str, Any]:
 
 
 def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
-            log: LogWriter | None, peers: PeerCounter, rate_hz: float, loop: bool,
+            log: LogWriter | None, peers: PeerCounter, slots: SlotClock, loop: bool,
             stop: threading.Event, report: Status, hold: threading.Event | None,
-            store: UpdateStore) -> tuple[dict[str, Any], str]:
+            store: UpdateStore, responder: Responder) -> tuple[dict[str, Any], str]:
     """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
-    the first frame waits until it is set (or ``stop`` is). An update the pipeline learns on
-    a frame is published to the receivers (``store``) in its bytes and logged, after that
-    frame's packet (which still names the version before it)."""
+    the first frame waits until it is set (or ``stop`` is). Each packet's seq is its slot
+    (``sender.slots``); once the first frame has set the slots' origin, the Hello announces
+    it (``clock_origin_s``). An update the pipeline learns on a frame is published to the
+    receivers (``store``) in its bytes and logged, after that frame's packet (which still
+    names the version before it)."""
     counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0,
                               "updates": 0}
     start = cpu = None
@@ -309,13 +326,17 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
         while hold is not None and not hold.wait(CONTROL_POLL_MS / 1000) \
                 and not stop.is_set():
             pass
-        for image, t in _frames(src, rate_hz, loop, stop):
+        for image, t, slot in _frames(src, slots, loop, stop):
             if stop.is_set():
                 stopped = "stop"
                 break
             if start is None:  # the stream's time counts from its first frame's arrival
                 start, cpu = time.monotonic(), time.process_time()
                 window = (start, 0)
+            if responder.hello.clock_origin_s != slots.origin_s:
+                responder.announce(dataclasses.replace(responder.hello,
+                                                       clock_origin_s=slots.origin_s))
+            pipeline.set_slot(slot)
             out = pipeline.process(image, t)
             publisher.send(out.packet)
             if log is not None:

@@ -27,6 +27,7 @@ from facewire.protocol.control import (
     Hello,
     HelloRequest,
     ModelRequest,
+    TimeRequest,
     decode_message,
     model_chunks,
 )
@@ -78,6 +79,7 @@ class LogSender(threading.Thread):
         self.dropped = 0
         self.curve = curve
         self.requests: Counter[str] = Counter()
+        self.time_requests = 0  # refused, and not among ``requests``
         self.sent = 0
         self.junk = 0
         self.bound = threading.Event()
@@ -128,6 +130,10 @@ class LogSender(threading.Thread):
 
     def _answer(self, ctl: ControlServer, peer: tuple[bytes, ...], raw: bytes) -> None:
         message = decode_message(raw)
+        if isinstance(message, TimeRequest):  # a sender without a clock, as before it had one
+            self.time_requests += 1
+            ctl.reply(peer, Error("unknown request"))
+            return
         self.requests[message.TYPE] += 1
         n = self.requests.total()
         if n in self.faulty:

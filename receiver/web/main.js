@@ -208,6 +208,9 @@ class Page {
       this.enqueue(() => this.loadBase(message));
     }
     else if (type === "update") this.update(message);
+    else if (type === "clock") {
+      if (!this.stats.clock(message, now())) this.counts.junk += 1;
+    }
     else this.counts.junk += 1;
   }
 
@@ -421,6 +424,7 @@ class Page {
     show("kbps", s.kbps.toFixed(2));
     show("loss", s.loss_percent === null ? "-" : `${s.loss_percent.toFixed(1)} % (${s.lost} lost in all)`);
     show("latency", s.latency_ms === null ? "-" : `${s.latency_ms.toFixed(0)} ms`);
+    show("glass", s.glass_ms === null ? "-" : `${s.glass_ms.toFixed(0)} ms`);
     show("render", s.render_ms === null ? "-" : `${s.render_ms.toFixed(1)} ms`);
     show("state", this.state === null ? "-" : `${this.state.status}, seq ${this.state.seq}`);
     show("version", this.shown === null ? "-" : `${this.shown} (${this.versions.length} held)`);

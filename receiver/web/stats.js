@@ -6,6 +6,9 @@
  *   kbit/s     = 8 * packet bytes received in the window / 1000 / WINDOW_S
  *   latency    = the median, over the window's frames that played a packet, of the time from
  *                that packet's arrival (its WebSocket message) to its frame rendered, ms
+ *   glass      = glass-to-glass: the median, over the same frames, of the time from the
+ *                packet's capture at the sender to its frame rendered, ms (null until a
+ *                ``clock`` message came; below)
  *   loss %     = 100 * lost / slots, over the slots played in the window, ``lost`` as the
  *                Python receiver counts it: slots concealed (their packet missing) that a
  *                played packet follows, so that a sender gone (the head easing to rest, then
@@ -16,11 +19,21 @@
  *                the software renderer's) time is in it
  *
  * and totals since the page opened: frames, slots, lost, packets, bytes.
+ *
+ * The clock (protocol/clock.py). The gateway sends ``clock`` messages: ``origin_s`` and
+ * ``rate_hz`` (slot n captured at origin_s + n / rate_hz) and ``now_s``, on the gateway's
+ * clock. A message that arrives at ``a`` on the page's clock was sent at now_s = a + theta -
+ * d, theta the gateway's clock minus the page's and d >= 0 its delay, so theta >= now_s - a:
+ * the page takes the largest now_s - a of the last CLOCK_SAMPLES messages (the least
+ * delayed), which errs by that message's delay (under a millisecond on one host). A played
+ * packet's seq n (16 bits) is extended to the wrap nearest its arrival.
  */
 
 export const WINDOW_S = 1.0;
 export const MAX_GAP_S = 10.0; // receiver/receiver.py
 export const TIMED_FRAMES = 16;
+export const CLOCK_SAMPLES = 16;
+const SEQ_WRAP = 65536;
 
 function median(values) {
   if (values.length === 0) return null;
@@ -40,6 +53,27 @@ export class PageStats {
     this._pending = []; // the times of concealed slots no played packet followed yet
     this._frames = []; // [time, latency s | null]
     this._timed = []; // the last TIMED_FRAMES frame times, s
+    this._clock = null; // the last clock message: {origin_s, rate_hz}
+    this._thetas = []; // now_s - arrival of the last CLOCK_SAMPLES clock messages
+  }
+
+  /** A ``clock`` message arrived at ``arrivalS``; a malformed one is ignored (false). */
+  clock(message, arrivalS) {
+    const {origin_s: origin, rate_hz: rate, now_s: sent} = message;
+    if (![origin, rate, sent].every(Number.isFinite) || !(rate > 0)) return false;
+    this._clock = {origin, rate};
+    this._thetas.push(sent - arrivalS);
+    if (this._thetas.length > CLOCK_SAMPLES) this._thetas.shift();
+    return true;
+  }
+
+  /** The capture time of a played state on the page's clock, s, or null without a clock. */
+  capture(state) {
+    if (this._clock === null || state.arrival_s === null || state.seq === null) return null;
+    const theta = Math.max(...this._thetas);
+    const {origin, rate} = this._clock;
+    const m = Math.round(((state.arrival_s + theta - origin) * rate - state.seq) / SEQ_WRAP);
+    return origin + (state.seq + SEQ_WRAP * m) / rate - theta;
   }
 
   /** A packet of ``size`` bytes arrived at ``arrivalS``. */
@@ -68,14 +102,16 @@ export class PageStats {
    * timed (else null). */
   frame(nowS, state, renderS) {
     this.totals.frames += 1;
-    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s]);
+    const capture = this.capture(state);
+    this._frames.push([nowS, state.arrival_s === null ? null : nowS - state.arrival_s,
+      capture === null ? null : nowS - capture]);
     if (renderS !== null) {
       this._timed.push(renderS);
       if (this._timed.length > TIMED_FRAMES) this._timed.shift();
     }
   }
 
-  /** The live statistics as of ``nowS``: fps, kbps, loss_percent, latency_ms, render_ms (null
+  /** The live statistics as of ``nowS``: fps, kbps, loss_percent, latency_ms, glass_ms, render_ms (null
    * when the window holds nothing to measure) and the totals. */
   live(nowS) {
     const floor = nowS - WINDOW_S;
@@ -87,12 +123,14 @@ export class PageStats {
     const latencies = this._frames.filter(([, latency]) => latency !== null).map(([, latency]) => latency);
     const lost = this._slots.filter(([, l]) => l).length;
     const latency = median(latencies);
+    const glass = median(this._frames.filter(([, , g]) => g !== null).map(([, , g]) => g));
     const render = median(this._timed);
     return {
       fps: round(this._frames.length / WINDOW_S, 1),
       kbps: round(this._packets.reduce((sum, [, n]) => sum + n, 0) * 8 / 1000 / WINDOW_S, 2),
       loss_percent: this._slots.length ? round(100 * lost / this._slots.length, 1) : null,
       latency_ms: latency === null ? null : round(1000 * latency, 1),
+      glass_ms: glass === null ? null : round(1000 * glass, 1),
       render_ms: render === null ? null : round(1000 * render, 2),
       ...this.totals,
     };
