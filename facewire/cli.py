@@ -97,7 +97,9 @@ def _send(args: argparse.Namespace) -> int:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
                  status=line, loop=args.loop, learn=not args.no_learn,
                  insecure=args.insecure,
-                 warn=lambda text: print(f"facewire send: {text}", file=sys.stderr))
+                 warn=lambda text: print(f"facewire send: {text}", file=sys.stderr),
+                 audio=not args.no_audio, mic=args.mic,
+                 voice_bitrate=round(args.voice_kbps * 1000))
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
@@ -106,7 +108,9 @@ def _send(args: argparse.Namespace) -> int:
                f"{s['model_chunks']} chunks), {s['updates']} model updates "
                f"({s['update_bytes_total']} bytes; {s['control']['update_bytes']} bytes of "
                f"update chunks served); stopped: {s['stopped']}"
-               + (f"; log: {s['log']}" if s["log"] else "")], args.json)
+               + (f"; log: {s['log']}" if s["log"] else ""),
+               *([f"voice ({s['voice']}): {s['voice_packets']} packets, {s['audio_kbps']} "
+                  f"kbit/s"] if s["voice"] else [])], args.json)
     return 0
 
 
@@ -707,7 +711,6 @@ def _bench_clips(args: argparse.Namespace) -> int:
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
     from facewire.receiver.speaker import check_sound
-    from facewire.receiver.speaker import check_sound
     from facewire.sender.enroll.occluders import check_hand_model
 
     print(check_egl())
@@ -818,6 +821,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "encrypt, and admit only the receivers in DIR/authorized")
     _add_insecure(s)
     _add_no_learn(s)
+    _add_voice(s, "send")
     _add_json(s)
     s.set_defaults(run=_send)
 
@@ -838,6 +842,22 @@ def _add_send_receive(sub: Commands) -> None:
                    "connect only to the sender whose key is in DIR/authorized")
     _add_json(r)
     r.set_defaults(run=_receive)
+
+
+def _add_voice(parser: argparse.ArgumentParser, command: str) -> None:
+    """The voice's options of ``send`` (``--mic``, ``--voice-kbps``) and of ``receive``
+    (``--speaker``), and ``--no-audio`` of both."""
+    parser.add_argument("--no-audio", action="store_true", help="no voice: the face alone")
+    if command == "send":
+        parser.add_argument("--mic", metavar="DEVICE", help="take the voice from this "
+                            "microphone (mic:N, or a device name; see 'facewire check'); by "
+                            "default a video file's own sound track")
+        parser.add_argument("--voice-kbps", type=float, default=DEFAULT_BITRATE / 1000,
+                            help="Opus's rate, kbit/s, 6 to 24 (default %(default)g: with "
+                            "its packet headers 11.6 kbit/s)")
+    else:
+        parser.add_argument("--speaker", metavar="DEVICE", help="play the voice on this "
+                            "output device (its index or name; default: the default output)")
 
 
 def _add_no_learn(parser: argparse.ArgumentParser) -> None:

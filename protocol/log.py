@@ -40,18 +40,18 @@ serial and length are in range, it fits in the file, its CRC-32 matches and its 
 finite (a CRC-32 that matches by chance at a wrong offset has odds of 1 in 2**32). After a
 bad record it re-synchronises by searching forward byte by byte for the next intact one
 (trying only the offsets whose byte after the time is a packet's first byte, the update
-tag or the voice tag), so inserted or deleted bytes cost only the records they touch. Reading is linear in the
-file's size whatever it holds: an update record's head can be forged every few bytes, each
-declaring a body that reaches far ahead, so the bytes hashed to check update records are at
-most ``CHECK_FACTOR`` times the file's size (plus one largest update); past that budget an
-update head is taken for unusable bytes (no honest log comes near it: each of its bytes is
-hashed once). It reports what was
-lost: a run of unusable bytes that begins with an update record's head (tag, serial and
-length in range) holds one lost update record of that length (or the rest of the run,
-whichever is shorter); the rest of the run counts as its length in packet records, rounded,
-and at least one; a run that begins with a voice record's head (tag and length in range)
-counts one lost voice record. ``PacketLog.missing_serials`` are the update serials between 1 and the
-highest any intact record names (an update's own, or a packet's ``serial``) that no intact
+tag or the voice tag), so inserted or deleted bytes cost only the records they touch.
+Reading is linear in the file's size whatever it holds: an update record's head can be
+forged every few bytes, each declaring a body that reaches far ahead, so the bytes hashed to
+check update records are at most ``CHECK_FACTOR`` times the file's size (plus one largest
+update); past that budget an update head is taken for unusable bytes (no honest log comes
+near it: each of its bytes is hashed once). It reports what was lost: a run of unusable
+bytes that begins with an update record's head (tag, serial and length in range) holds one
+lost update record of that length (or the rest of the run, whichever is shorter); the rest of
+the run counts as its length in packet records, rounded, and at least one; a run that begins
+with a voice record's head (tag and length in range) counts one lost voice record.
+``PacketLog.missing_serials`` are the update serials between 1 and the highest any intact
+record names (an update's own, or a packet's ``serial``) that no intact
 update record holds: the updates a replay cannot apply, whose frames it plays clamped.
 
 Format 1 (before model updates) is format 2 without update records, and format 2 (before the
@@ -67,6 +67,7 @@ from __future__ import annotations
 import math
 import os
 import struct
+import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -177,7 +178,9 @@ class PacketLog:
 
 
 class LogWriter:
-    """Appends records to a new log. Use as a context manager, or call ``close``.
+    """Appends records to a new log. Use as a context manager, or call ``close``. Records may
+    be written from several threads (the send loop's face, its voice thread): each is one
+    ``write`` under a lock, so records never interleave.
 
     Attributes:
         records: packet records written.
@@ -190,6 +193,7 @@ class LogWriter:
         body = encode_message(hello)
         head = _HEAD.pack(MAGIC, FORMAT_VERSION, PACKET_BYTES, len(body)) + body
         self._file = open(self.path, "wb", buffering=0)
+        self._lock = threading.Lock()
         self._file.write(head + _CRC.pack(zlib.crc32(head)))
         self.records = 0
         self.updates = 0
@@ -200,7 +204,7 @@ class LogWriter:
         if len(packet) != PACKET_BYTES:
             raise ValueError(f"packet has {len(packet)} bytes, expected {PACKET_BYTES}")
         record = _TIME.pack(time) + packet
-        self._file.write(record + _CRC.pack(zlib.crc32(record)))
+        self._append(record)
         self.records += 1
 
     def write_update(self, time: float, serial: int, data: bytes) -> None:
@@ -218,7 +222,7 @@ class LogWriter:
             raise ValueError(f"update {serial} has {len(data)} bytes, expected 1 .. "
                              f"{MAX_UPDATE_BYTES}")
         record = _UPDATE_HEAD.pack(time, UPDATE_TAG, serial, len(data)) + bytes(data)
-        self._file.write(record + _CRC.pack(zlib.crc32(record)))
+        self._append(record)
         self.updates += 1
 
     def write_voice(self, packet: bytes, time: float) -> None:
@@ -227,11 +231,16 @@ class LogWriter:
             raise ValueError(f"voice packet has {len(packet)} bytes, expected "
                              f"{_MIN_VOICE_BYTES} .. {MAX_VOICE_BYTES}")
         record = _VOICE_HEAD.pack(time, VOICE_TAG, len(packet)) + bytes(packet)
-        self._file.write(record + _CRC.pack(zlib.crc32(record)))
+        self._append(record)
         self.voice += 1
 
+    def _append(self, record: bytes) -> None:
+        with self._lock:
+            self._file.write(record + _CRC.pack(zlib.crc32(record)))
+
     def close(self) -> None:
-        self._file.close()
+        with self._lock:
+            self._file.close()
 
     def __enter__(self) -> LogWriter:
         return self

@@ -2,11 +2,15 @@
 
 Sources (``open_voice``):
 
-- a video file's own sound track (``models.infra.sound``): frame ``j`` holds the file's
-  samples from ``t0 + j * 20 ms``, ``t0`` the file time of the face's first slot, so the
-  voice is cut on the timeline the face's frames are stamped on; a looped file's sound loops
-  with the same period as its frames (``loop_s``). A file without a sound track sends no
-  voice (one line says so);
+- a video file's own sound track (``models.infra.sound``): frame ``j`` holds the sound of
+  stream time ``t0 + j * 20 ms``, ``t0`` the stream time of the face's first slot, so the
+  voice is cut on the timeline the face's frames are stamped on. A looped file's stream time
+  runs on across passes; ``passes`` holds each pass's start offset (the send loop's, as it
+  reads the file), and stream time ``t`` is file time ``t - o`` for the last pass offset
+  ``o`` whose first frame is at or before ``t``, so the sound loops exactly where the frames
+  do. After the face's stream stalled and skipped slots (``sender.slots``), the face's
+  stream time is ``lag_s`` behind its capture clock; the voice follows it (the send loop
+  sets ``lag_s``). A file without a sound track sends no voice (one line says so);
 - a microphone (``mic:N`` or a device name, through sounddevice/PortAudio): 48 kHz mono
   blocks of one frame each, as the device delivers them. No such device, or no PortAudio, is
   one clear line (``VoiceSourceError``), and the face goes on without voice.
@@ -27,12 +31,11 @@ packet (``protocol.voice``) to ``publish``, which must be safe to call from that
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,18 +53,20 @@ class VoiceSourceError(FacewireError, RuntimeError):
 
 @dataclass
 class FileVoice:
-    """A file's sound cut into frames from file time ``t0``; ``loop_s``: the period of a
-    looped file (None: the sound ends with the file, then silence)."""
+    """A file's sound cut into frames from stream time ``t0`` (module docstring); after the
+    end of the file's last pass, silence."""
 
     sound: Sound
-    t0: float
-    loop_s: float | None = None
+    t0: float = 0.0
+    passes: list[float] = field(default_factory=lambda: [0.0])
+    lag_s: float = 0.0
 
     def frame(self, j: int) -> np.ndarray:
         """(FRAME_SAMPLES,) int16: frame ``j``."""
-        t = self.t0 + j * FRAME_S
-        if self.loop_s is not None and self.loop_s > 0:
-            t = self.t0 + math.fmod(j * FRAME_S, self.loop_s)
+        t = self.t0 + j * FRAME_S - self.lag_s
+        first = self.t0 - self.passes[0]  # the first frame's time in the file
+        offset = max((o for o in self.passes if o + first <= t + 1e-9), default=0.0)
+        t -= offset
         pcm = self.sound.between(t, t + FRAME_S)
         return pcm[:FRAME_SAMPLES] if len(pcm) >= FRAME_SAMPLES else np.pad(
             pcm, (0, FRAME_SAMPLES - len(pcm)))

@@ -10,18 +10,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_endpoint, start
 
 from facewire.bench.inspect import inspect_log
 from facewire.bench.speech import SpeechError, speech_quality
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
-from facewire.protocol.control import Camera, Hello
+from facewire.protocol.control import Camera, Hello, HelloRequest
 from facewire.protocol.log import RECORD_BYTES, VOICE_TAG, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, encode_frames
-from facewire.protocol.transport import PacketPublisher, PacketSubscriber, free_loopback_endpoint
+from facewire.protocol.transport import (
+    ControlClient,
+    PacketPublisher,
+    PacketSubscriber,
+    control_endpoint,
+    free_loopback_endpoint,
+)
 from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
 from facewire.receiver.output import VideoWriter
 from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
+from facewire.sender.sender import send
 from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
 
 SPEECH = "hdtf_edmarkey.mp4"
@@ -357,3 +365,53 @@ def test_speech_quality_falls_with_loss_and_the_codec_alone_holds_speech(
     assert "30 % loss" in lines[-1]
     with pytest.raises(SpeechError, match="no sound track"):
         speech_quality(shared_data / "video" / "openface_gaze.avi")
+
+
+def test_send_streams_the_files_voice_beside_the_face_and_logs_it(
+        generic_model: Path, shared_data: Path, tmp_path: Path) -> None:
+    """hdtf_edmarkey's frames 0:75 (3 s at 25 Hz) sent live: the voice packets go out on the
+    face's socket, numbered from the face's origin, and the log keeps them."""
+    clip = shared_data / "video" / SPEECH
+    endpoint, log_path = free_endpoint(), tmp_path / "voice.fwlog"
+    warnings: list[str] = []
+    with PacketSubscriber(endpoint) as sub, ControlClient(control_endpoint(endpoint)) as client:
+        thread, _, result = start(send, model_path=generic_model, source=str(clip),
+                                  bind=endpoint, record=log_path, frames=slice(0, 75),
+                                  learn=False, warn=warnings.append)
+        got: list[bytes] = []
+        hello = None
+        while thread.is_alive():
+            data = sub.recv(20)
+            if data is not None:
+                got.append(data)
+            if hello is None and sum(map(voice.is_voice, got)) >= 10:  # the voice has begun
+                hello = client.request(HelloRequest(), 5000)
+        while (data := sub.recv(300)) is not None:
+            got.append(data)
+        thread.join()
+    assert "error" not in result, result.get("error")
+    assert isinstance(hello, Hello) and hello.voice_bitrate == opus.DEFAULT_BITRATE
+    assert hello.voice_origin_s == hello.clock_origin_s  # a file's voice starts with its face
+    voices = [voice.decode(d) for d in got if voice.is_voice(d)]
+    seconds = 75 / 25
+    assert result["voice"] == "file" and result["voice_packets"] >= 0.9 * seconds / opus.FRAME_S
+    assert result["audio_kbps"] == pytest.approx(11.6, rel=0.15)
+    assert [p.seq for p in voices] == list(range(voices[0].seq, voices[0].seq + len(voices)))
+    log = read_log(log_path)
+    assert len(log.voice) == result["voice_packets"] and len(log.packets) == result["packets"]
+    decoder = opus.Decoder()
+    played = np.stack([decoder.decode(voice.decode(r.data).opus) for r in log.voice])
+    sound = read_sound(clip)
+    assert sound is not None
+    source = sound.pcm[:len(played) * opus.FRAME_SAMPLES].reshape(len(played), -1)
+    r = np.corrcoef(_envelope(source[:-1]), _envelope(played[1:]))[0, 1]
+    assert r > 0.9  # the file's sound from its first frame on, in order
+
+
+def test_a_silent_source_sends_the_face_alone_and_says_so(
+        generic_model: Path, shared_data: Path) -> None:
+    warnings: list[str] = []
+    result = send(generic_model, str(shared_data / "video" / "openface_gaze.avi"),
+                  bind=free_endpoint(), frames=slice(0, 10), learn=False, warn=warnings.append)
+    assert result["voice"] is None and result["voice_packets"] == 0
+    assert any("no sound track" in w for w in warnings)
