@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeAlias, TypeVar
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.opus import DEFAULT_BITRATE
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
 
 EXIT_USAGE = 2
@@ -660,12 +661,14 @@ def _encode(args: argparse.Namespace) -> int:
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
                      focal=args.focal, calib=args.calib, progress=_progress,
                      learn=not args.no_learn,
-                     warn=lambda text: print(f"facewire encode: {text}", file=sys.stderr))
+                     warn=lambda text: print(f"facewire encode: {text}", file=sys.stderr),
+                     audio=not args.no_audio)
     report(s, [f"log:      {s['log']}",
                f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
                f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
                f"flags:    {s['clamped']} frames clamped ({s['clamped_values']} values), "
                f"{s['held']} held, {s['mirrored']} mirrored, {s['tracking_lost']} tracking lost",
+               f"voice:    {s['voice_packets']} packets of 20 ms",
                f"learned:  {s['updates']} model updates"
                + (f" ({', '.join(s['update_regions'])})" if s["update_regions"] else ""),
                f"time:     {s['seconds']} s"], args.json)
@@ -879,6 +882,8 @@ def _add_encode_replay(sub: Commands) -> None:
                    "estimated from the image width)")
     e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
     _add_no_learn(e)
+    e.add_argument("--no-audio", action="store_true", help="leave the video's sound out of "
+                   "the log (by default it is kept as the voice)")
     _add_json(e)
     e.set_defaults(run=_encode)
 
