@@ -44,6 +44,8 @@ def _replay(args: argparse.Namespace) -> int:
                f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
                f"{s['lost_records']} damaged log records",
                *_replay_updates(s),
+               *([f"sound: {s['sound_s']} s from {s['voice_frames']} voice packets"]
+                 if s["voice_frames"] else []),
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
 

@@ -28,7 +28,9 @@ from facewire.protocol.transport import (
 )
 from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
 from facewire.receiver.output import VideoWriter
+from facewire.receiver.replay import replay_log
 from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
+from facewire.sender.pipeline import encode_video
 from facewire.sender.sender import send
 from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
 
@@ -415,3 +417,32 @@ def test_a_silent_source_sends_the_face_alone_and_says_so(
                   bind=free_endpoint(), frames=slice(0, 10), learn=False, warn=warnings.append)
     assert result["voice"] is None and result["voice_packets"] == 0
     assert any("no sound track" in w for w in warnings)
+
+
+def test_encode_keeps_the_sound_and_replay_writes_it_in_sync(
+        generic_model: Path, shared_data: Path, tmp_path: Path) -> None:
+    """hdtf_edmarkey's frames 25:75 encoded (the sound from 1 s on) and replayed: the file's
+    sound track is the source's sound from the first frame's time, starting with frame 0."""
+    clip = shared_data / "video" / SPEECH
+    log_path, out = tmp_path / "e.fwlog", tmp_path / "e.mp4"
+    summary = encode_video(generic_model, clip, log_path, slice(25, 75), learn=False)
+    assert summary["voice_packets"] == 100  # 50 frames at 25 Hz: 2 s of 20-ms frames
+    log = read_log(log_path)
+    assert log.hello.voice_bitrate == opus.DEFAULT_BITRATE
+    assert log.voice[0].time == pytest.approx(1.0 + opus.FRAME_S)  # logged once captured
+    assert np.all(np.diff([r.time for r in log.voice]) > 0)
+    replayed = replay_log(log_path, generic_model, out)
+    assert replayed["voice_frames"] == 100 and replayed["sound_s"] == pytest.approx(2.0)
+    sound, source = read_sound(out), read_sound(clip)
+    assert sound is not None and source is not None
+    assert sound.start == pytest.approx(0.0, abs=0.002)
+    n = len(sound.pcm) // opus.FRAME_SAMPLES - 2
+    got = sound.pcm[:n * opus.FRAME_SAMPLES].reshape(n, -1)
+    want = source.between(1.0, 1.0 + n * opus.FRAME_S).reshape(n, -1)
+    lags = {lag: np.corrcoef(_envelope(want[:n - 3]), _envelope(got[lag:n - 3 + lag]))[0, 1]
+            for lag in range(3)}
+    assert max(lags, key=lambda lag: lags[lag]) <= 1  # in sync, to Opus's look-ahead
+    assert max(lags.values()) > 0.9
+    silent = encode_video(generic_model, clip, tmp_path / "s.fwlog", slice(0, 5),
+                          learn=False, audio=False)
+    assert silent["voice_packets"] == 0 and read_log(tmp_path / "s.fwlog").voice == ()
