@@ -142,7 +142,8 @@ def _receive(args: argparse.Namespace) -> int:
             with _StatusLine(lambda line: line) as line:
                 s = receive(args.connect, args.model, args.out, args.frames, view,
                             args.curve_dir, size=_size(args.size), status=line, stop=stop,
-                            idle_timeout_s=args.idle_timeout)
+                            idle_timeout_s=args.idle_timeout, audio=not args.no_audio,
+                            speaker=args.speaker or "")
         finally:
             signal.signal(signal.SIGINT, previous)
     if s["model_sha256"] is None:
@@ -161,7 +162,13 @@ def _receive(args: argparse.Namespace) -> int:
                + (f"; wrote {s['out']}" if s["out"] else "") + f"; ended: {s['ended']}",
                f"model version {s['model_serial']}: {s['updates']} updates applied "
                f"({s['update_bytes']} bytes), {s['updates_refused']} refused; {s['clamped']} "
-               f"slots rendered before their update came (Q clamped)"],
+               f"slots rendered before their update came (Q clamped)",
+               *([f"voice on {s['speaker']}: {s['voice_received']} packets "
+                  f"({s['audio_kbps']} kbit/s), {s['voice_played']} played, "
+                  f"{s['voice_recovered']} rebuilt, {s['voice_concealed']} concealed, "
+                  f"{s['voice_late']} late, {s['voice_corrupt']} corrupt; sound behind the "
+                  f"face by {s['av_skew_ms_median']} ms median ({s['av_skew_ms_p5']} to "
+                  f"{s['av_skew_ms_p95']} ms, 5-95 %)"] if s.get("voice_received") else [])],
            args.json)
     return 0
 
@@ -845,6 +852,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "packets (default: run until Ctrl-C)")
     r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "connect only to the sender whose key is in DIR/authorized")
+    _add_voice(r, "receive")
     _add_json(r)
     r.set_defaults(run=_receive)
 

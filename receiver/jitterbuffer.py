@@ -63,6 +63,7 @@ class JitterBuffer:
         self._next: int | None = None  # the frame to play next; None: priming
         self._first: int | None = None  # the stream's first buffered frame while priming
         self._concealed_run = 0
+        self.pulled: int | None = None  # the extended number of the last pull's frame
         self.stats = dict.fromkeys(("received", "played", "recovered", "concealed", "silent",
                                     "late", "duplicate", "dropped", "corrupt", "resets"), 0)
 
@@ -107,6 +108,7 @@ class JitterBuffer:
 
     def pull(self) -> np.ndarray:
         """(FRAME_SAMPLES,) int16: the next 20 ms of sound (module docstring)."""
+        self.pulled = None
         if self._next is None:
             if self._first is None or self.depth <= self.target:
                 self.stats["silent"] += 1
@@ -117,6 +119,7 @@ class JitterBuffer:
             self._next += 1
             self.stats["dropped"] += 1
         n, self._next = self._next, self._next + 1
+        self.pulled = n
         data = self._packets.pop(n, None)
         following = self._packets.get(n + 1)
         try:

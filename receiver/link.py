@@ -24,7 +24,9 @@ State machine
     the seq: a restarted sender, or one that gave up slots after a stall);
   - the playout resynced (``note_restart``);
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
-    frame, or the sender is older) and a packet came: asked once per Hello taken.
+    frame, or the sender is older), or announces a voice without its origin
+    (``voice_origin_s``: asked before the voice began), and a packet came: asked once per
+    Hello taken.
 
 - DUE: the caller asks at once (``RECHECK_TIMEOUT_S``); unanswered, again from
   ``next_check``, every ``RECHECK_EVERY_S``. Meanwhile the receiver renders on, the gateway
@@ -140,7 +142,7 @@ class SenderLink:
 
     def take(self, hello: Hello) -> None:
         """The Hello now played (or served): later answers are classified against it."""
-        if hello.clock_origin_s != (self.hello.clock_origin_s if self.hello else None):
+        if _origins(hello) != (_origins(self.hello) if self.hello else None):
             self._clock_asked = False
         self.hello = hello
 
@@ -179,8 +181,9 @@ class SenderLink:
         self._last_arrival = arrival
         if seq is not None:
             self._last_seq = seq
-        clockless = self.hello is not None and self.hello.clock_origin_s is None and \
-            not self._clock_asked
+        clockless = self.hello is not None and not self._clock_asked and (
+            self.hello.clock_origin_s is None or
+            self.hello.voice_bitrate is not None and self.hello.voice_origin_s is None)
         if clockless:
             self._clock_asked = True
         if resumed or jumped:
@@ -197,3 +200,8 @@ class SenderLink:
     def check_due(self, now: float) -> bool:
         """Whether to ask for the Hello now."""
         return self.due and now >= self.next_check
+
+
+def _origins(hello: Hello) -> tuple[float | None, float | None]:
+    """The face's and the voice's clock origins a Hello announces."""
+    return hello.clock_origin_s, hello.voice_origin_s
