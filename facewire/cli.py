@@ -651,6 +651,16 @@ def _bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_sync(args: argparse.Namespace) -> int:
+    from facewire.bench.speech import losses
+    from facewire.bench.sync import sync
+    from facewire.report import report
+
+    report(*sync(args.model, args.source, losses(args.loss), _frames(args.frames),
+                 progress=_progress), args.json)
+    return 0
+
+
 def _bench_fanout(args: argparse.Namespace) -> int:
     from facewire.bench.fanout import DEFAULT_VIEWERS, fanout
     from facewire.report import report
@@ -979,6 +989,16 @@ def _add_bench(sub: Commands) -> None:
                     help="score only the first N held-out frames of each")
     _add_json(br)
     br.set_defaults(run=_bench_reproductions)
+    bsy = bsub.add_parser("sync", help="face and voice sent and received live on loopback: "
+                          "their playout skew, the lip sync in the received video, and the "
+                          "voice's speech quality (PESQ-WB) at packet losses")
+    bsy.add_argument("--model", required=True, help="person model (.fwm) of the clip's person")
+    bsy.add_argument("--source", required=True, help="a talking video with its sound track")
+    bsy.add_argument("--frames", help="frame range A:B of the video to send (default: all)")
+    bsy.add_argument("--loss", default="0,10,30", metavar="L,L,...",
+                     help="packet losses to score the speech at, percent (default %(default)s)")
+    _add_json(bsy)
+    bsy.set_defaults(run=_bench_sync)
     bc = bsub.add_parser("clips", help="every single-person shared clip: a model from its first "
                          "40 %%, scored on the rest beside x264 at its floor, one table")
     bc.add_argument("--data", required=True, help="the shared data folder (holds video/)")

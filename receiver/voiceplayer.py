@@ -15,9 +15,10 @@ video file's sound track) with the time it went out.
 Sync (``av_skew_ms``): both streams' capture times are on the sender's clock (the Hello's
 ``clock_origin_s`` and ``voice_origin_s``; ``protocol.clock``), and the receiver moves them
 to its own with one offset estimate. For each voice frame played, its latency (out time minus
-capture) less the latency of the face frame whose capture was nearest (``face``: the
-receiver reports each frame it shows) is the skew: positive when the sound comes later than
-the face it was captured with. The offset cancels in that difference, so only the two
+capture) less the latency of the last face frame out (``face``: the receiver reports each
+frame it shows; none when it was out more than ``FACE_STALE_S`` before) is the skew: what
+the viewer meets at that moment, positive when the sound comes later after its capture than
+the face does after its own. The offset cancels in that difference, so only the two
 streams' own delays count. Over the session: ``av_skew_ms_median``, ``av_skew_ms_p95`` (the
 95th percentile: how far behind the sound is at worst but 5 %) and ``av_skew_ms_p5`` (the
 5th: how far ahead, when negative); ITU-R BT.1359 finds sound noticed from 45 ms ahead of
@@ -43,7 +44,7 @@ from facewire.receiver.jitterbuffer import JitterBuffer
 from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
 
 VOICE_RATE_HZ = 1.0 / FRAME_S  # voice frames are slots of 50 Hz on the sender's clock
-FACE_KEPT = 256  # the face frames remembered for the skew (about 8 s at 30 Hz)
+FACE_STALE_S = 0.5  # a face frame older than this is no reference for the skew
 SKEWS_KEPT = 30_000  # 10 minutes of voice frames
 
 OnSound = Callable[[np.ndarray, float], None]
@@ -69,8 +70,9 @@ class VoicePlayer:
         self._buffer = JitterBuffer()
         self._lock = threading.Lock()
         self._on_sound, self._to_local = on_sound, to_local
-        self._faces: deque[tuple[float, float]] = deque(maxlen=FACE_KEPT)  # (capture, out)
+        self._face: tuple[float, float] | None = None  # the last face frame's (capture, out)
         self.skews: deque[float] = deque(maxlen=SKEWS_KEPT)
+        self.latencies: deque[float] = deque(maxlen=SKEWS_KEPT)  # capture to out, s
         self.corrupt: dict[str, int] = {}
         self.bytes = 0
         self.first: float | None = None  # the first arrival
@@ -109,7 +111,7 @@ class VoicePlayer:
     def face(self, capture: float, out: float) -> None:
         """A face frame captured at ``capture`` was out at ``out`` (this host's clock)."""
         with self._lock:
-            self._faces.append((capture, out))
+            self._face = (capture, out)
 
     def _pull(self) -> np.ndarray:
         with self._lock:
@@ -122,10 +124,11 @@ class VoicePlayer:
         if n is not None:
             capture = self._to_local(n % 65536, out)
             with self._lock:
-                if capture is not None and self._faces:
-                    face_capture, face_out = min(self._faces, key=lambda f: abs(f[0] - capture))
-                    if abs(face_capture - capture) < 0.1:
-                        self.skews.append((out - capture) - (face_out - face_capture))
+                if capture is not None:
+                    self.latencies.append(out - capture)
+                face = self._face
+                if capture is not None and face is not None and out - face[1] < FACE_STALE_S:
+                    self.skews.append((out - capture) - (face[1] - face[0]))
         if self._on_sound is not None and n is not None:
             self._on_sound(pcm, out)
 
@@ -136,22 +139,26 @@ class VoicePlayer:
     def summary(self) -> dict[str, Any]:
         """``voice_*`` counts (``receiver.jitterbuffer``'s, ``voice_corrupt`` with the packets
         that did not decode), ``voice_target_ms`` (the buffer's depth), ``audio_kbps`` (voice
-        packets' bytes over their span), ``av_skew_ms_median``, ``_p95``, ``_p5`` (None
-        without samples) and ``speaker`` (the device, or "none")."""
+        packets' bytes over their span), ``av_skew_ms_median``, ``_p95``, ``_p5``,
+        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples)
+        and ``speaker`` (the device, or "none")."""
         with self._lock:
             stats = dict(self._buffer.stats)
             skews = np.array(self.skews) * 1000
+            latencies = np.array(self.latencies) * 1000
             span = (self.last - self.first) if self.first is not None and self.last else 0.0
             corrupt = sum(self.corrupt.values())
-        def pct(q: float) -> float | None:
-            return round(float(np.percentile(skews, q)), 1) if len(skews) else None
+        def pct(q: float, values: np.ndarray = skews) -> float | None:
+            return round(float(np.percentile(values, q)), 1) if len(values) else None
 
         return {**{f"voice_{k}": v for k, v in stats.items() if k != "corrupt"},
                 "voice_corrupt": corrupt + stats["corrupt"],
                 "voice_target_ms": round(self._buffer.target * FRAME_S * 1000),
                 "audio_kbps": round(self.bytes * 8 / span / 1000, 3) if span > 0 else 0.0,
                 "av_skew_ms_median": pct(50), "av_skew_ms_p95": pct(95),
-                "av_skew_ms_p5": pct(5), "speaker": self.device}
+                "av_skew_ms_p5": pct(5),
+                "voice_glass_to_glass_ms_median": pct(50, latencies),
+                "voice_glass_to_glass_ms_p95": pct(95, latencies), "speaker": self.device}
 
 
 def voice_capture(seq: int, origin_s: float, near_s: float) -> float:
