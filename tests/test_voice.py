@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import free_endpoint, start
 
+from facewire.bench.bandwidth import bandwidth
 from facewire.bench.inspect import inspect_log
 from facewire.bench.speech import SpeechError, speech_quality
 from facewire.models.infra.sound import SoundError, read_sound
@@ -473,3 +474,27 @@ def test_receive_plays_the_voice_into_the_file_and_measures_the_sync(
     assert sound is not None
     heard = (got["voice_played"] + got["voice_recovered"] + got["voice_concealed"]) * opus.FRAME_S
     assert sound.seconds == pytest.approx(heard, abs=0.5)
+
+
+def test_bandwidth_reports_the_voice_beside_the_face(tmp_path: Path,
+                                                      speech: np.ndarray) -> None:
+    path = tmp_path / "b.fwlog"
+    frames = np.zeros(90, FRAME_DTYPE)
+    frames["seq"] = np.arange(90)
+    frames["translation"][:, 2] = -600
+    packets, _ = encode_frames(frames)
+    encoder = opus.Encoder()
+    with LogWriter(path, LOG_HELLO) as log:  # 3 s: a face packet per 1/30 s, voice per 20 ms
+        for j in range(150):
+            if j % 5 < 3:
+                k = j // 5 * 3 + j % 5
+                log.write(packets[k].tobytes(), 100.0 + k / 30)
+            log.write_voice(voice.encode(voice.VoicePacket(j, encoder.encode(speech[j]))),
+                            100.0 + (j + 1) * opus.FRAME_S)
+    summary, lines = bandwidth(path)
+    per_packet = opus.packet_bytes(opus.DEFAULT_BITRATE) + voice.HEADER_BYTES + voice.CRC_BYTES
+    assert summary["audio_kbps_max_1s"] == pytest.approx(per_packet * 8 * 50 / 1000)  # 11.6
+    assert summary["total_kbps_max_1s"] == pytest.approx(
+        summary["payload_kbps_max_1s"] + summary["audio_kbps_max_1s"])
+    assert summary["total_kbps_max_1s"] < 24  # the call's budget, each way
+    assert any(line.startswith("voice: 150 packets") for line in lines)
