@@ -120,8 +120,6 @@ def _send(args: argparse.Namespace) -> int:
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
-    import numpy as np
-
     from facewire.receiver.liveview import LiveView
     from facewire.receiver.receiver import receive
     from facewire.report import report
@@ -130,11 +128,7 @@ def _receive(args: argparse.Namespace) -> int:
         view = None
         if live is not None:
             print(f"facewire receive: live view at {live.url}", file=sys.stderr)
-
-            def view(frame: np.ndarray, stats: dict) -> None:
-                played = stats["received"] + stats["lost"]
-                live.publish(frame, {**stats, "loss_pct": 100 * stats["lost"] / played
-                                     if played else None})
+            view = live.show
 
         stop = threading.Event()
         previous = signal.signal(signal.SIGINT, lambda *_: stop.set())  # Ctrl-C: clean stop
@@ -171,6 +165,32 @@ def _receive(args: argparse.Namespace) -> int:
                   f"{s['av_skew_ms_p95']} ms, 5-95 %)"] if s.get("voice_received") else [])],
            args.json)
     return 0
+
+
+def _call(args: argparse.Namespace) -> int:
+    from facewire.call import call
+    from facewire.report import report
+
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())  # Ctrl-C: hang up
+    try:
+        with _StatusLine(lambda line: line) as line:
+            s = call(args.model, args.source, args.peer, args.bind, args.curve_dir, args.mic,
+                     args.speaker or "", not args.no_audio, args.loop, args.view_port,
+                     args.insecure, args.idle_timeout, stop, args.out,
+                     say=lambda text: print(f"facewire call: {text}", file=sys.stderr),
+                     status=line, voice_bitrate=round(args.voice_kbps * 1000))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    sent, got = s["send"], s["receive"]
+    report(s, [f"sent: {sent.get('frames', 0)} frames, {sent.get('voice_packets', 0)} voice "
+               f"packets ({sent.get('payload_kbps', 0)} + {sent.get('audio_kbps', 0)} kbit/s)",
+               f"received: {got.get('received', 0)} packets, {got.get('lost', 0)} lost; "
+               f"{got.get('voice_received', 0)} voice packets, "
+               f"{got.get('voice_concealed', 0)} concealed; sound behind the face by "
+               f"{got.get('av_skew_ms_median')} ms median; ended: {got.get('ended')}"],
+           args.json)
+    return 0 if "error" not in sent else 1
 
 
 def _size(text: str | None) -> tuple[int, int] | None:
@@ -865,6 +885,32 @@ def _add_send_receive(sub: Commands) -> None:
     _add_voice(r, "receive")
     _add_json(r)
     r.set_defaults(run=_receive)
+
+    c = sub.add_parser("call", help="a call: send this host's face and voice, and receive, "
+                       "show and play the other host's", description="One command per host: "
+                       "this host's face and voice go out at --bind, the other host's come in "
+                       "from --peer and are shown in a live view (its address is printed) "
+                       "with their voice. With --curve-dir each side admits only the other's "
+                       "key (the folder's authorized/ holds the other's public key alone).")
+    c.add_argument("--model", required=True, help="this host's person model (.fwm)")
+    c.add_argument("--source", required=True, help="camera:N or a video file (this host)")
+    c.add_argument("--peer", required=True, help="the other host's address, tcp://HOST:PORT")
+    c.add_argument("--bind", default="tcp://127.0.0.1:5555",
+                   help="where this host publishes (default %(default)s; control on PORT+1)")
+    c.add_argument("--curve-dir", help="this host's key folder; authorized/ holds the other "
+                   "host's public key")
+    c.add_argument("--loop", action="store_true", help="play a video file over and over")
+    c.add_argument("--view-port", type=int, default=0, help="the live view's port (default: "
+                   "any free one)")
+    c.add_argument("--out", help="also write the other side, with their voice, to this .mp4")
+    c.add_argument("--idle-timeout", type=float, help="end when the other side has been "
+                   "silent this many seconds (default: run until Ctrl-C)")
+    _add_insecure(c)
+    _add_voice(c, "send")
+    c.add_argument("--speaker", metavar="DEVICE", help="play the other's voice on this output "
+                   "device (its index or name; default: the default output)")
+    _add_json(c)
+    c.set_defaults(run=_call)
 
 
 def _add_voice(parser: argparse.ArgumentParser, command: str) -> None:
