@@ -68,8 +68,8 @@ def mouth_openings(images: list[np.ndarray], progress: Progress = no_progress) -
     for k, image in enumerate(progress(images, "mouth", len(images))):
         points = track_fresh(tracker, image)
         if points is not None:
-            eyes = np.linalg.norm(points[36] - points[45])
-            out[k] = np.linalg.norm(points[62] - points[66]) / max(eyes, 1e-6)
+            eyes = float(np.linalg.norm(points[36] - points[45]))
+            out[k] = float(np.linalg.norm(points[62] - points[66])) / max(eyes, 1e-6)
     return out
 
 
@@ -103,7 +103,7 @@ def lag_s(opening: np.ndarray, level: np.ndarray, rate_hz: float
     most = int(round(MAX_LAG_S * rate_hz))
     lags = np.arange(-most, most + 1)
     r = np.full(len(lags), -np.inf)
-    for i, lag in enumerate(lags):
+    for i, lag in enumerate(int(v) for v in lags):
         x = a[max(0, -lag):len(a) - max(0, lag)]
         y = b[max(0, lag):len(b) - max(0, -lag)]
         m = ok[max(0, -lag):len(a) - max(0, lag)]
