@@ -43,7 +43,8 @@ frame is rendered with the version its packet names, the one the sender classifi
 renders it (a replay of the session's log shows the same: ``receiver.replay``);
 ``model_updates`` lists each version past the model file's by ``serial`` and the video frame
 of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
-the last version's.
+the last version's. The texture's confidence and its healing (``texture_confidence_mean``,
+``patches``, ``first_patch_s``) are ``bench.healing``'s.
 
 What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
 full-frame detection per image, nothing carried from frame to frame) on the real frame, on
@@ -76,11 +77,21 @@ with the same frame numbers is not refused. ``overlap_frames`` is 0 for another 
 None for a model that stores no range (built before it was stored); ``model_source`` is the
 stored range.
 
+Steadiness (``bench.jitter``). On the consecutive frames where the real face is still (the
+5-frame mean of the fresh tracker's points on the real frame moves less than ``STILL`` =
+0.005 of the eye distance a frame), ``render_jitter_ratio`` is our rendering's
+frame-to-frame landmark motion over the real frame's, both tracked afresh as for the render
+NME (``jitter_still_frames`` pairs judged, ``jitter_real_motion``,
+``jitter_render_motion``); ``filter_lag_frames`` is how many frames the points the packets
+describe trail the sender's tracked points on the moving frames (cross-correlation of their
+velocities, ``lag_moving_frames``).
+
 Whom the sender followed (``bench.identity``): ``identity_switches``, the frames whose
-tracked face is not the model's person's, judged by the face descriptor on the real frame
-at the tracked points (``identity_frames`` judged, ``identity_distance_max``), and
-``reacquire_s``, the median time from the person's return to the first face packet (None
-when the face was never absent after it was first sent; ``reacquire_max_s``, ``returns``,
+tracked face is another person's (judged by face descriptors on the real frame: the
+tracked face's and the people's of the run), ``identity_unrecognised`` those recognised as
+nobody (``identity_frames`` judged, ``identity_distance_max``), and ``reacquire_s``, the
+median time from the person's return to the first face packet (None when no absence of
+the face was followed by a face packet; ``reacquire_max_s``, ``returns``,
 ``reacquire_missed``). All None for a model without descriptors.
 
 Appearance classification. ``q_regions`` gives, per region of the model in packet order
@@ -127,7 +138,11 @@ from facewire.bench.clips import subset
 from facewire.bench.encoding import Run, decode_run, encode_frames
 from facewire.bench.fidelity import gray_ssim, psnr, x264_reference
 from facewire.bench.geometry import GeometryNME, geometry_nme
+from facewire.bench.healing import healing_measures
 from facewire.bench.identity import identity_measures
+from facewire.bench.jitter import filter_lag, render_jitter, sent_points
+from facewire.bench.jitter import lines as steady_lines
+from facewire.bench.jitter import summary as steady_summary
 from facewire.bench.qplot import plot_q
 from facewire.bench.reference import q_agreement, read_openface
 from facewire.bench.render_nme import PARTS, FaceCounts, picture_nme
@@ -226,7 +241,10 @@ def measure_quality(model_path: str | os.PathLike[str], source: str | os.PathLik
         ``render_nme_mouth``, ``render_nme_eyes``, ``render_nme_brows``,
         ``render_nme_frames``, the same five with ``h264_`` in front,
         ``render_face_missing``, ``h264_face_missing``, ``real_face_missing``,
-        ``render_nme_seconds``, ``identity_switches``, ``identity_frames``,
+        ``render_nme_seconds``, ``render_jitter_ratio``, ``jitter_still_frames``,
+        ``jitter_real_motion``, ``jitter_render_motion``, ``jitter_still_below``,
+        ``filter_lag_frames``, ``lag_moving_frames``, ``identity_switches``,
+        ``identity_unrecognised``, ``identity_frames``,
         ``identity_distance_max``, ``reacquire_s``, ``reacquire_max_s``, ``returns``,
         ``reacquire_missed``, ``overlap_frames``, ``model_source``, ``targets``, ``met``,
         ``model``, ``source``, ``subset`` (``bench.clips``: "tuning", "evaluation" or None).
@@ -307,10 +325,14 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
     summary["model_updates"] = _model_updates(decoded, run.indices)
+    summary.update(healing_measures(model, pipeline.updates, decoded["serial"], run.times))
     appearance = _appearance(model, camera, decoded, run.tracked, posed, run.images,
                              stream_rate(src.rate_hz), summary["payload_kbps"], progress,
                              keep_examples=keep_eyes, versions=run.versions)
     summary.update(appearance.summary)
+    summary.update(steady_summary(
+        render_jitter(appearance.real_points, appearance.render_points, run.indices),
+        filter_lag(run.tracked, sent_points(Rig(model.mesh), camera, decoded, posed))))
     summary["met"]["face_ssim_above_h264"] = (
         appearance.summary["face_ssim_mean"] is not None
         and appearance.summary["h264_face_ssim_mean"] is not None
@@ -348,6 +370,8 @@ class _Appearance(NamedTuple):
     ssim: np.ndarray  # (F,) ours, NaN where not measured
     h264_ssim: np.ndarray  # (F,)
     examples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # k -> real, ours, x264
+    real_points: dict[int, np.ndarray]  # k -> (68, 2) fresh track of the real frame
+    render_points: dict[int, np.ndarray]  # k -> (68, 2) fresh track of our rendering
 
 
 def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
@@ -404,7 +428,7 @@ def _appearance(model: PersonModel, camera: Camera, decoded: np.ndarray,
                "h264_face_missing": missing["h264"],
                "real_face_missing": missing["real"],
                "render_nme_seconds": round(ours.tracking_s + fresh.seconds, 2)}
-    return _Appearance(summary, ssim, h264_ssim, examples)
+    return _Appearance(summary, ssim, h264_ssim, examples, real_points, ours.render_points)
 
 
 def _render_at_most_h264(r: dict[str, Any]) -> bool:
@@ -530,6 +554,7 @@ def format_quality(result: dict[str, Any]) -> str:
                      f"{_verdict(r['met']['render_nme_at_most_h264'])}; {r['real_face_missing']} "
                      f"real frames without a face left out; tracking took "
                      f"{r['render_nme_seconds']:.1f} s")
+        lines += steady_lines(r)
     return "\n".join(lines)
 
 
@@ -537,15 +562,16 @@ def _identity_line(r: dict[str, Any]) -> str:
     """The report's line on whom the sender followed (``bench.identity``)."""
     if r["identity_frames"] is None:
         return "identity: not judged (the model stores no face descriptors)"
-    back = "the face was never absent after it was first sent" if r["reacquire_s"] is None \
+    back = "no return of the person to time" if r["reacquire_s"] is None \
         else (f"back after the person's return in {r['reacquire_s']:.2f} s (median; at most "
               f"{r['reacquire_max_s']:.2f} s) over {r['returns']} returns")
     if r["reacquire_missed"]:
         back += f", {r['reacquire_missed']} never followed by a face packet"
     distance = "n/a" if r["identity_distance_max"] is None else \
         f"{r['identity_distance_max']:.2f}"
-    return (f"identity: {r['identity_switches']} of {r['identity_frames']} tracked frames not "
-            f"the model's person (largest descriptor distance {distance}); {back}")
+    return (f"identity: {r['identity_switches']} of {r['identity_frames']} tracked frames "
+            f"another person's, {r['identity_unrecognised']} recognised as nobody (largest "
+            f"descriptor distance {distance}); {back}")
 
 
 def _seen_line(label: str, r: dict[str, Any], prefix: str, missing: int) -> str:

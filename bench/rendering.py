@@ -41,6 +41,7 @@ class RenderScores(NamedTuple):
         seen: ``FaceCounts``: (F, len(PARTS)) render NME fractions and the frames whose
             rendering showed the tracker no face.
         real_points: frame position -> (68, 2) the real frame's fresh track.
+        render_points: frame position -> (68, 2) the fresh track of our rendering of it.
         real_missing: measured frames whose real frame showed the fresh tracker no face.
         boxes, masks: frame position -> the face box and its mask (``bench.fidelity``).
         faces: frame position -> our rendering cropped to the face box (``keep_faces``).
@@ -51,6 +52,7 @@ class RenderScores(NamedTuple):
     psnr: np.ndarray
     seen: FaceCounts
     real_points: dict[int, np.ndarray]
+    render_points: dict[int, np.ndarray]
     real_missing: int
     boxes: dict[int, tuple[int, int, int, int]]
     masks: dict[int, np.ndarray]
@@ -94,6 +96,7 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
     rendered_faces: dict[int, np.ndarray] = {}
     seen = np.full((len(decoded), len(PARTS)), np.nan)  # render NME per frame and part
     real_points: dict[int, np.ndarray] = {}  # the real frames' fresh tracks
+    render_points: dict[int, np.ndarray] = {}  # our renderings' fresh tracks
     missing = {"real": 0, "render": 0}
     fresh = FreshTracker(tracker)
     shown = model
@@ -128,11 +131,12 @@ def render_scores(model: PersonModel, camera: Camera, decoded: np.ndarray,
             if drawn is None:
                 missing["render"] += 1
             else:
+                render_points[k] = drawn
                 seen[k] = picture_nme(truth, drawn)
     finally:
         renderer.release()
     return RenderScores(ssim, peak, FaceCounts(seen, missing["render"]), real_points,
-                        missing["real"], boxes, masks, rendered_faces, fresh.seconds)
+                        render_points, missing["real"], boxes, masks, rendered_faces, fresh.seconds)
 
 
 class FreshTracker:

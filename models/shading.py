@@ -16,9 +16,9 @@ point, the range s0 alone can take, so that a steep field cannot blow out the ba
 far from the face it was fitted on.
 
 ``basis`` gives the field's design matrix [1, x / SCALE_MM, y / SCALE_MM] (the sender fits s
-by least squares on it, ``sender.shading``); ``log_gain`` evaluates it; ``GLSL`` is the same
-formula for a fragment shader (``receiver.render``), a function ``shade_gain(vec2 p)`` of the
-fragment's model-space (x, y), reading ``uniform vec3 shade``.
+by least squares on it, ``sender.shading``); ``log_gain`` evaluates it; the face's fragment
+shader (``receiver/web/face.frag``, the Python renderer's and the page's) writes the same
+formula with these constants as ``shade_gain(vec2 p)``, and a test holds the two together.
 """
 
 from __future__ import annotations
@@ -28,14 +28,6 @@ import numpy as np
 SCALE_MM = 100.0
 LOG_GAIN_MIN = -1.0
 LOG_GAIN_MAX = 1.0
-
-GLSL = f"""
-uniform vec3 shade;
-float shade_gain(vec2 p) {{
-    float g = shade.x + shade.y * p.x / {SCALE_MM:.1f} + shade.z * p.y / {SCALE_MM:.1f};
-    return exp(clamp(g, {LOG_GAIN_MIN:.1f}, {LOG_GAIN_MAX:.1f}));
-}}
-"""
 
 
 def basis(points: np.ndarray) -> np.ndarray:

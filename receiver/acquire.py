@@ -77,7 +77,8 @@ class ControlChannel:
         self.errors = 0
         self.last_error = ""
 
-    def ask(self, message: ctl.Message, expect: type, timeout_s: float) -> Any:
+    def ask(self, message: ctl.Message, expect: type | tuple[type, ...], timeout_s: float
+            ) -> Any:
         """The reply if it is an ``expect``; None (counted, socket reopened) otherwise."""
         try:
             reply = self._client.request(message, max(1, round(timeout_s * 1000)))

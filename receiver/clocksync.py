@@ -44,6 +44,8 @@ class ClockSync:
 
     Attributes:
         refused: replies dropped (module docstring).
+        answers: whether the sender answers time requests: None until it has answered one
+            or refused one with an ``Error``.
         EMPTY: the summary of no clock sync (before a sender answered).
     """
 
@@ -58,6 +60,7 @@ class ClockSync:
         self._lock = threading.Lock()
         self._closing = threading.Event()
         self.refused = 0
+        self.answers: bool | None = None
         self._thread = threading.Thread(target=self._run, name="facewire clock sync",
                                         daemon=True)
         self._thread.start()
@@ -105,6 +108,7 @@ class ClockSync:
             return True  # no answer, or a bad one: asked again at the usual pace
         if isinstance(reply, Error):
             self.refused += 1
+            self.answers = self.answers or False
             return False
         if reply.t1 != t1:
             channel.reject(f"a time reply to t1 = {reply.t1!r}, asked {t1!r}")
@@ -118,4 +122,5 @@ class ClockSync:
             return True
         with self._lock:
             self._estimator.add(s)
+        self.answers = True
         return True

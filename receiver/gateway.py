@@ -50,8 +50,9 @@ headers. A gateway always has a token: the user's (16 to 256 URL-safe characters
 its address a delay (``serverguard.FailureThrottle``); the token is never in the summary
 (``shown_url``). Plain GETs are answered in ``process_request``:
 
-- ``/`` (``index.html``) and ``/NAME.js|.css|.html``: the page's files, read once at start
-  from the installed package (``importlib.resources``, ``facewire.receiver/web``);
+- ``/`` (``index.html``) and ``/NAME.js|.css|.html|.vert|.frag``: the page's files (the
+  last two the GLSL shaders it shares with ``receiver.render``), read once at start from the
+  installed package (``importlib.resources``, ``facewire.receiver/web``);
 - ``/model/S.glb``, ``/model/S.rig``: ``models.webmodel.model_glb`` and ``rig_bin`` of the
   model with sha256 S (immutable: cached by the browser for ever); the last
   ``MODELS_KEPT`` models are held;
@@ -182,14 +183,15 @@ STATUS_S = 0.5
 MODELS_KEPT = 4
 GZIP_SAVES = 1.0  # serve gzip when it is smaller than the raw bytes at all
 _WAKE_S = 0.1
-_FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html))")
+_FILE = re.compile(r"/(?P<name>[A-Za-z0-9_-]+\.(?:js|css|html|vert|frag))")
 _MODEL = re.compile(r"/model/(?P<sha>[0-9a-f]{64})\.(?P<kind>glb|rig)")
 _UPDATE = re.compile(r"/model/(?P<sha>[0-9a-f]{64})/(?P<serial>[1-9][0-9]{0,3})\.upd")
 _HTTP = re.compile(r"(?P<host>\[[^\]]+\]|[^:\[\]]*):(?P<port>[0-9]{1,5})")
 _TOKEN = re.compile(r"[A-Za-z0-9._~-]{16,256}")
 _NAME = re.compile(r"(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-          ".css": "text/css; charset=utf-8"}
+          ".css": "text/css; charset=utf-8", ".vert": "text/plain; charset=utf-8",
+          ".frag": "text/plain; charset=utf-8"}  # the GLSL shaders: receiver/render.py
 _QUIET = logging.getLogger("facewire.gateway.websockets")  # websockets' own log: not shown
 _QUIET.addHandler(logging.NullHandler())
 _QUIET.propagate = False
@@ -516,7 +518,9 @@ class Gateway:
                     if link is not None:
                         link.note_packet(arrival)
                     continue
-                if link is not None and link.note_packet(arrival, frame.seq):
+                clocked = self.upstream is None or self.upstream.clock is None or \
+                    self.upstream.clock.answers is not False
+                if link is not None and link.note_packet(arrival, frame.seq, clocked):
                     assert self.upstream is not None  # it holds the link
                     self.upstream.recheck.set()  # perhaps a restarted sender: ask its Hello
                     if self._doubt is None:

@@ -24,9 +24,9 @@ State machine
     the seq: a restarted sender, or one that gave up slots after a stall);
   - the playout resynced (``note_restart``);
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
-    frame, or the sender is older), or announces a voice without its origin
-    (``voice_origin_s``: asked before the voice began), and a packet came: asked once per
-    Hello taken.
+    frame), or announces a voice without its origin (``voice_origin_s``: asked before the
+    voice began), and a packet came, from a sender that answers time requests (an older one
+    does not, and its Hello never has the clock): asked once per Hello taken.
 
 - DUE: the caller asks at once (``RECHECK_TIMEOUT_S``); unanswered, again from
   ``next_check``, every ``RECHECK_EVERY_S``. Meanwhile the receiver renders on, the gateway
@@ -171,9 +171,11 @@ class SenderLink:
             say(f"waiting for a sender at {self.connect} (control {self.endpoint}): no "
                 f"answer for {time.monotonic() - since:.0f} s{why}")
 
-    def note_packet(self, arrival: float, seq: int | None = None) -> bool:
+    def note_packet(self, arrival: float, seq: int | None = None,
+                    clocked: bool = True) -> bool:
         """A packet arrived at ``arrival`` (monotonic s), with its wire ``seq`` if the caller
-        decoded it; a sign (module docstring) makes the recheck due. True when the sign is
+        decoded it; ``clocked``: the sender may announce a clock (it has not refused a time
+        request). A sign (module docstring) makes the recheck due. True when the sign is
         that the stream resumed or jumped (perhaps a restarted sender)."""
         resumed = self._last_arrival is not None and arrival - self._last_arrival > RESUME_GAP_S
         jumped = seq is not None and self._last_seq is not None and \
@@ -181,7 +183,7 @@ class SenderLink:
         self._last_arrival = arrival
         if seq is not None:
             self._last_seq = seq
-        clockless = self.hello is not None and not self._clock_asked and (
+        clockless = clocked and self.hello is not None and not self._clock_asked and (
             self.hello.clock_origin_s is None or
             self.hello.voice_bitrate is not None and self.hello.voice_origin_s is None)
         if clockless:

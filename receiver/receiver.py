@@ -580,7 +580,8 @@ class _Session:
             self.stats.clamped(serial, self.version)
 
     def _note_packet(self, data: bytes, arrival: float) -> None:
-        self.link.note_packet(arrival)
+        self.link.note_packet(arrival, clocked=self.clock is None or
+                              self.clock.answers is not False)
         self.stats.packet(len(data), arrival)
         if self.on_packet is not None:
             self.on_packet(data, arrival)

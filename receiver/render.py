@@ -69,7 +69,10 @@ Model updates (``models.update``). A new version of the model has the same mesh,
 region rectangles and more (or other) states in one region: ``update_regions`` uploads that
 region's volumes again (k may have grown) and keeps the rest, unless the draw order changed
 (a region gained a transparent state), when the caller makes a new renderer
-(``receiver.scene.StateRenderer.set_model``). On llvmpipe an upload costs 7-19 ms, against
+(``receiver.scene.StateRenderer.set_model``). A texture patch (``models.patch``) changes
+texels of the texture: ``update_regions`` writes the rectangle that changed
+(``receiver.patches``) and rebuilds the texture's mipmaps, and uploads the volumes of the
+regions whose layers the patch moved. On llvmpipe an upload costs 7-19 ms, against
 12 ms for a 640 x 480 frame.
 
 Draw order. A region whose layers are all opaque (every opacity 1) is composited before the
@@ -80,7 +83,9 @@ covers it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -89,7 +94,6 @@ import numpy as np
 from facewire.models.draworder import MIP_LEVELS, PAD, padded, region_areas, triangle_groups
 from facewire.models.infra.egl import create_context, in_context
 from facewire.models.infra.raster import (
-    VERTEX_TEXTURED,
     Camera,
     ContextOwner,
     OffscreenTarget,
@@ -97,39 +101,28 @@ from facewire.models.infra.raster import (
     check_output,
 )
 from facewire.models.modelfile import Area, PersonModel
-from facewire.models.shading import GLSL as SHADING_GLSL
+from facewire.models.patch import changed_rect
 from facewire.protocol.packet import N_REGIONS
+from facewire.receiver.patches import upload_rect
 
 DEFAULT_SAMPLES = 0  # no multisampling: too slow on llvmpipe (FaceRenderer)
 _NO_SHADE = np.zeros(3, np.float32)
 
-_FRAGMENT = """
-#version 330
-uniform sampler2D image;
-%(uniforms)s
-in vec2 v_uv;
-in vec2 v_model;
-out vec4 f_color;
-%(shading)s
+SHADERS = Path(__file__).with_name("web")  # face.vert, face.frag: also the page's shaders
+EACH_AREA = "// each area"  # face.frag's mark of a line written once per composited area
 
-// Composite one region over the colour c (module docstring). rect: (u0, v0) of the padded
-// rectangle and 1 / its size; layer: (i, i + 1 clamped to k - 1, the weight of i + 1).
-vec3 over(vec3 c, vec3 base, sampler2DArray volume, vec4 rect, vec3 layer) {
-    vec2 st = (v_uv - rect.xy) * rect.zw;
-    vec4 s = texture(volume, vec3(st, layer.x));
-    if (layer.z > 0.0) {
-        s = mix(s, texture(volume, vec3(st, layer.y)), layer.z);
-    }
-    return c + s.a * (base - c) + s.rgb;
-}
 
-void main() {
-    vec3 base = texture(image, v_uv).rgb;
-    vec3 c = base;
-%(calls)s
-    f_color = vec4(c * shade_gain(v_model), 1.0);
-}
-"""
+def fragment_source(areas: Sequence[int]) -> str:
+    """``face.frag`` for a program compositing ``areas`` (indices): each line marked
+    ``EACH_AREA`` written once per area with ``#`` replaced by its index (as render.js's
+    ``fragment`` does)."""
+    lines: list[str] = []
+    for line in (SHADERS / "face.frag").read_text().splitlines():
+        if line.endswith(EACH_AREA):
+            lines += [line.replace("#", str(a)) for a in areas]
+        else:
+            lines.append(line)
+    return "\n".join(lines) + "\n"
 
 
 def area_volume(texture: np.ndarray, area: Area, opacity: tuple[float, ...]) -> np.ndarray:
@@ -258,15 +251,10 @@ class FaceRenderer(ContextOwner):
         self._uv = ctx.buffer(np.ascontiguousarray(mesh.uv).tobytes())
         self._indices = ctx.buffer(triangles.tobytes())
         self._groups = []
+        vertex = (SHADERS / "face.vert").read_text()
         for mask, first, count in groups:
             met = [a for a in range(len(areas)) if mask >> a & 1]
-            program = ctx.program(vertex_shader=VERTEX_TEXTURED, fragment_shader=_FRAGMENT % {
-                "shading": SHADING_GLSL,
-                "uniforms": "\n".join(f"uniform sampler2DArray volume{a};\n"
-                                      f"uniform vec4 rect{a};\nuniform vec3 layer{a};"
-                                      for a in met),
-                "calls": "\n".join(f"    c = over(c, base, volume{a}, rect{a}, layer{a});"
-                                   for a in met)})
+            program = ctx.program(vertex_shader=vertex, fragment_shader=fragment_source(met))
             program["image"].value = 0
             for a in met:
                 u0, v0, u1, v1 = rects[a]
@@ -298,7 +286,7 @@ class FaceRenderer(ContextOwner):
         made by ``models.update``: the same mesh, texture, regions' rectangles and draw
         order), so that ``update_regions`` can take it."""
         old = self._model
-        return (model.mesh is old.mesh and model.texture is old.texture
+        return (model.mesh is old.mesh and model.texture.shape == old.texture.shape
                 and len(model.regions) == len(old.regions)
                 and [i for i, _ in region_areas(model.regions)] == self._areas
                 and all(a.uv_rect == b.uv_rect and a.layers.shape[1:] == b.layers.shape[1:]
@@ -307,9 +295,10 @@ class FaceRenderer(ContextOwner):
 
     @in_context
     def update_regions(self, model: PersonModel) -> int:
-        """Take a new version of the model (``can_update``): the volumes of the regions that
-        changed (other objects than the current model's) are uploaded again; the number of
-        regions uploaded.
+        """Take a new version of the model (``can_update``): the texels of the texture that
+        changed (``receiver.patches``) and the volumes of the regions that changed (other
+        objects than the current model's) are uploaded again; the number of regions
+        uploaded.
 
         Raises:
             RenderError: ``model`` cannot be taken (``can_update``), or the renderer was
@@ -320,6 +309,12 @@ class FaceRenderer(ContextOwner):
         if not self.can_update(model):
             raise RenderError("update_regions: another mesh, texture, region layout or draw "
                               "order: make a new renderer")
+        if model.texture is not self._model.texture:
+            rect = changed_rect(self._model.texture, model.texture)
+            if rect is not None:
+                viewport, data = upload_rect(model.texture, rect)
+                self._texture.write(data, viewport=viewport, alignment=1)
+                self._texture.build_mipmaps()
         changed = {i for i, (new, old) in enumerate(zip(model.regions, self._model.regions,
                                                          strict=True)) if new is not old}
         for a, (i, part) in enumerate(region_areas(model.regions)):

@@ -166,7 +166,7 @@ class UpdateFetcher:
             except Exception as exc:  # noqa: BLE001 - any failure on a peer's bytes: refused
                 self.counts["updates_refused"] += 1
                 failures += 1
-                wait = min(RETRY_S * 2 ** (failures - 1), MAX_RETRY_S)
+                wait = min(RETRY_S * 2.0 ** min(failures - 1, 30), MAX_RETRY_S)
                 self.stuck = str(exc) if isinstance(exc, UpdateError) else \
                     f"update {serial}: {type(exc).__name__}: {exc}"
                 self.say(f"{self.stuck}: refused ({failures} times), fetching it again in "

@@ -18,9 +18,15 @@ one person lie up to 0.72 apart and of two people as close as 0.40. Hence 0.5: a
 of the person may go unrecognised for a moment (the sender then says the face is absent),
 another person's face is not taken for theirs.
 
-Cost: one descriptor is the network's forward pass, 90-180 ms on one core of the shared
-2-core machine under load (the 68-point prediction is 1.3-2.3 ms), so the sender checks
-identity only when it takes a face, not every frame (``sender.tracker``, "Identity").
+Cost: one descriptor is the network's forward pass, about 100 ms of CPU time (90-180 ms
+of wall time on one core of the shared 2-core machine under load; the 68-point prediction
+is 1.3-2.3 ms), so the sender checks identity only when it takes a face, not every frame
+(``sender.tracker``, "Identity"). Loading the network costs about 80 ms of CPU more, paid
+when a ``Person`` is made, not on a frame. The descriptor is the same computed from the
+150 x 150 chip (``dlib.get_face_chip``, 0.4 ms) as from the frame and the points (measured
+distance 0), but dlib holds Python's lock while it computes (a Python loop in another
+thread stood still for the whole 0.6-0.9 s of a descriptor on the loaded machine), so a
+thread cannot take it off the frame path; only another process could.
 
 Image coordinates as ``sender.tracker``'s. The network runs single-threaded, with no BLAS.
 """
@@ -87,6 +93,7 @@ class Person:
             raise ValueError(f"threshold: expected a positive distance, got {threshold!r}")
         self.centre = descriptors.astype(np.float64).mean(axis=0)
         self.threshold = float(threshold)
+        _network()  # loaded now (about 80 ms of CPU), so that the first check does not pay for it
 
     def distance(self, image: np.ndarray, points: np.ndarray) -> float:
         """The face's descriptor's distance from the person's mean (``face_descriptor``)."""

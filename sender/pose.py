@@ -1,4 +1,4 @@
-"""Head pose from the tracked 68 points: weighted, robust Gauss-Newton, then a One-Euro filter.
+"""Head pose from the tracked 68 points: weighted, robust Gauss-Newton.
 
 Frames as docs/DESIGN.md §2: model space mm (x toward the person's left, y up, z out of the face);
 GL camera frame (x right, y up, z toward the viewer, the camera looks along -z);
@@ -46,37 +46,21 @@ finite, or the median reprojection error of the 9 rigid points exceeds ``MAX_POS
 
 Temporal filter
 ---------------
-The tracker's points are whole pixels, so a still face's raw pose jitters. ``PoseFilter`` is
-a One-Euro filter (Casiez, Roussel and Vogel 2012) on the rotation and the translation
-separately: each frame the filtered value moves toward the raw one by
-``alpha = 1 / (1 + 1 / (2 pi f_c dt))``, with the cutoff ``f_c = f_min + beta |speed|``
-following the filtered speed (itself low-passed at 1 Hz): a still head gets the low cutoff
-``f_min``, a moving head a high one (little lag). The rotation is filtered on the manifold:
-``R_f <- R_f exp(alpha log(R_f^T R_raw))``. Constants (``ROTATION_FILTER``: f_min 1 Hz,
-beta 2 per rad/s; ``TRANSLATION_FILTER``: f_min 1 Hz, beta 0.05 per mm/s) were chosen on
-openface_gaze.avi, lp_d0.mp4 and lp_d3.mp4 (generic head): on each clip's stillest second
-the raw pose turns 0.54-0.87 deg from frame to frame (median; the points are whole pixels),
-the filtered one 0.15-0.27 deg; during head motion the filtered pose trails the raw one by
-1.7-1.9 deg (95th percentile). f_min 0.5 Hz smooths more (0.13-0.23 deg) but trails more
-(1.9-2.1 deg); beta 0.5 trails 2.2-3.5 deg. The filter costs held-out NME: on
-openface_default.wmv 2.43 % of the eye distance against 2.21 % unfiltered (lp_d0.mp4: no
-change). After a loss the filter restarts at
-the first new pose (no blend: a new acquisition has no history to keep).
+The raw pose is smoothed by ``sender.smoothing.PoseFilter`` (One-Euro; the pipeline applies
+it). On each clip's stillest second of openface_gaze.avi, lp_d0.mp4 and lp_d3.mp4 the raw
+pose turns 0.54-0.87 deg from frame to frame (median; the points are whole pixels).
 """
 
 from __future__ import annotations
-
-import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from facewire.models.geometry import Intrinsics, Pose, rotation_matrix, rotation_vector
+from facewire.models.geometry import Intrinsics, Pose, rotation_matrix
 from facewire.models.landmarks import N_LANDMARKS, RIGID
 
-__all__ = ["POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver", "PoseFilter"]
+__all__ = ["POSE_WEIGHTS", "GROUP_WEIGHTS", "PoseSolver"]
 
 # Measured weights per landmark group (module docstring); rigid feature points are 1.
 GROUP_WEIGHTS: dict[str, tuple[tuple[int, ...], float]] = {
@@ -275,60 +259,3 @@ class PoseSolver:
         if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
             return None
         return Pose.from_opencv(rotation_matrix(rvec.ravel()), tvec)
-
-
-@dataclass(frozen=True)
-class OneEuro:
-    """One-Euro filter constants: cutoff ``f_min + beta |speed|`` Hz, speed low-passed at
-    ``f_speed`` Hz; speed in rad/s (rotation) or mm/s (translation)."""
-
-    f_min: float
-    beta: float
-    f_speed: float = 1.0
-
-
-ROTATION_FILTER = OneEuro(f_min=1.0, beta=2.0)
-TRANSLATION_FILTER = OneEuro(f_min=1.0, beta=0.05)
-
-
-def _alpha(cutoff: float, dt: float) -> float:
-    return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * cutoff * dt))
-
-
-class PoseFilter:
-    """One-Euro smoothing of a pose stream (module docstring); one instance per stream."""
-
-    def __init__(self, rotation: OneEuro = ROTATION_FILTER,
-                 translation: OneEuro = TRANSLATION_FILTER) -> None:
-        for name, f in (("rotation", rotation), ("translation", translation)):
-            if not (f.f_min > 0 and f.beta >= 0 and f.f_speed > 0):
-                raise ValueError(f"{name}: f_min and f_speed must be > 0, beta >= 0")
-        self.rotation_constants = rotation
-        self.translation_constants = translation
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the stream: the next pose is taken as it is."""
-        self._pose: Pose | None = None
-        self._speed = [0.0, 0.0]  # filtered rotation (rad/s) and translation (mm/s) speeds
-
-    def step(self, raw: Pose, dt: float) -> Pose:
-        """Filter one raw pose, ``dt`` seconds after the previous one (> 0)."""
-        if not (math.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt: expected a positive number of seconds, got {dt!r}")
-        if self._pose is None:
-            self._pose = Pose(rotation=raw.rotation.copy(), translation=raw.translation.copy())
-            self._speed = [0.0, 0.0]
-            return self._pose
-        prev = self._pose
-        delta_r = rotation_vector(prev.rotation.T @ raw.rotation)  # model-frame increment
-        delta_t = raw.translation - prev.translation
-        out = []
-        for k, (delta, c) in enumerate(((delta_r, self.rotation_constants),
-                                        (delta_t, self.translation_constants))):
-            speed = math.sqrt(float(delta @ delta)) / dt
-            self._speed[k] += _alpha(c.f_speed, dt) * (speed - self._speed[k])
-            out.append(_alpha(c.f_min + c.beta * self._speed[k], dt) * delta)
-        self._pose = Pose(rotation=prev.rotation @ rotation_matrix(out[0]),
-                          translation=prev.translation + out[1])
-        return self._pose

@@ -53,8 +53,10 @@ person and nobody else:
 - tracking, the face's descriptor is checked again when the track is restarted from the
   detector's box (the verification reseated it: what the box holds changed, e.g. a face
   crossed in front) and every ``identify_every`` frames (a slow slide from one face to
-  another, which the cheap checks of step 3 do not catch if the faces touch); not the
-  person: the track is dropped, the face becomes a stranger, and step 1 runs on the frame;
+  another, which the cheap checks of step 3 do not catch if the faces touch; 1800, a
+  minute at 30 Hz: a descriptor's 100 ms of CPU spread over the frames of that minute is
+  0.06 ms a frame, 1 % of the sender's frame); not the person: the track is dropped, the
+  face becomes a stranger, and step 1 runs on the frame;
 - step 4 never runs: a larger face is another person.
 
 The person's return is found by step 1, which runs on every frame without a track (as
@@ -201,7 +203,7 @@ def _side(box: Box) -> int:
     return box[2] - box[0] + 1
 
 
-def _iou(a: Box, b: Box) -> float:
+def box_iou(a: Box, b: Box) -> float:
     """Intersection over union of two inclusive boxes."""
     w = min(a[2], b[2]) - max(a[0], b[0]) + 1
     h = min(a[3], b[3]) - max(a[1], b[1]) + 1
@@ -277,7 +279,7 @@ class LandmarkTracker:
         verify_threshold: float = -0.5,
         reseat_iou: float = 0.5,
         person: Person | None = None,
-        identify_every: int = 600,
+        identify_every: int = 1800,
         stranger_every: int = 10,
     ) -> None:
         """Load the models.
@@ -388,7 +390,7 @@ class LandmarkTracker:
             if found is None:
                 return self._acquire(gray, colour, verified=True)
             self._since_check = 0
-            if _iou(found, box) < self._reseat_iou:
+            if box_iou(found, box) < self._reseat_iou:
                 box, reseated = found, True
                 points = self._follow(gray, box)
         if self.person is not None:
@@ -462,8 +464,8 @@ class LandmarkTracker:
         strangers: list[tuple[Box, int, int]] = []  # those seen on this frame, boxes moved
         identified = False
         for box in sorted(faces, key=_side, reverse=True):
-            known = max(self._strangers, key=lambda s: _iou(s[0], box), default=None)
-            if known is not None and _iou(known[0], box) >= STRANGER_IOU \
+            known = max(self._strangers, key=lambda s: box_iou(s[0], box), default=None)
+            if known is not None and box_iou(known[0], box) >= STRANGER_IOU \
                     and self._frame - known[1] < known[2]:
                 strangers.append((box, known[1], known[2]))
                 continue
@@ -499,7 +501,8 @@ class LandmarkTracker:
         """
         least = SWITCH_RATIO * _side(box)
         scale = min(1.0, self._detect_width / gray.shape[1], VERIFY_SIDE / least)
-        faces = [f for f in self._detect(gray, scale) if _side(f) >= least and _iou(f, box) < 0.3]
+        faces = [f for f in self._detect(gray, scale)
+                 if _side(f) >= least and box_iou(f, box) < 0.3]
         return max(faces, key=_side) if faces else None
 
     def _verify(self, gray: np.ndarray, box: Box) -> Box | None:
@@ -520,7 +523,7 @@ class LandmarkTracker:
         best_iou = 0.0
         for r in faces:
             found = _scaled_box(r, scale, x0, y0)
-            overlap = _iou(found, box)
+            overlap = box_iou(found, box)
             if overlap > best_iou:
                 best, best_iou = found, overlap
         return best

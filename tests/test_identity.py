@@ -1,6 +1,7 @@
 """Whom the sender follows: the person's descriptors in the model file, the sender holding
-that person among others (real dlib on openface_multi_face.avi), the build's choice of
-person, and the benchmark's identity measures."""
+that person among others (real dlib on openface_multi_face.avi), the person back after a
+cutaway (hamilton_short.mp4), the build's choice of person, and the benchmark's identity
+measures, which catch a tracker that follows the largest face."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ import numpy as np
 import pytest
 from conftest import npy_bytes, write_zip, zip_members
 
+from facewire.bench.identity import identity_measures, judge_frames
 from facewire.bench.quality import measure_quality
+from facewire.models.infra.progress import no_progress
 from facewire.models.infra.video import read_frames
 from facewire.models.modelfile import ModelFileError, PersonModel, load_model, save_model
 from facewire.protocol.packet import Flag
@@ -26,19 +29,10 @@ from facewire.sender.enroll.person import (
 )
 from facewire.sender.identity import MATCH_DISTANCE, Person
 from facewire.sender.pipeline import SenderPipeline, encode_video, identity_warning, sender_camera
-from facewire.sender.tracker import LandmarkTracker
+from facewire.sender.tracker import LandmarkTracker, box_iou
 
 CLIP = "openface_multi_face.avi"  # three people; the man in front has the largest face
 FIRST = 60  # the first frame in which the detector sees all three
-
-
-def _iou(a: tuple[int, ...], b: tuple[int, ...]) -> float:
-    w = min(a[2], b[2]) - max(a[0], b[0]) + 1
-    h = min(a[3], b[3]) - max(a[1], b[1]) + 1
-    if w <= 0 or h <= 0:
-        return 0.0
-    area = (a[2] - a[0] + 1) * (a[3] - a[1] + 1) + (b[2] - b[0] + 1) * (b[3] - b[1] + 1)
-    return w * h / (area - w * h)
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +125,7 @@ def test_a_model_of_one_person_never_drives_the_stream_with_another(
         box = (*out.points.min(axis=0), *out.points.max(axis=0))
         faces = hog.faces(frame.image)
         front = max(faces, key=lambda f: f[2] - f[0])
-        assert _iou(box, front) < 0.1, f"frame {frame.index}: the man in front drives it"
+        assert box_iou(box, front) < 0.1, f"frame {frame.index}: the man in front drives it"
         followed += 1
     assert followed >= 35
     # the same without descriptors follows the largest face: the man in front
@@ -194,7 +188,7 @@ def test_bench_quality_judges_whom_the_sender_followed(back_model: Path, clip: P
     assert Person(model.descriptors).distance_of(people[2].descriptor) < MATCH_DISTANCE
     assert Person(model.descriptors).distance_of(people[1].descriptor) >= MATCH_DISTANCE
     r = measure_quality(back_model, clip, frames=slice(FIRST + 30, FIRST + 45))
-    assert r["identity_switches"] == 0
+    assert r["identity_switches"] == 0 and r["identity_unrecognised"] == 0
     assert r["identity_frames"] == r["tracked_frames"] >= 12
     assert 0 <= r["identity_distance_max"] < MATCH_DISTANCE
     assert (r["reacquire_s"] is None) == (r["returns"] == r["reacquire_missed"])
@@ -225,3 +219,61 @@ def test_the_face_is_absent_while_the_person_is_gone_and_back_when_they_return(
     back_at = min(i for i in range(85, FIRST + 45) if present[i])
     assert back_at - 85 <= 15  # frames at 30 Hz: 0.5 s
     assert all(present[i] for i in range(back_at, FIRST + 45))
+
+
+def test_the_judge_catches_a_tracker_that_follows_the_largest_face(
+        generic_model: Path, clip: Path, people: list) -> None:
+    # the tracker without a person follows the man in front; judged with a model of the
+    # man at the back right, every one of its frames is a switch, by both rules: the
+    # tracked face is another person of the run's census, and the person is elsewhere
+    back = people[2]
+    model = _with_descriptors(generic_model, back.descriptor[None])
+    largest = LandmarkTracker()
+    images, tracked = [], []
+    for frame in read_frames(clip, slice(FIRST + 30, FIRST + 45)):
+        images.append(frame.image)
+        tracked.append(largest.track(frame.image).points)
+    assert all(p is not None for p in tracked)
+    judge = LandmarkTracker()
+    r = identity_measures(model, images, tracked, [k / 30 for k in range(len(images))],
+                          np.ones(len(images), bool), judge, no_progress)
+    assert r["identity_switches"] == r["identity_frames"] == len(images)
+    assert r["identity_unrecognised"] == 0
+    # the sender's own tracker on the same frames: his face on every frame (and
+    # test_bench_quality_judges_whom_the_sender_followed: no switch)
+    pipeline = SenderPipeline(model, sender_camera(640, 480), learn=False)
+    his = [pipeline.process(image, k / 30).points for k, image in enumerate(images)]
+    verdicts = judge_frames(Person(model.descriptors), images, his, judge, no_progress)
+    assert len(verdicts) >= 12 and {v for _, v in verdicts.values()} == {"person"}
+
+
+def test_the_person_is_back_within_half_a_second_after_a_cutaway(
+        generic_model: Path, shared_data: Path) -> None:
+    # hamilton_short: the singer (frames 82-210), then the audience (211-274: other people,
+    # one of them a face the detector finds); edited as a broadcast cuts away and back: the
+    # singer at 165-179, the audience at 211-259 (1.6 s), the singer at 180-199
+    source = shared_data / "video" / "hamilton_short.mp4"
+    order = [*range(165, 180), *range(211, 260), *range(180, 200)]
+    images = {f.index: f.image for f in read_frames(source, slice(165, 260))}
+    tracker = LandmarkTracker()
+    seed = [faces_in(images[k], k, tracker) for k in (170, 190)]
+    assert [len(faces) for faces in seed] == [1, 1]
+    model = _with_descriptors(generic_model, np.stack([f[0].descriptor for f in seed]))
+    pipeline = SenderPipeline(model, sender_camera(640, 360), learn=False)
+    run = [images[k] for k in order]
+    times = [k / 29.97 for k in range(len(order))]
+    present, tracked = [], []
+    for image, t in zip(run, times, strict=True):
+        out = pipeline.process(image, t)
+        present.append(bool(out.frame.flags & Flag.FACE_PRESENT))
+        tracked.append(out.points)
+    away, back = 15, 15 + 49
+    assert sum(present[:away]) >= away - 3  # the first check may retry a near miss
+    assert not any(present[away:back]), "the audience drove the singer's stream"
+    back_at = min(k for k in range(back, len(order)) if present[k])
+    assert times[back_at] - times[back] <= 0.5
+    assert all(present[back_at:])
+    r = identity_measures(model, run, tracked, times, np.array(present), tracker, no_progress)
+    assert r["returns"] == 1 and r["reacquire_missed"] == 0
+    assert r["reacquire_s"] is not None and r["reacquire_s"] <= 0.5
+    assert r["identity_switches"] == 0

@@ -86,3 +86,35 @@ def _errors(stderr: str) -> list[str]:
     lines = [line.strip() for line in stderr.replace("\r", "\n").splitlines()]
     assert "Traceback" not in stderr
     return [line for line in lines if line.startswith("facewire:")]
+
+
+def _green(texture: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the texels of an RGB texture that are the painted green."""
+    t = texture.astype(np.int16)
+    return (t[..., 1] > 180) & (t[..., 0] < 90) & (t[..., 2] < 90)
+
+
+def test_a_photos_texture_takes_no_colour_from_beside_the_face(shared_data, tmp_path):
+    """The generic head is wider than the face: its sides must not take what the photo shows
+    beside the cheek (build_photo's photo_face_texels). Everything beside and below the jaw
+    contour is painted green; the texture has none of it."""
+    from facewire.sender.enroll.build import build_photo
+    from facewire.sender.tracker import LandmarkTracker
+
+    image = cv2.imread(str(shared_data / "images" / "image_0001.png"), cv2.IMREAD_COLOR)
+    points = LandmarkTracker().track(image).points
+    assert points is not None
+    up = points[17:27].mean(axis=0) - points[8]
+    reach = 4.0 * float(sum(image.shape[:2])) * up / np.linalg.norm(up)
+    face = np.zeros(image.shape[:2], np.uint8)
+    polygon = np.concatenate([points[0:17], [points[16] + reach, points[0] + reach]])
+    cv2.fillPoly(face, [np.rint(polygon).astype(np.int32)], 1)
+    painted = image.copy()
+    painted[face == 0] = (0, 255, 0)
+    build = build_photo(painted, tmp_path / "painted.fwm")
+    texture = build.model.texture
+    assert not _green(texture).any(), int(_green(texture).sum())
+    # the painted photo's face did make the texture (skin: red over blue at its middle)
+    h, w = texture.shape[:2]
+    middle = texture[h // 3:h // 2, w // 4:w // 2].reshape(-1, 3).astype(np.float32)
+    assert middle[:, 0].mean() > middle[:, 2].mean() + 10

@@ -257,6 +257,12 @@ def test_real_video_held_out_frames(lp_d0_model: Path, shared_data: Path,
         and (r["h264_render_nme_mean"] is None
              or r["render_nme_mean"] <= r["h264_render_nme_mean"]))
     assert 0 < r["nme_unweighted_mean"] and r["overlap_frames"] == 0
+    # steadiness (bench.jitter): the still pairs judged and the rendering's jitter over them
+    assert r["jitter_still_frames"] >= 10 and isinstance(r["render_jitter_ratio"], float)
+    assert r["jitter_still_below"] == 0.005 and r["jitter_real_motion"] > 0
+    assert r["render_jitter_ratio"] == pytest.approx(
+        r["jitter_render_motion"] / r["jitter_real_motion"], rel=0.01)
+    assert r["filter_lag_frames"] is None or abs(r["filter_lag_frames"]) <= 5
     assert r["model_source"]["video"] == "lp_d0.mp4"
     assert (r["model_source"]["start"], r["model_source"]["stop"]) == (0, 40)
     text = "\n".join(out)

@@ -21,9 +21,9 @@ from facewire.models.manifest import ModelInfo
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
 from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
-from facewire.models.shading import log_gain
+from facewire.models.shading import LOG_GAIN_MAX, LOG_GAIN_MIN, SCALE_MM, log_gain
 from facewire.protocol.control import Camera as HelloCamera
-from facewire.receiver.render import FaceRenderer
+from facewire.receiver.render import EACH_AREA, SHADERS, FaceRenderer, fragment_source
 from facewire.receiver.views import head_centre, sender_view, virtual_view
 
 MODEL_CAMERA = Intrinsics(640.0, 640.0, 319.5, 239.5, 640, 480)
@@ -348,6 +348,22 @@ def test_the_light_multiplies_texture_and_layers_alike() -> None:
     assert top == pytest.approx(np.exp(-1.0), abs=0.01)
     assert (steep[45:130, 100:380] == steep[45, 100]).all()  # flat where clipped
     assert bottom == pytest.approx(np.exp(-0.9 + 0.98 * 48.9 / 100), abs=0.01)
+
+
+def test_one_glsl_source_for_python_and_the_page() -> None:
+    """The shaders are the page's files (served beside render.js), GLSL ES 3.00 for both;
+    a program's fragment shader has one line per composited area; the light's formula uses
+    models.shading's constants."""
+    frag = fragment_source([0, 3])
+    assert frag.startswith("#version 300 es\n") and "#;" not in frag and "#," not in frag
+    assert "uniform sampler2DArray volume0;" in frag and "uniform vec4 rect3;" in frag
+    assert frag.count("c = over(c, base, volume") == 2 and "volume1" not in frag
+    assert not any(line.endswith(EACH_AREA) for line in frag.splitlines())
+    assert "over(c, base, volume" not in fragment_source([])
+    assert (SHADERS / "face.vert").read_text().startswith("#version 300 es\n")
+    assert (SHADERS / "render.js").is_file()  # the page's renderer fetches them beside it
+    gain = f"p.x / {SCALE_MM:.1f} + shade.z * p.y / {SCALE_MM:.1f}"
+    assert gain in frag and f"clamp(g, {LOG_GAIN_MIN:.1f}, {LOG_GAIN_MAX:.1f})" in frag
 
 
 def test_bad_inputs_raise_value_errors() -> None:

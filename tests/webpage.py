@@ -20,7 +20,8 @@ from facewire.bench.chromium import open_tab
 __all__ = ["PageServer", "open_tab", "web_dir"]
 
 TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-         ".css": "text/css; charset=utf-8"}
+         ".css": "text/css; charset=utf-8", ".vert": "text/plain; charset=utf-8",
+         ".frag": "text/plain; charset=utf-8"}
 
 
 def web_dir() -> Path:

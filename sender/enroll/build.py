@@ -62,7 +62,14 @@ there). The photo is the clip: ``STILL_FRAMES`` copies of it, frames 0 .. 9, go 
 steps 1-3 and 5 (the fit needs 10 face frames). Each copy takes the points the tracker
 detects on the first: its follower, fed the same image again, moved points by up to 27 px
 on the demo's portrait, so the copies would disagree and the fit would take whichever
-looked most neutral. One view gives the generic head's depth. Step 4 is
+looked most neutral. One view gives the generic head's depth, and the generic head is
+wider than most faces: its sides, seen at grazing angles near the face's outline, project
+onto the ear, hair or background beside the cheek, a few pixels stretched over a wide band
+of texels, which a head turned by 20 degrees shows as a pale smear on the cheek where a
+tracker takes it for the jaw line. So the photo's texture keeps only the texels inside the
+jaw contour or above it, a margin in from its edge (``photo_face_texels``: dlib's contour
+runs over the ear and the hair beside the jaw), and fills the rest from the nearest face
+texels as it fills unseen ones (``fill_holes``). Step 4 is
 skipped: one expression gives no states to choose, so the model has no regions, only the
 neutral; a receiver draws the neutral texture on the morphed mesh whatever the packet's Q
 (its mouth cavity keeps the base texture's filling: giving it the made-up interior moved
@@ -120,6 +127,7 @@ from facewire.models.modelfile import Area, PersonModel, Region, model_summary, 
 from facewire.models.regions import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.clean import sharpness
+from facewire.sender.enroll.confidence import texture_confidence
 from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage
 from facewire.sender.enroll.evidence import (
     clean_views,
@@ -150,6 +158,7 @@ from facewire.sender.tracker import LandmarkTracker
 
 TEXTURE_SIZE = (1024, 2048)  # rows, columns: twice the paper's 512 x 1024
 PREVIEW_HEIGHT = 480
+PHOTO_FACE_MARGIN = 0.04  # a photo's texture: texels this far (of the face's width) inside
 PREVIEW_YAWS = (0.0, THREE_QUARTER_YAW_DEG)  # degrees: front and three-quarter
 PREVIEW_BACKGROUND = (40, 40, 40)
 PREVIEW_SAMPLES = 4  # multisampling of the preview's renders
@@ -365,7 +374,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         sharp = [k for k in calm if k in sharp] or calm
     unoccluded = [k for k in sharp if not occlusions[k].occluded]
     fit = _fit(points, camera, where, unoccluded or sharp)
-    fit, chosen, images, texture, evidence = _base_texture(
+    fit, chosen, images, texture, evidence, confidence = _base_texture(
         read, indices, points, blur, fit, camera, where, photo,
         {k for k, o in enumerate(occlusions) if o.occluded})
     occluders = _occluders_report(indices, occlusions)
@@ -378,7 +387,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     if guide is not None:  # the recording is temporary: name what was recorded
         source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
-        mesh=fit.mesh, texture=texture,
+        mesh=fit.mesh, texture=texture, confidence=confidence,
         camera=camera, descriptors=who.descriptors if photo and who is not None  # one image
         else _descriptors(read, indices, points, who),
         info=ModelInfo(name=name, source_video=source, frames_used=used,
@@ -525,12 +534,12 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
                   points: list[np.ndarray | None], blur: list[float], fit: Fit,
                   camera: Intrinsics, where: str, photo: bool, handed: set[int]
                   ) -> tuple[Fit, tuple[int, ...], dict[int, np.ndarray], np.ndarray,
-                             dict[str, Any]]:
+                             dict[str, Any], np.ndarray]:
     """Step 3: the fit (fitted again when the neutral frame was occluded), the views fused
     (positions in ``indices``; none of the ``handed`` ones, a hand on the face, while
     others are candidates),
-    the decoded images by frame index, the filled base texture and the evidence the build
-    reports."""
+    the decoded images by frame index, the filled base texture, the evidence the build
+    reports and the texture's confidence map (``sender.enroll.confidence``)."""
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
     scores = frame_scores(points, fit, camera, blur)
     scores = {f: c for f, c in scores.items() if f not in handed} or scores
@@ -547,7 +556,14 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
         primary = 1
         images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
         fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
-    texture = fill_holes(fusion.texture, fusion.weight > 0)
+    valid = fusion.weight > 0
+    if photo:
+        pose = fit.poses[fit.neutral]
+        face = points[fit.neutral]
+        assert pose is not None and face is not None  # the neutral frame is a posed face frame
+        image = images[indices[fit.neutral]]
+        valid &= photo_face_texels(surface, ViewCamera(camera, pose), face, image.shape[:2])
+    texture = fill_holes(fusion.texture, valid)
     evidence = {"views": [indices[k] for k in chosen],
                 "misaligned": [indices[k] for k, ok in zip(chosen, fusion.aligned) if not ok],
                 "occluded": {part: [indices[k] for k, bad in zip(chosen, flags) if bad]
@@ -555,7 +571,49 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
                 "neutral_occluded": first_neutral,
                 "doubled": {part: round(fusion.doubled_fraction(mask), 3)
                             for part, mask in part_masks(fit.mesh, surface.size).items()}}
-    return fit, chosen, images, texture, evidence
+    confidence = texture_confidence(fusion, np.array([blur[k] for k in chosen]),
+                                    np.array([k in handed for k in chosen]), occluded,
+                                    part_masks(fit.mesh, surface.size))
+    return fit, chosen, images, texture, evidence, confidence
+
+
+def photo_face_texels(surface: UVSurface, camera: ViewCamera, points: np.ndarray,
+                      shape: tuple[int, int]) -> np.ndarray:
+    """The texels a photo shows as the face or above it (module docstring, "One photo").
+
+    A texel is kept when its surface point projects inside the jaw contour (points 0 .. 16)
+    or above it, ``PHOTO_FACE_MARGIN`` of the contour's width (point 0 to 16) in from its
+    edge: the polygon of the contour closed by the two lines from points 0 and 16 along the
+    face's up direction (chin, point 8, to the brows' mean), eroded by that margin, so the
+    forehead, the hair and a hat on top stay.
+
+    Args:
+        surface: the texels' surface points (``uv_surface``).
+        camera: the photo's camera (intrinsics and the fitted head pose).
+        points: (68, 2) the photo's landmarks, px.
+        shape: (H, W) the photo's size.
+
+    Returns:
+        (H_t, W_t) bool over the texture: covered texels inside that region.
+    """
+    height, width = shape
+    up = points[17:27].mean(axis=0) - points[8]
+    up /= max(float(np.linalg.norm(up)), 1e-6)
+    reach = float(height + width) * up
+    polygon = np.concatenate([points[0:17], [points[16] + reach, points[0] + reach]])
+    region: np.ndarray = np.zeros((height, width), np.uint8)
+    cv2.fillPoly(region, [np.rint(polygon * 8).astype(np.int32)], 1, lineType=cv2.LINE_8,
+                 shift=3)
+    margin = int(round(PHOTO_FACE_MARGIN * float(np.linalg.norm(points[16] - points[0]))))
+    region = cv2.erode(region, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
+    covered = surface.covered
+    xy = np.rint(camera.project(surface.positions[covered].astype(np.float64))).astype(int)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
+    kept = np.zeros(len(xy), bool)
+    kept[inside] = region[xy[inside, 1], xy[inside, 0]] > 0
+    out = np.zeros(surface.size, bool)
+    out[covered] = kept
+    return out
 
 
 def _decode(read: Callable[[slice], Iterable[VideoFrame]], wanted: set[int]

@@ -145,7 +145,7 @@ def choose_person(sampled: list[list[Face]], person: int | np.ndarray | None,
     if not faces:
         raise PersonError(f"{where}: no face found in the {len(sampled)} frames sampled")
     first = sampled[0]
-    groups = _groups(faces)
+    groups = group_faces(faces)
     if isinstance(person, int):
         if not 0 <= person < len(first):
             raise PersonError(f"--person {person}: frame {first[0].frame if first else 0} of "
@@ -156,7 +156,7 @@ def choose_person(sampled: list[list[Face]], person: int | np.ndarray | None,
         seed = np.stack([first[person].descriptor])
         how = "index"
     elif person is not None:
-        distances = [float(np.linalg.norm(_mean(g) - person)) for g in groups]
+        distances = [float(np.linalg.norm(group_mean(g) - person)) for g in groups]
         best = int(np.argmin(distances))
         if distances[best] >= MATCH_DISTANCE:
             raise PersonError(f"--person {photo_name}: its face is nobody's in {where} (the "
@@ -200,11 +200,11 @@ def sample_indices(indices: list[int]) -> list[int]:
     return sorted({indices[int(round(k))] for k in picks})
 
 
-def _groups(faces: list[Face]) -> list[list[Face]]:
+def group_faces(faces: list[Face]) -> list[list[Face]]:
     """The faces grouped by person (module docstring), in order of first appearance."""
     groups: list[list[Face]] = []
     for face in faces:
-        near = [(float(np.linalg.norm(_mean(g) - face.descriptor)), k)
+        near = [(float(np.linalg.norm(group_mean(g) - face.descriptor)), k)
                 for k, g in enumerate(groups)]
         best = min(near, default=None)
         if best is not None and best[0] < MATCH_DISTANCE:
@@ -214,5 +214,6 @@ def _groups(faces: list[Face]) -> list[list[Face]]:
     return groups
 
 
-def _mean(group: list[Face]) -> np.ndarray:
+def group_mean(group: list[Face]) -> np.ndarray:
+    """The (128,) mean of a group's descriptors."""
     return np.mean([f.descriptor for f in group], axis=0)

@@ -51,6 +51,7 @@ from facewire.protocol.control import (
     Message,
     ModelChunk,
     ModelRequest,
+    TimeRequest,
     decode_message,
     encode_message,
     model_chunks,
@@ -172,6 +173,9 @@ class FakeSender(threading.Thread):
                 if request is not None:
                     peer, data = request
                     message = decode_message(data)  # the real receiver asks nothing else
+                    if isinstance(message, TimeRequest):  # refused, as an older sender does
+                        pending.append((now, peer, encode_message(Error("unknown request"))))
+                        continue
                     self.requests[message.TYPE] += 1
                     faults = self.hello_faults if isinstance(message, HelloRequest) \
                         else self.chunk_faults
