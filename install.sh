@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Install facewire on a Debian/Ubuntu machine: the system packages for headless OpenGL (only
-# when missing), a browser for the browser tests when the system's packages have one, then a
+# Install facewire on a Debian/Ubuntu machine: the system packages for headless OpenGL and
+# PortAudio (the voice's microphone and speaker; only when missing), a browser for the browser tests when the system's packages have one, then a
 # virtual environment in .venv with facewire and its Python test tools.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -13,13 +13,13 @@ apt_install() {  # apt_install PACKAGE...: install with apt-get, updating its li
   $sudo apt-get install -y -qq "$@"
 }
 
-system_packages=(libegl1 libgl1 libgl1-mesa-dri)
+system_packages=(libegl1 libgl1 libgl1-mesa-dri libportaudio2)
 missing=()
 for pkg in "${system_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then
-  echo "install.sh: installing system packages for headless OpenGL: ${missing[*]}"
+  echo "install.sh: installing system packages (headless OpenGL, PortAudio): ${missing[*]}"
   apt_install "${missing[@]}"
 fi
 

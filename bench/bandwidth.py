@@ -26,6 +26,13 @@ rate its Hello announces). The 12 kbit/s budget
 ``payload_kbps_max_1s`` >= 12 exits 1. A 30 Hz stream is 10.32 kbit/s; 35 packets in one
 second are 12.04 kbit/s and fail.
 
+The voice (``protocol.voice``) travels on the packet socket beside the face, in packets of
+its own, one per 20 ms; a log keeps them as voice records. ``audio_kbps`` is their bytes
+over the log's span, ``audio_kbps_max_1s`` over its worst second (the bytes of the voice
+records in the second ending at each of them), and ``total_kbps``, ``total_kbps_max_1s`` add
+the face's payload: the call's budget is 12 kbit/s each, 24 in all. A log without voice has
+zeros. The exit code judges the face's payload alone, as before.
+
 Model updates travel beside the packets, on the control channel. Their traffic is measured on
 real loopback sockets by ``bench.updatetraffic`` (the sender's control thread serving them at
 their issue times, one receiver fetching them): ``update_bytes_total``, ``update_kbps_max_1s``,
@@ -126,6 +133,19 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         f"payload (as in the paper); worst 1-s payload {peak['payload_kbps']:.2f} kbit/s is "
         f"{'under' if under else 'at or over'} it",
     ]
+    voice_times = np.array([r.time for r in data.voice], np.float64)
+    voice_bytes = np.array([len(r.data) for r in data.voice], np.int64)
+    audio = {"audio_kbps": round(voice_bytes.sum() * 8 / span / 1000, 3) if span > 0 else 0.0,
+             "audio_kbps_max_1s": round(_worst_second_bits(voice_times, voice_bytes) / 1000, 3)
+             if full_window else None}
+    summary.update(audio, total_kbps=round(summary["payload_kbps"] + audio["audio_kbps"], 3),
+                   total_kbps_max_1s=None if audio["audio_kbps_max_1s"] is None else
+                   round(summary["payload_kbps_max_1s"] + audio["audio_kbps_max_1s"], 3))
+    if len(voice_times):
+        lines.insert(-1, f"voice: {len(voice_times)} packets, {audio['audio_kbps']:.2f} kbit/s "
+                     f"mean, worst 1 s {audio['audio_kbps_max_1s']}; face and voice "
+                     f"{summary['total_kbps']:.2f} kbit/s mean, worst 1 s "
+                     f"{summary['total_kbps_max_1s']}")
     traffic = update_traffic(_served(data.updates), data.hello)
     summary.update(traffic)
     lines.insert(-1, f"model updates: {traffic['updates']} ({traffic['update_bytes_total']} "
@@ -138,6 +158,16 @@ def bandwidth(log: str | os.PathLike[str], plot: str | os.PathLike[str] | None =
         _plot(data.times, Path(plot))
         lines.append(f"plot: {plot}")
     return summary, lines
+
+
+def _worst_second_bits(times: np.ndarray, sizes: np.ndarray) -> float:
+    """The most bits of records in one second ending at a record (module docstring)."""
+    if not len(times):
+        return 0.0
+    order = np.argsort(times, kind="stable")
+    t, cum = times[order], np.concatenate([[0], np.cumsum(sizes[order])])
+    first = np.searchsorted(t, t - WINDOW_S + WINDOW_EPS_S, side="left")
+    return float((cum[1:] - cum[first]).max() * 8)
 
 
 def _served(updates: Sequence[LoggedUpdate]) -> list[tuple[float, bytes]]:

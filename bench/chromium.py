@@ -62,6 +62,7 @@ class DevTools:
         flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
                  "--remote-debugging-pipe", f"--user-data-dir={profile}", "--no-first-run",
                  "--no-default-browser-check", "--disable-extensions", "--mute-audio",
+                 "--autoplay-policy=no-user-gesture-required",
                  *extra_flags, "about:blank"]
         self.pid = os.posix_spawn(binary, [binary, *flags], os.environ, setsid=True,
                                   file_actions=[

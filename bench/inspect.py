@@ -13,6 +13,11 @@ parse), ``position``, ``replaces``, ``bytes``, ``time`` (s) and ``before`` (the 
 before it); ``update_bytes`` their total, ``lost_updates`` the damaged update records and
 ``missing_serials`` the serials the frames or updates name that no intact record holds
 (``protocol.log``). One report line per update.
+
+Voice: ``voice_packets`` (intact voice records), ``voice_s`` (their sound, 20 ms each),
+``voice_kbps`` (their bytes over the log's duration), ``voice_gaps`` (voice frames missing
+from their sequence), ``lost_voice`` (damaged voice records); one report line when the log
+holds any.
 """
 
 from __future__ import annotations
@@ -24,8 +29,11 @@ from typing import Any
 import numpy as np
 
 from facewire.models.update import UpdateError, update_head
-from facewire.protocol.log import LoggedUpdate, read_log
+from facewire.protocol.log import LoggedUpdate, LoggedVoice, read_log
+from facewire.protocol.opus import FRAME_S
 from facewire.protocol.packet import N_RESIDUAL_POINTS, SEQ_MODULO, Flag
+from facewire.protocol.voice import SEQ_MODULO as VOICE_SEQ_MODULO
+from facewire.protocol.voice import decode
 
 
 def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | None = None
@@ -51,6 +59,7 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
         "update_bytes": sum(len(u.data) for u in data.updates),
         "lost_updates": data.lost_updates,
         "missing_serials": list(data.missing_serials),
+        **_voice(data.voice, data.lost_voice, span),
     }
     lines = [
         f"{log}: {n} frames over {span:.2f} s ({summary['rate_hz']} Hz)",
@@ -60,11 +69,25 @@ def inspect_log(log: str | os.PathLike[str], csv_path: str | os.PathLike[str] | 
         f"{summary['clamped_frames']}",
         f"model {data.hello.model_sha256[:16]}…, regions: {', '.join(data.hello.regions)}",
         *_update_lines(summary),
+        *([f"voice: {summary['voice_packets']} packets, {summary['voice_s']} s of sound at "
+           f"{summary['voice_kbps']} kbit/s; missing from the sequence: "
+           f"{summary['voice_gaps']}; damaged records: {summary['lost_voice']}"]
+          if summary["voice_packets"] or summary["lost_voice"] else []),
     ]
     if csv_path is not None:
         _write_csv(csv_path, data.times, f, data.hello.regions)
         lines.append(f"csv: {csv_path}")
     return summary, lines
+
+
+def _voice(records: tuple[LoggedVoice, ...], lost: int, span: float) -> dict[str, Any]:
+    """The summary's voice keys (module docstring)."""
+    seqs = np.array([decode(r.data).seq for r in records], np.int64)
+    steps = np.mod(np.diff(seqs), VOICE_SEQ_MODULO)
+    size = sum(len(r.data) for r in records)
+    return {"voice_packets": len(records), "voice_s": round(len(records) * FRAME_S, 3),
+            "voice_kbps": round(size * 8 / span / 1000, 3) if span > 0 else 0.0,
+            "voice_gaps": int(np.clip(steps - 1, 0, None).sum()), "lost_voice": lost}
 
 
 def _update(record: LoggedUpdate) -> dict[str, Any]:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeAlias, TypeVar
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.opus import DEFAULT_BITRATE
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ
 
 EXIT_USAGE = 2
@@ -43,6 +44,8 @@ def _replay(args: argparse.Namespace) -> int:
                f"{s['corrupt']} corrupt, {s['duplicate']} duplicate, {s['late']} late; "
                f"{s['lost_records']} damaged log records",
                *_replay_updates(s),
+               *([f"sound: {s['sound_s']} s from {s['voice_frames']} voice packets"]
+                 if s["voice_frames"] else []),
                f"render: {s['render_fps']} fps; {s['seconds']} s in all"], args.json)
     return 0
 
@@ -97,7 +100,9 @@ def _send(args: argparse.Namespace) -> int:
         s = send(args.model, args.source, args.bind, args.record, args.rate, args.curve_dir,
                  status=line, loop=args.loop, learn=not args.no_learn,
                  insecure=args.insecure,
-                 warn=lambda text: print(f"facewire send: {text}", file=sys.stderr))
+                 warn=lambda text: print(f"facewire send: {text}", file=sys.stderr),
+                 audio=not args.no_audio, mic=args.mic,
+                 voice_bitrate=round(args.voice_kbps * 1000))
     report(s, [f"sent {s['packets']} packets from {s['frames']} frames ({s['face_frames']} "
                f"with a face) in {s['seconds']} s: {s['fps']} fps, {s['payload_kbps']} "
                f"kbit/s payload, at most {s['receivers_max']} receivers, {s['updates']} model "
@@ -106,14 +111,14 @@ def _send(args: argparse.Namespace) -> int:
                f"{s['model_chunks']} chunks), {s['updates']} model updates "
                f"({s['update_bytes_total']} bytes; {s['control']['update_bytes']} bytes of "
                f"update chunks served); stopped: {s['stopped']}"
-               + (f"; log: {s['log']}" if s["log"] else "")], args.json)
+               + (f"; log: {s['log']}" if s["log"] else ""),
+               *([f"voice ({s['voice']}): {s['voice_packets']} packets, {s['audio_kbps']} "
+                  f"kbit/s"] if s["voice"] else [])], args.json)
     return 0
 
 
 def _receive(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
-
-    import numpy as np
 
     from facewire.receiver.liveview import LiveView
     from facewire.receiver.receiver import receive
@@ -123,11 +128,7 @@ def _receive(args: argparse.Namespace) -> int:
         view = None
         if live is not None:
             print(f"facewire receive: live view at {live.url}", file=sys.stderr)
-
-            def view(frame: np.ndarray, stats: dict) -> None:
-                played = stats["received"] + stats["lost"]
-                live.publish(frame, {**stats, "loss_pct": 100 * stats["lost"] / played
-                                     if played else None})
+            view = live.show
 
         stop = threading.Event()
         previous = signal.signal(signal.SIGINT, lambda *_: stop.set())  # Ctrl-C: clean stop
@@ -135,7 +136,8 @@ def _receive(args: argparse.Namespace) -> int:
             with _StatusLine(lambda line: line) as line:
                 s = receive(args.connect, args.model, args.out, args.frames, view,
                             args.curve_dir, size=_size(args.size), status=line, stop=stop,
-                            idle_timeout_s=args.idle_timeout)
+                            idle_timeout_s=args.idle_timeout, audio=not args.no_audio,
+                            speaker=args.speaker or "")
         finally:
             signal.signal(signal.SIGINT, previous)
     if s["model_sha256"] is None:
@@ -154,9 +156,41 @@ def _receive(args: argparse.Namespace) -> int:
                + (f"; wrote {s['out']}" if s["out"] else "") + f"; ended: {s['ended']}",
                f"model version {s['model_serial']}: {s['updates']} updates applied "
                f"({s['update_bytes']} bytes), {s['updates_refused']} refused; {s['clamped']} "
-               f"slots rendered before their update came (Q clamped)"],
+               f"slots rendered before their update came (Q clamped)",
+               *([f"voice on {s['speaker']}: {s['voice_received']} packets "
+                  f"({s['audio_kbps']} kbit/s), {s['voice_played']} played, "
+                  f"{s['voice_recovered']} rebuilt, {s['voice_concealed']} concealed, "
+                  f"{s['voice_late']} late, {s['voice_corrupt']} corrupt; sound behind the "
+                  f"face by {s['av_skew_ms_median']} ms median ({s['av_skew_ms_p5']} to "
+                  f"{s['av_skew_ms_p95']} ms, 5-95 %)"] if s.get("voice_received") else [])],
            args.json)
     return 0
+
+
+def _call(args: argparse.Namespace) -> int:
+    from facewire.call import call
+    from facewire.report import report
+
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())  # Ctrl-C: hang up
+    try:
+        with _StatusLine(lambda line: line) as line:
+            s = call(args.model, args.source, args.peer, args.bind, args.curve_dir, args.mic,
+                     args.speaker or "", not args.no_audio, args.loop, args.view_port,
+                     args.insecure, args.idle_timeout, stop, args.out,
+                     say=lambda text: print(f"facewire call: {text}", file=sys.stderr),
+                     status=line, voice_bitrate=round(args.voice_kbps * 1000))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    sent, got = s["send"], s["receive"]
+    report(s, [f"sent: {sent.get('frames', 0)} frames, {sent.get('voice_packets', 0)} voice "
+               f"packets ({sent.get('payload_kbps', 0)} + {sent.get('audio_kbps', 0)} kbit/s)",
+               f"received: {got.get('received', 0)} packets, {got.get('lost', 0)} lost; "
+               f"{got.get('voice_received', 0)} voice packets, "
+               f"{got.get('voice_concealed', 0)} concealed; sound behind the face by "
+               f"{got.get('av_skew_ms_median')} ms median; ended: {got.get('ended')}"],
+           args.json)
+    return 0 if "error" not in sent else 1
 
 
 def _size(text: str | None) -> tuple[int, int] | None:
@@ -637,6 +671,16 @@ def _bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_sync(args: argparse.Namespace) -> int:
+    from facewire.bench.speech import losses
+    from facewire.bench.sync import sync
+    from facewire.report import report
+
+    report(*sync(args.model, args.source, losses(args.loss), _frames(args.frames),
+                 progress=_progress), args.json)
+    return 0
+
+
 def _bench_fanout(args: argparse.Namespace) -> int:
     from facewire.bench.fanout import DEFAULT_VIEWERS, fanout
     from facewire.report import report
@@ -656,12 +700,14 @@ def _encode(args: argparse.Namespace) -> int:
     s = encode_video(args.model, args.source, args.output, _frames(args.frames),
                      focal=args.focal, calib=args.calib, progress=_progress,
                      learn=not args.no_learn,
-                     warn=lambda text: print(f"facewire encode: {text}", file=sys.stderr))
+                     warn=lambda text: print(f"facewire encode: {text}", file=sys.stderr),
+                     audio=not args.no_audio)
     report(s, [f"log:      {s['log']}",
                f"frames:   {s['frames']} ({s['face_frames']} with a face), {s['packets']} "
                f"packets, {s['payload_kbps']} kbit/s payload at 30 Hz",
                f"flags:    {s['clamped']} frames clamped ({s['clamped_values']} values), "
                f"{s['held']} held, {s['mirrored']} mirrored, {s['tracking_lost']} tracking lost",
+               f"voice:    {s['voice_packets']} packets of 20 ms",
                f"learned:  {s['updates']} model updates"
                + (f" ({', '.join(s['update_regions'])})" if s["update_regions"] else ""),
                f"time:     {s['seconds']} s"], args.json)
@@ -691,12 +737,28 @@ def _bench_reproductions(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_clips(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from facewire.bench.cliptable import format_clip_table, run_clip_table
+    from facewire.report import report
+
+    with tempfile.TemporaryDirectory(prefix="facewire-clips-") as scratch:
+        summary = run_clip_table(args.data, args.work or scratch, models=args.models,
+                                 only=args.only, limit=args.limit, progress=_progress)
+    report(summary, format_clip_table(summary), args.json)
+    return 0
+
+
 def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
+    from facewire.receiver.speaker import check_sound
     from facewire.sender.enroll.occluders import check_hand_model
 
     print(check_egl())
     print(check_hand_model())
+    print(check_sound())
+    print(check_sound())
     return 0
 
 
@@ -801,6 +863,7 @@ def _add_send_receive(sub: Commands) -> None:
                    "encrypt, and admit only the receivers in DIR/authorized")
     _add_insecure(s)
     _add_no_learn(s)
+    _add_voice(s, "send")
     _add_json(s)
     s.set_defaults(run=_send)
 
@@ -819,8 +882,51 @@ def _add_send_receive(sub: Commands) -> None:
                    "packets (default: run until Ctrl-C)")
     r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "
                    "connect only to the sender whose key is in DIR/authorized")
+    _add_voice(r, "receive")
     _add_json(r)
     r.set_defaults(run=_receive)
+
+    c = sub.add_parser("call", help="a call: send this host's face and voice, and receive, "
+                       "show and play the other host's", description="One command per host: "
+                       "this host's face and voice go out at --bind, the other host's come in "
+                       "from --peer and are shown in a live view (its address is printed) "
+                       "with their voice. With --curve-dir each side admits only the other's "
+                       "key (the folder's authorized/ holds the other's public key alone).")
+    c.add_argument("--model", required=True, help="this host's person model (.fwm)")
+    c.add_argument("--source", required=True, help="camera:N or a video file (this host)")
+    c.add_argument("--peer", required=True, help="the other host's address, tcp://HOST:PORT")
+    c.add_argument("--bind", default="tcp://127.0.0.1:5555",
+                   help="where this host publishes (default %(default)s; control on PORT+1)")
+    c.add_argument("--curve-dir", help="this host's key folder; authorized/ holds the other "
+                   "host's public key")
+    c.add_argument("--loop", action="store_true", help="play a video file over and over")
+    c.add_argument("--view-port", type=int, default=0, help="the live view's port (default: "
+                   "any free one)")
+    c.add_argument("--out", help="also write the other side, with their voice, to this .mp4")
+    c.add_argument("--idle-timeout", type=float, help="end when the other side has been "
+                   "silent this many seconds (default: run until Ctrl-C)")
+    _add_insecure(c)
+    _add_voice(c, "send")
+    c.add_argument("--speaker", metavar="DEVICE", help="play the other's voice on this output "
+                   "device (its index or name; default: the default output)")
+    _add_json(c)
+    c.set_defaults(run=_call)
+
+
+def _add_voice(parser: argparse.ArgumentParser, command: str) -> None:
+    """The voice's options of ``send`` (``--mic``, ``--voice-kbps``) and of ``receive``
+    (``--speaker``), and ``--no-audio`` of both."""
+    parser.add_argument("--no-audio", action="store_true", help="no voice: the face alone")
+    if command == "send":
+        parser.add_argument("--mic", metavar="DEVICE", help="take the voice from this "
+                            "microphone (mic:N, or a device name; see 'facewire check'); by "
+                            "default a video file's own sound track")
+        parser.add_argument("--voice-kbps", type=float, default=DEFAULT_BITRATE / 1000,
+                            help="Opus's rate, kbit/s, 6 to 24 (default %(default)g: with "
+                            "its packet headers 11.6 kbit/s)")
+    else:
+        parser.add_argument("--speaker", metavar="DEVICE", help="play the voice on this "
+                            "output device (its index or name; default: the default output)")
 
 
 def _add_no_learn(parser: argparse.ArgumentParser) -> None:
@@ -842,6 +948,8 @@ def _add_encode_replay(sub: Commands) -> None:
                    "estimated from the image width)")
     e.add_argument("--calib", help="camera calibration JSON {fx, fy, cx, cy, width, height}")
     _add_no_learn(e)
+    e.add_argument("--no-audio", action="store_true", help="leave the video's sound out of "
+                   "the log (by default it is kept as the voice)")
     _add_json(e)
     e.set_defaults(run=_encode)
 
@@ -927,6 +1035,28 @@ def _add_bench(sub: Commands) -> None:
                     help="score only the first N held-out frames of each")
     _add_json(br)
     br.set_defaults(run=_bench_reproductions)
+    bsy = bsub.add_parser("sync", help="face and voice sent and received live on loopback: "
+                          "their playout skew, the lip sync in the received video, and the "
+                          "voice's speech quality (PESQ-WB) at packet losses")
+    bsy.add_argument("--model", required=True, help="person model (.fwm) of the clip's person")
+    bsy.add_argument("--source", required=True, help="a talking video with its sound track")
+    bsy.add_argument("--frames", help="frame range A:B of the video to send (default: all)")
+    bsy.add_argument("--loss", default="0,10,30", metavar="L,L,...",
+                     help="packet losses to score the speech at, percent (default %(default)s)")
+    _add_json(bsy)
+    bsy.set_defaults(run=_bench_sync)
+    bc = bsub.add_parser("clips", help="every single-person shared clip: a model from its first "
+                         "40 %%, scored on the rest beside x264 at its floor, one table")
+    bc.add_argument("--data", required=True, help="the shared data folder (holds video/)")
+    bc.add_argument("--work", help="folder to keep the models in (default: a temporary one)")
+    bc.add_argument("--models", help="folder of models CLIP.fwm (the clip's name without its "
+                    "suffix) to score instead of building")
+    bc.add_argument("--only", action="append", metavar="CLIP",
+                    help="run this clip only (its file name; repeatable)")
+    bc.add_argument("--limit", type=int, metavar="N",
+                    help="score only the first N held-out frames of each")
+    _add_json(bc)
+    bc.set_defaults(run=_bench_clips)
 
 
 def _add_tools(sub: Commands) -> None:

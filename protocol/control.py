@@ -11,7 +11,9 @@ hello          protocol (int), model_sha256 (str, 64 hex), model_bytes (int), ra
                (array of <= 8 str), quantisers (array of maps, ``packet.quantiser_table()``),
                model_serial (int, 0 .. ``MAX_SERIAL``; optional, default 0), clock_origin_s
                (float; optional: absent until the stream's first frame, and from older
-               senders)
+               senders), voice_bitrate (int, Opus's bit/s; optional: absent when the stream
+               has no voice), voice_origin_s (float; optional: absent until the voice
+               starts)
 model_request  sha256 (str), index (int): ask for one chunk of the model file
 model_chunk    sha256 (str), index, count, total (int), data (bin), data_sha256 (str)
 update_request model_sha256 (str), serial, index (int): ask for one chunk of model update
@@ -26,7 +28,8 @@ error          message (str)
 
 The Hello's ``clock_origin_s`` is the capture time, on the sender's monotonic clock, of the
 stream's slot 0: slot ``n`` (its packet's ``seq`` is ``n mod 65536``) was captured at
-``clock_origin_s + n / rate_hz`` (``protocol.clock``). A time exchange (``time_request``,
+``clock_origin_s + n / rate_hz`` (``protocol.clock``); voice frame ``j`` (``protocol.voice``)
+from ``voice_origin_s + j * 20 ms``. A time exchange (``time_request``,
 ``time_reply``) gives the offset between the two hosts' clocks. Every time is a finite
 number of at most ``MAX_CLOCK_S`` in magnitude.
 
@@ -67,6 +70,7 @@ from typing import Any, ClassVar
 import msgpack
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.opus import MAX_BITRATE, MIN_BITRATE
 from facewire.protocol.packet import MAX_SERIAL, N_REGIONS, VERSION, quantiser_table
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ
 
@@ -147,10 +151,16 @@ class Hello:
         default_factory=lambda: tuple(quantiser_table()))
     model_serial: int = 0
     clock_origin_s: float | None = None
+    voice_bitrate: int | None = None
+    voice_origin_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.clock_origin_s is not None:
             _check_time("hello.clock_origin_s", self.clock_origin_s)
+        if self.voice_origin_s is not None:
+            _check_time("hello.voice_origin_s", self.voice_origin_s)
+        _require(self.voice_bitrate is None or MIN_BITRATE <= self.voice_bitrate <= MAX_BITRATE,
+                 f"hello.voice_bitrate: must be in [{MIN_BITRATE}, {MAX_BITRATE}]")
         _require(self.protocol == VERSION, f"hello.protocol: the sender speaks protocol version "
                                            f"{self.protocol}, this facewire version {VERSION}")
         _require(bool(_HEX64.fullmatch(self.model_sha256)),
@@ -298,15 +308,17 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "model_bytes": (int,), "index": (int,), "count": (int,), "total": (int,),
     "protocol": (int,), "rate_hz": (float, int), "camera": (dict,), "regions": (list,),
     "quantisers": (list,), "data": (bytes,), "model_serial": (int,), "serial": (int,),
-    "clock_origin_s": (float, int), "t1": (float, int), "t2": (float, int), "t3": (float, int),
+    "clock_origin_s": (float, int), "voice_origin_s": (float, int), "voice_bitrate": (int,),
+    "t1": (float, int), "t2": (float, int), "t3": (float, int),
 }
 
 
 def encode_message(message: Message) -> bytes:
     """Serialise a message to msgpack bytes."""
     body = {"type": message.TYPE, **asdict(message)}
-    if body.get("clock_origin_s", 0) is None:  # optional: absent, as from older senders
-        del body["clock_origin_s"]
+    for optional in ("clock_origin_s", "voice_bitrate", "voice_origin_s"):
+        if body.get(optional, 0) is None:  # absent, as from older senders
+            del body[optional]
     return msgpack.packb(body, use_bin_type=True)
 
 

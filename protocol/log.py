@@ -6,7 +6,7 @@ Layout, big-endian:
 offset    size     content
 ========  =======  ===============================================================
 0         8        magic ``b"\\x89FWLOG\\r\\n"``
-8         2        log format version (2)
+8         2        log format version (3)
 10        2        packet size P in bytes (``protocol.packet.PACKET_BYTES``)
 12        4        Hello length L (at most 64 KiB)
 16        L        the Hello, as its msgpack control message
@@ -14,7 +14,7 @@ offset    size     content
 20+L      ...      records, in the order they were written
 ========  =======  ===============================================================
 
-A record is one of two kinds, told apart by the byte after its time:
+A record is one of three kinds, told apart by the byte after its time:
 
 - a packet record, 8 + P + 4 bytes: f64 time (s), the packet, CRC-32 of both. The packet's
   first byte holds its version in the top nibble and two flag bits under it (the reserved
@@ -22,7 +22,11 @@ A record is one of two kinds, told apart by the byte after its time:
 - an update record, 8 + 1 + 2 + 4 + U + 4 bytes: f64 time (s), the tag ``UPDATE_TAG``
   (``b"U"``, which no packet's first byte can be), u16 the update's serial (1 ..
   ``MAX_SERIAL``), u32 U (1 .. ``MAX_UPDATE_BYTES``), the update's U bytes (opaque here:
-  ``models.update.encode_update``'s), CRC-32 of everything before it in the record.
+  ``models.update.encode_update``'s), CRC-32 of everything before it in the record;
+- a voice record, 8 + 1 + 1 + V + 4 bytes: f64 time (s), the tag ``VOICE_TAG`` (``b"A"``),
+  u8 V (``protocol.voice``'s smallest packet .. ``MAX_VOICE_BYTES``), the voice packet's V
+  bytes (checked by its own CRC-16 when read), CRC-32 of everything before it in the record.
+  Voice records are written as the voice packets were sent, between the face's packets.
 
 An update record is written where the sender issued the update: after the packets sent
 before it, before the first packet whose serial refers to it. Times are s since the Unix
@@ -35,22 +39,24 @@ CRC-32 matches, its time is finite and its packet decodes; an update record when
 serial and length are in range, it fits in the file, its CRC-32 matches and its time is
 finite (a CRC-32 that matches by chance at a wrong offset has odds of 1 in 2**32). After a
 bad record it re-synchronises by searching forward byte by byte for the next intact one
-(trying only the offsets whose byte after the time is a packet's first byte or the update
-tag), so inserted or deleted bytes cost only the records they touch. Reading is linear in the
-file's size whatever it holds: an update record's head can be forged every few bytes, each
-declaring a body that reaches far ahead, so the bytes hashed to check update records are at
-most ``CHECK_FACTOR`` times the file's size (plus one largest update); past that budget an
-update head is taken for unusable bytes (no honest log comes near it: each of its bytes is
-hashed once). It reports what was
-lost: a run of unusable bytes that begins with an update record's head (tag, serial and
-length in range) holds one lost update record of that length (or the rest of the run,
-whichever is shorter); the rest of the run counts as its length in packet records, rounded,
-and at least one. ``PacketLog.missing_serials`` are the update serials between 1 and the
-highest any intact record names (an update's own, or a packet's ``serial``) that no intact
+(trying only the offsets whose byte after the time is a packet's first byte, the update
+tag or the voice tag), so inserted or deleted bytes cost only the records they touch.
+Reading is linear in the file's size whatever it holds: an update record's head can be
+forged every few bytes, each declaring a body that reaches far ahead, so the bytes hashed to
+check update records are at most ``CHECK_FACTOR`` times the file's size (plus one largest
+update); past that budget an update head is taken for unusable bytes (no honest log comes
+near it: each of its bytes is hashed once). It reports what was lost: a run of unusable
+bytes that begins with an update record's head (tag, serial and length in range) holds one
+lost update record of that length (or the rest of the run, whichever is shorter); the rest of
+the run counts as its length in packet records, rounded, and at least one; a run that begins
+with a voice record's head (tag and length in range) counts one lost voice record.
+``PacketLog.missing_serials`` are the update serials between 1 and the highest any intact
+record names (an update's own, or a packet's ``serial``) that no intact
 update record holds: the updates a replay cannot apply, whose frames it plays clamped.
 
-Format 1 (before model updates) is format 2 without update records, and is read as such
-while its packets are this facewire's. A log written by another protocol version is refused
+Format 1 (before model updates) is format 2 without update records, and format 2 (before the
+voice) is format 3 without voice records; both are read as such while their packets are this
+facewire's. A log written by another protocol version is refused
 at its header with one line naming the version: its packet size says which (39 bytes:
 version 1), and a log whose size matches but whose Hello announces another protocol is
 refused by the Hello's check of its version.
@@ -61,6 +67,7 @@ from __future__ import annotations
 import math
 import os
 import struct
+import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,18 +90,22 @@ from facewire.protocol.packet import (
     VERSION,
     decode_frames,
 )
+from facewire.protocol.voice import CRC_BYTES, HEADER_BYTES, MAX_VOICE_BYTES, VoiceError, decode
 
 MAGIC = b"\x89FWLOG\r\n"
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
 MAX_HELLO_BYTES = 64 * 1024
 MAX_LOG_BYTES = 2 * 1024**3
 CHECK_FACTOR = 4
 UPDATE_TAG = ord("U")
+VOICE_TAG = ord("A")
 _HEAD = struct.Struct(">8sHHI")
 _TIME = struct.Struct(">d")
 _CRC = struct.Struct(">I")
 _UPDATE_HEAD = struct.Struct(">dBHI")  # time, tag, serial, length
+_VOICE_HEAD = struct.Struct(">dBB")  # time, tag, length
+_MIN_VOICE_BYTES = HEADER_BYTES + 1 + CRC_BYTES
 RECORD_BYTES = _TIME.size + PACKET_BYTES + _CRC.size  # a packet record
 # A packet's first byte holds its version, then the high half of its flags, whose reserved
 # bits are 0: the re-synchronising search tries only the offsets where that byte fits, or
@@ -126,6 +137,16 @@ class LoggedUpdate:
     before: int
 
 
+@dataclass(frozen=True)
+class LoggedVoice:
+    """One intact voice record: ``time`` (s), ``data`` (the voice packet's bytes, which
+    ``protocol.voice.decode`` accepts) and ``before`` (intact packets before it in the log)."""
+
+    time: float
+    data: bytes
+    before: int
+
+
 @dataclass
 class PacketLog:
     """What a log holds.
@@ -140,6 +161,8 @@ class PacketLog:
         lost_updates: update records that were found damaged (their head intact).
         missing_serials: the serials from 1 to the highest any intact record names that no
             intact update record holds, ascending (module docstring).
+        voice: the intact voice records, in file order.
+        lost_voice: voice records found damaged (their head intact).
     """
 
     hello: Hello
@@ -150,14 +173,19 @@ class PacketLog:
     updates: tuple[LoggedUpdate, ...] = ()
     lost_updates: int = 0
     missing_serials: tuple[int, ...] = ()
+    voice: tuple[LoggedVoice, ...] = ()
+    lost_voice: int = 0
 
 
 class LogWriter:
-    """Appends records to a new log. Use as a context manager, or call ``close``.
+    """Appends records to a new log. Use as a context manager, or call ``close``. Records may
+    be written from several threads (the send loop's face, its voice thread): each is one
+    ``write`` under a lock, so records never interleave.
 
     Attributes:
         records: packet records written.
         updates: update records written.
+        voice: voice records written.
     """
 
     def __init__(self, path: str | os.PathLike[str], hello: Hello) -> None:
@@ -165,16 +193,18 @@ class LogWriter:
         body = encode_message(hello)
         head = _HEAD.pack(MAGIC, FORMAT_VERSION, PACKET_BYTES, len(body)) + body
         self._file = open(self.path, "wb", buffering=0)
+        self._lock = threading.Lock()
         self._file.write(head + _CRC.pack(zlib.crc32(head)))
         self.records = 0
         self.updates = 0
+        self.voice = 0
 
     def write(self, packet: bytes, time: float) -> None:
         """Append one packet with its time (s)."""
         if len(packet) != PACKET_BYTES:
             raise ValueError(f"packet has {len(packet)} bytes, expected {PACKET_BYTES}")
         record = _TIME.pack(time) + packet
-        self._file.write(record + _CRC.pack(zlib.crc32(record)))
+        self._append(record)
         self.records += 1
 
     def write_update(self, time: float, serial: int, data: bytes) -> None:
@@ -192,11 +222,25 @@ class LogWriter:
             raise ValueError(f"update {serial} has {len(data)} bytes, expected 1 .. "
                              f"{MAX_UPDATE_BYTES}")
         record = _UPDATE_HEAD.pack(time, UPDATE_TAG, serial, len(data)) + bytes(data)
-        self._file.write(record + _CRC.pack(zlib.crc32(record)))
+        self._append(record)
         self.updates += 1
 
+    def write_voice(self, packet: bytes, time: float) -> None:
+        """Append one voice packet (``protocol.voice``'s bytes) with its time (s)."""
+        if not _MIN_VOICE_BYTES <= len(packet) <= MAX_VOICE_BYTES:
+            raise ValueError(f"voice packet has {len(packet)} bytes, expected "
+                             f"{_MIN_VOICE_BYTES} .. {MAX_VOICE_BYTES}")
+        record = _VOICE_HEAD.pack(time, VOICE_TAG, len(packet)) + bytes(packet)
+        self._append(record)
+        self.voice += 1
+
+    def _append(self, record: bytes) -> None:
+        with self._lock:
+            self._file.write(record + _CRC.pack(zlib.crc32(record)))
+
     def close(self) -> None:
-        self._file.close()
+        with self._lock:
+            self._file.close()
 
     def __enter__(self) -> LogWriter:
         return self
@@ -222,7 +266,7 @@ def read_log(path: str | os.PathLike[str]) -> PacketLog:
     except OSError as exc:
         raise LogError(f"{path}: cannot read: {exc.strerror or exc}") from None
     hello, start, version = _read_header(path, data)
-    found = _Records(data, updates=version >= 2)
+    found = _Records(data, updates=version >= 2, voice=version >= 3)
     found.scan(start)
     offsets = found.packets
     times = np.array([_TIME.unpack_from(data, o)[0] for o in offsets], np.float64)
@@ -233,9 +277,12 @@ def read_log(path: str | os.PathLike[str]) -> PacketLog:
     kept = np.concatenate([[0], np.cumsum(ok)])  # intact packets before each packet record
     updates = tuple(LoggedUpdate(time, serial, payload, int(kept[before]))
                     for time, serial, payload, before in found.updates)
+    voice = tuple(LoggedVoice(time, payload, int(kept[before]))
+                  for time, payload, before in found.voice)
     frames = frames[ok]
     return PacketLog(hello, times[ok], packets[ok], frames, found.lost + int((~ok).sum()),
-                     updates, found.lost_updates, _missing_serials(updates, frames))
+                     updates, found.lost_updates, _missing_serials(updates, frames), voice,
+                     found.lost_voice)
 
 
 def _missing_serials(updates: tuple[LoggedUpdate, ...], frames: np.ndarray) -> tuple[int, ...]:
@@ -282,18 +329,23 @@ class _Records:
 
     After ``scan``: ``packets``, the offsets of the packet records that pass their CRC-32
     and time checks (their packets are decoded afterwards, all at once); ``updates``, the
-    intact update records as (time, serial, data, packet records before it); ``lost``,
-    ``lost_updates``: the module docstring's count of each run of unusable bytes.
+    intact update records as (time, serial, data, packet records before it); ``voice``, the
+    intact voice records as (time, data, packet records before it); ``lost``,
+    ``lost_updates``, ``lost_voice``: the module docstring's count of each run of unusable
+    bytes.
     """
 
-    def __init__(self, data: bytes, updates: bool) -> None:
+    def __init__(self, data: bytes, updates: bool, voice: bool) -> None:
         self.data = data
         self.view = np.frombuffer(data, np.uint8)
         self.with_updates = updates
+        self.with_voice = voice
         self.packets: list[int] = []
         self.updates: list[tuple[float, int, bytes, int]] = []
+        self.voice: list[tuple[float, bytes, int]] = []
         self.lost = 0
         self.lost_updates = 0
+        self.lost_voice = 0
         self._budget = CHECK_FACTOR * len(data) + MAX_UPDATE_BYTES  # bytes hashed (docstring)
 
     def scan(self, start: int) -> None:
@@ -312,6 +364,9 @@ class _Records:
     def _intact(self, offset: int) -> int:
         """The size of the intact record at ``offset`` (kept), else 0."""
         data = self.data
+        if offset + _TIME.size < len(data) and data[offset + _TIME.size] == VOICE_TAG \
+                and self.with_voice:
+            return self._intact_voice(offset)
         if offset + _TIME.size < len(data) and data[offset + _TIME.size] == UPDATE_TAG \
                 and self.with_updates:
             head = self._update_head(offset)
@@ -337,6 +392,33 @@ class _Records:
         self.packets.append(offset)
         return RECORD_BYTES
 
+    def _intact_voice(self, offset: int) -> int:
+        """The size of the intact voice record at ``offset`` (kept), else 0."""
+        length = self._voice_head(offset)
+        end = offset + _VOICE_HEAD.size + (length or 0)
+        if length is None or end + _CRC.size > len(self.data) \
+                or not math.isfinite(_VOICE_HEAD.unpack_from(self.data, offset)[0]) \
+                or zlib.crc32(self.data[offset:end]) != _CRC.unpack_from(self.data, end)[0]:
+            return 0
+        payload = self.data[offset + _VOICE_HEAD.size:end]
+        try:
+            decode(payload)
+        except VoiceError:
+            return 0
+        self.voice.append((_VOICE_HEAD.unpack_from(self.data, offset)[0], payload,
+                           len(self.packets)))
+        return end + _CRC.size - offset
+
+    def _voice_head(self, offset: int) -> int | None:
+        """The length of a voice record's packet at ``offset`` when its tag and length are in
+        range, else None."""
+        if offset + _VOICE_HEAD.size > len(self.data):
+            return None
+        _, tag, length = _VOICE_HEAD.unpack_from(self.data, offset)
+        if tag != VOICE_TAG or not _MIN_VOICE_BYTES <= length <= MAX_VOICE_BYTES:
+            return None
+        return int(length)
+
     def _update_head(self, offset: int) -> tuple[float, int, int] | None:
         """(time, serial, length) of an update record's head at ``offset`` when its tag,
         serial and length are in range, else None."""
@@ -354,15 +436,19 @@ class _Records:
         if size <= 0:
             return
         head = self._update_head(start) if self.with_updates else None
+        voice = self._voice_head(start) if self.with_voice else None
         if head is not None:
             self.lost_updates += 1
             size -= min(size, _UPDATE_HEAD.size + head[2] + _CRC.size)
+        elif voice is not None:
+            self.lost_voice += 1
+            size -= min(size, _VOICE_HEAD.size + voice + _CRC.size)
         if size > 0:
             self.lost += max(1, round(size / RECORD_BYTES))
 
     def _next_candidate(self, offset: int) -> int:
         """The first offset from ``offset`` whose byte after the time is a packet's first
-        byte or the update tag, else the end.
+        byte, the update tag or the voice tag, else the end.
 
         Searched with numpy in windows that double, so that megabytes of zeros (a crash's
         zero-filled blocks) or noise cost milliseconds, not a Python step per byte.
@@ -374,6 +460,8 @@ class _Records:
             fits = (window & _FIRST_MASK) == _FIRST_BYTE
             if self.with_updates:
                 fits |= window == UPDATE_TAG
+            if self.with_voice:
+                fits |= window == VOICE_TAG
             hits = np.flatnonzero(fits)
             if len(hits):
                 return offset + int(hits[0])

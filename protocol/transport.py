@@ -65,6 +65,7 @@ import os
 import random
 import re
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -214,18 +215,22 @@ class _Socket:
 
 
 class PacketPublisher(_Socket):
-    """The sender's packet socket (PUB, bound)."""
+    """The sender's packet socket (PUB, bound). Its ``send`` may be called from several
+    threads (the face's frame loop and the voice's thread): a lock serialises them, as a
+    ZeroMQ socket must only be used by one thread at a time."""
 
     def __init__(self, endpoint: str, curve: CurveServer | None = None) -> None:
         super().__init__(zmq.PUB, PACKET_HWM, MAX_PACKET_FRAME, bound=True)
         self.endpoint = self._serve(endpoint, curve)
+        self._lock = threading.Lock()
 
     def send(self, packet: bytes) -> None:
         """Publish one packet; never blocks (a full receiver queue drops it)."""
-        try:
-            self.socket.send(packet, zmq.NOBLOCK)
-        except zmq.Again:
-            pass
+        with self._lock:
+            try:
+                self.socket.send(packet, zmq.NOBLOCK)
+            except zmq.Again:
+                pass
 
 
 class PacketSubscriber(_Socket):

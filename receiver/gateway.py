@@ -34,7 +34,10 @@ Upstream (what a receiver does, with the receiver's own parts)
 Each packet is checked with ``protocol.packet.decode`` (size, version, CRC, reserved bits):
 a corrupt one is dropped and counted by its reason (``corrupt``), never forwarded. A packet
 that decodes is forwarded exactly as received, one binary WebSocket message, to every
-viewer, once the gateway has the model the current Hello names (before that, ``held``).
+viewer, once the gateway has the model the current Hello names (before that, ``held``). A
+voice packet (``protocol.voice``, told by its first nibble) is checked by its own decoder and
+forwarded the same way (``voice``), never held in doubt: the page plays it against the
+Hello's clock.
 
 Downstream (``websockets``' asyncio server on the calling thread's event loop)
 -----------------------------------------------------------------------------
@@ -70,8 +73,10 @@ joins the stream. The same messages go to every page when they change. These fir
 and the joining happen in one step of the event loop, so no packet can come between them.
 Every ``STATUS_S``, once the sender's clock is estimated, a ``clock`` message: ``origin_s``
 and ``rate_hz`` (the Hello's clock: slot ``n`` captured at ``origin_s + n / rate_hz``) on the
-gateway's monotonic clock (the offset applied), and ``now_s``, the gateway's clock when
-sent; a page aligns its own clock to the gateway's from these (``receiver/web/stats.js``).
+gateway's monotonic clock (the offset applied), ``voice_origin_s`` when the stream has a
+voice (voice frame ``j`` captured at ``voice_origin_s + j * 20 ms``, the same clock), and
+``now_s``, the gateway's clock when sent; a page aligns its own clock to the gateway's from
+these (``receiver/web/stats.js``).
 
 Bounds. A page need send nothing: a message over ``MAX_MESSAGE_BYTES`` closes its connection
 (1009, by ``websockets``' ``max_size``), more than ``MAX_MESSAGES_PER_S`` in a second closes
@@ -144,6 +149,8 @@ from facewire.protocol.keys import CurveClient, client_keys
 from facewire.protocol.loopback import host_header_is_loopback, is_loopback
 from facewire.protocol.packet import PacketError, decode
 from facewire.protocol.transport import PacketSubscriber, control_endpoint
+from facewire.protocol.voice import VoiceError, is_voice
+from facewire.protocol.voice import decode as decode_voice
 from facewire.receiver.acquire import ModelAcquirer
 from facewire.receiver.clocksync import ClockSync
 from facewire.receiver.link import HELLO_TIMEOUT_S, RECHECK_EVERY_S, Change, SenderLink
@@ -500,6 +507,9 @@ class Gateway:
             while (item := self.reader.take()) is not None:
                 data, arrival = item
                 link = self.upstream.link if self.upstream is not None else None
+                if is_voice(data):  # the voice: checked and forwarded as it is, never held
+                    self._forward_voice(data)
+                    continue
                 try:
                     frame = decode(data)
                 except PacketError as exc:
@@ -526,6 +536,23 @@ class Gateway:
         except FacewireError as exc:
             self.error = exc
 
+    def _forward_voice(self, data: bytes) -> None:
+        """A voice packet (``protocol.voice``): forwarded once the pages have the model the
+        Hello names, counted ``voice``; one that does not decode is dropped and counted by
+        its reason (``corrupt_voice_*``)."""
+        try:
+            decode_voice(data)
+        except VoiceError as exc:
+            self.counts["corrupt"] += 1
+            self.counts[f"corrupt_voice_{exc.reason}"] += 1
+            return
+        if self.model_json is None:
+            self.counts["held"] += 1
+            return
+        broadcast(self.viewers, data)
+        self.counts["voice"] += 1
+        self.counts["voice_bytes"] += len(data)
+
     def _send_packet(self, data: bytes) -> None:
         broadcast(self.viewers, data)
         self.counts["forwarded"] += 1
@@ -550,8 +577,10 @@ class Gateway:
         hello = upstream.link.hello if upstream is not None else None
         if best is None or hello is None or hello.clock_origin_s is None:
             return None
+        voice = {} if hello.voice_origin_s is None else \
+            {"voice_origin_s": hello.voice_origin_s - best.offset_s}
         return json.dumps({"type": "clock", "origin_s": hello.clock_origin_s - best.offset_s,
-                           "rate_hz": hello.rate_hz, "now_s": time.monotonic()})
+                           "rate_hz": hello.rate_hz, "now_s": time.monotonic(), **voice})
 
     # -- what the upstream thread hands over -------------------------------------------------
 
@@ -734,7 +763,8 @@ class Gateway:
 
     def summary(self) -> dict[str, Any]:
         """``connect``, ``url`` (``shown_url``), ``seconds``; packets ``forwarded`` (and
-        their bytes), ``held`` (before a model), ``corrupt`` (and ``corrupt_REASON``), ``overflow``;
+        their bytes), ``voice`` packets forwarded (and ``voice_bytes``), ``held`` (before a
+        model), ``corrupt`` (and ``corrupt_REASON``, ``corrupt_voice_REASON``), ``overflow``;
         viewers: ``viewers_total``, ``viewers_max``, ``dropped_junk``, ``dropped_slow``;
         ``http_served``, ``http_refused``; the model: ``model_sha256``, ``model_serial``,
         ``glb_bytes``, ``rig_bytes`` and as sent gzipped ``glb_bytes_gzip``,
@@ -742,7 +772,8 @@ class Gateway:
         the sender's clock: ``receiver.clocksync.ClockSync.summary``'s keys."""
         files = self.models.get(self.sha256 or "", {})
         counts = {k: self.counts[k] for k in (
-            "forwarded", "forwarded_bytes", "held", "corrupt", "viewers_total",
+            "forwarded", "forwarded_bytes", "voice", "voice_bytes", "held", "corrupt",
+            "viewers_total",
             "dropped_junk", "dropped_slow", "http_served", "http_refused")}
         reasons = {k: v for k, v in self.counts.items() if k.startswith("corrupt_")}
         upstream = self.upstream
@@ -936,10 +967,10 @@ def _status_json(sender: str, text: str) -> str:
 
 
 def _hello_json(hello: Hello) -> str:
-    """The Hello as pages get it: its clock travels in ``clock`` messages instead, on the
-    gateway's clock."""
+    """The Hello as pages get it: its clock (the face's and the voice's origins) travels in
+    ``clock`` messages instead, on the gateway's clock."""
     fields = dataclasses.asdict(hello)
-    del fields["clock_origin_s"]
+    del fields["clock_origin_s"], fields["voice_origin_s"]
     return json.dumps({"type": "hello", **fields})
 
 

@@ -24,8 +24,9 @@ State machine
     the seq: a restarted sender, or one that gave up slots after a stall);
   - the playout resynced (``note_restart``);
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
-    frame) and a packet came, from a sender that answers time requests (an older one does
-    not, and its Hello never has the clock): asked once per Hello taken.
+    frame), or announces a voice without its origin (``voice_origin_s``: asked before the
+    voice began), and a packet came, from a sender that answers time requests (an older one
+    does not, and its Hello never has the clock): asked once per Hello taken.
 
 - DUE: the caller asks at once (``RECHECK_TIMEOUT_S``); unanswered, again from
   ``next_check``, every ``RECHECK_EVERY_S``. Meanwhile the receiver renders on, the gateway
@@ -141,7 +142,7 @@ class SenderLink:
 
     def take(self, hello: Hello) -> None:
         """The Hello now played (or served): later answers are classified against it."""
-        if hello.clock_origin_s != (self.hello.clock_origin_s if self.hello else None):
+        if _origins(hello) != (_origins(self.hello) if self.hello else None):
             self._clock_asked = False
         self.hello = hello
 
@@ -182,8 +183,9 @@ class SenderLink:
         self._last_arrival = arrival
         if seq is not None:
             self._last_seq = seq
-        clockless = clocked and self.hello is not None and \
-            self.hello.clock_origin_s is None and not self._clock_asked
+        clockless = clocked and self.hello is not None and not self._clock_asked and (
+            self.hello.clock_origin_s is None or
+            self.hello.voice_bitrate is not None and self.hello.voice_origin_s is None)
         if clockless:
             self._clock_asked = True
         if resumed or jumped:
@@ -200,3 +202,8 @@ class SenderLink:
     def check_due(self, now: float) -> bool:
         """Whether to ask for the Hello now."""
         return self.due and now >= self.next_check
+
+
+def _origins(hello: Hello) -> tuple[float | None, float | None]:
+    """The face's and the voice's clock origins a Hello announces."""
+    return hello.clock_origin_s, hello.voice_origin_s

@@ -207,6 +207,13 @@ class LiveView:
             if rgb is not None:
                 self._loop.call_soon_threadsafe(self._woken)
 
+    def show(self, rgb: np.ndarray, stats: dict[str, Any]) -> None:
+        """``publish`` for ``receiver.receiver.receive``'s ``view``: its live statistics with
+        ``loss_pct``, the share of played slots whose packet was lost."""
+        played = stats["received"] + stats["lost"]
+        self.publish(rgb, {**stats, "loss_pct": 100 * stats["lost"] / played if played
+                           else None})
+
     def close(self) -> None:
         """Stop serving and release every connection (see the module docstring); idempotent."""
         with self._lock:

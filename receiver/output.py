@@ -20,7 +20,13 @@ unclosed ``.mp4`` has no index and does not play). Writing after ``close`` raise
 (4:2:0, BT.601 limited range, as FFmpeg converts RGB by default), constant quality
 ``crf`` 18 (visually near lossless) at preset ``fast``, x264's frame threading (PyAV would
 otherwise pick slice threads, which cost x264 compression). A frame's presentation time is
-its index over ``rate_hz``. 4:2:0 needs an even width and height: an odd one is padded by
+its index over ``rate_hz``. With ``sound=True`` the file also gets a sound track: 48 kHz
+mono Opus at ``SOUND_BITRATE`` (FFmpeg's libopus; MP4 holds Opus, RFC 7845's mapping), fed
+by ``write_sound(pcm, start_s)`` in the frames' order on the same queue: the first call
+places its samples at ``start_s`` seconds of the file's timeline (the video's frame 0 at 0),
+every later call's samples follow the last one's without a gap, so the caller keeps sound and
+frames in sync by where it starts the sound. Sound is cut into Opus's 20-ms frames; a last
+partial frame is padded with silence. 4:2:0 needs an even width and height: an odd one is padded by
 repeating the last column or row, so the file is then one pixel wider or taller. No
 frames written: ``close`` raises and no file is left.
 
@@ -51,8 +57,10 @@ import cv2
 import numpy as np
 
 from facewire.protocol.errors import FacewireError
+from facewire.protocol.opus import FRAME_SAMPLES, SAMPLE_RATE
 
 QUEUE_FRAMES = 8
+SOUND_BITRATE = 64_000
 TIMED_FRAMES = 1000
 CRF = 18
 PRESET = "fast"
@@ -77,7 +85,8 @@ class _QueuedWriter:
         self.target = target
         self._size = size  # (height, width); None until the first frame (folder writer)
         self._count = 0
-        self._queue: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=QUEUE_FRAMES)
+        self._queue: queue.Queue[np.ndarray | tuple[float | None, np.ndarray] | None] = \
+            queue.Queue(maxsize=QUEUE_FRAMES)
         self._error: BaseException | None = None
         self._closed = False
         self.consume_seconds: deque[float] = deque(maxlen=TIMED_FRAMES)
@@ -152,6 +161,13 @@ class _QueuedWriter:
             rgb = self._queue.get()
             if rgb is _STOP:
                 break
+            if isinstance(rgb, tuple):  # sound (VideoWriter.write_sound)
+                if self._error is None:
+                    try:
+                        self._consume_sound(*rgb)
+                    except Exception as exc:  # noqa: BLE001 - reaches write/close
+                        self._error = exc
+                continue
             if self._error is None:
                 tick = time.perf_counter()
                 try:
@@ -169,6 +185,9 @@ class _QueuedWriter:
     def _consume(self, index: int, rgb: np.ndarray) -> None:
         raise NotImplementedError
 
+    def _consume_sound(self, start_s: float | None, pcm: np.ndarray) -> None:
+        raise NotImplementedError
+
     def _finish(self, failed: bool) -> None:
         raise NotImplementedError
 
@@ -182,6 +201,7 @@ class VideoWriter(_QueuedWriter):
         rate_hz: frame rate, > 0 (stored as a fraction, e.g. 29.97 as 2997/100).
         crf: x264 constant rate factor, 0 (lossless) to 51.
         preset: x264 preset name.
+        sound: add a sound track (``write_sound``).
 
     Raises:
         OutputError: the file cannot be created.
@@ -189,7 +209,8 @@ class VideoWriter(_QueuedWriter):
     """
 
     def __init__(self, path: str | os.PathLike[str], width: int, height: int,
-                 rate_hz: float, crf: int = CRF, preset: str = PRESET) -> None:
+                 rate_hz: float, crf: int = CRF, preset: str = PRESET,
+                 sound: bool = False) -> None:
         path = Path(path)
         if width < 1 or height < 1:
             raise ValueError(f"{path}: frame size: expected positive, got {width}x{height}")
@@ -211,6 +232,11 @@ class VideoWriter(_QueuedWriter):
             self._stream.pix_fmt = "yuv420p"
             self._stream.codec_context.thread_type = "FRAME"
             self._stream.codec_context.open()
+            self._sound = self._container.add_stream(
+                "libopus", rate=SAMPLE_RATE, layout="mono") if sound else None
+            if self._sound is not None:
+                self._sound.bit_rate = SOUND_BITRATE
+                self._sound.codec_context.open()
         except (av.FFmpegError, ValueError) as exc:
             raise ValueError(f"{path}: cannot set up H.264 (crf {crf}, preset {preset!r}): "
                              f"{exc}") from None
@@ -219,7 +245,52 @@ class VideoWriter(_QueuedWriter):
         except OSError as exc:
             raise OutputError(f"{path}: cannot create: {exc.strerror or exc}") from None
         self._time_base = 1 / rate
+        self._sound_at: int | None = None  # the next sound sample's place, in samples
+        self._sound_rest = np.zeros(0, np.int16)
         super().__init__(path, (height, width))
+
+    def write_sound(self, pcm: np.ndarray, start_s: float | None = None) -> None:
+        """Queue sound for the file's sound track (module docstring).
+
+        Args:
+            pcm: (N,) int16, 48 kHz mono.
+            start_s: where the first call's samples begin on the file's timeline, s (>= 0;
+                None: 0); later calls' are ignored (their samples follow on).
+
+        Raises:
+            ValueError: no sound track, closed, or not (N,) int16.
+            OutputError: the encoding thread has failed (names the file).
+        """
+        if self._sound is None or self._closed:
+            raise ValueError(f"{self.target}: " + ("write after close" if self._closed else
+                                                   "made without a sound track"))
+        self._raise_thread_error()
+        if not isinstance(pcm, np.ndarray) or pcm.dtype != np.int16 or pcm.ndim != 1:
+            raise ValueError(f"{self.target}: sound: expected (N,) int16")
+        if start_s is not None and not (math.isfinite(start_s) and start_s >= 0):
+            raise ValueError(f"{self.target}: sound start: expected >= 0 s, got {start_s}")
+        self._queue.put((start_s, pcm.copy()))
+
+    def _consume_sound(self, start_s: float | None, pcm: np.ndarray) -> None:
+        assert self._sound is not None  # write_sound checked
+        if self._sound_at is None:
+            self._sound_at = round((start_s or 0.0) * SAMPLE_RATE)
+        pcm = np.concatenate([self._sound_rest, pcm])
+        whole = len(pcm) // FRAME_SAMPLES * FRAME_SAMPLES
+        self._sound_rest = pcm[whole:]
+        for k in range(0, whole, FRAME_SAMPLES):
+            self._encode_sound(pcm[k:k + FRAME_SAMPLES])
+
+    def _encode_sound(self, pcm: np.ndarray | None) -> None:
+        assert self._sound is not None and self._sound_at is not None
+        frame = None
+        if pcm is not None:
+            frame = av.AudioFrame.from_ndarray(pcm.reshape(1, -1), format="s16", layout="mono")
+            frame.sample_rate, frame.pts = SAMPLE_RATE, self._sound_at
+            frame.time_base = Fraction(1, SAMPLE_RATE)
+            self._sound_at += len(pcm)
+        for packet in self._sound.encode(frame):
+            self._container.mux(packet)
 
     def _consume(self, index: int, rgb: np.ndarray) -> None:
         if any(self._pad):
@@ -234,6 +305,11 @@ class VideoWriter(_QueuedWriter):
             if not failed and self.frames:
                 for packet in self._stream.encode():
                     self._container.mux(packet)
+                if self._sound is not None and self._sound_at is not None:
+                    if len(self._sound_rest):
+                        self._encode_sound(np.pad(self._sound_rest,
+                                                  (0, FRAME_SAMPLES - len(self._sound_rest))))
+                    self._encode_sound(None)
         finally:
             try:
                 self._container.close()

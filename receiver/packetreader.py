@@ -6,7 +6,9 @@ and, for each message, stamps it on ``time.monotonic()``, appends ``(bytes, arri
 queue of at most ``capacity`` (beyond that the message is dropped and counted: ``overflow``),
 sets ``arrived`` and calls ``notify`` (from the reader's thread: e.g. to wake an event loop).
 The consumer takes packets in arrival order with ``take``. Messages are not parsed here:
-corrupt ones are queued like the others, for the consumer to count.
+corrupt ones are queued like the others, for the consumer to count. A ``divert`` callback
+sees each message first, on the reader's thread, and keeps the ones it takes out of the queue
+(the voice: ``receiver.voiceplayer``, whose packets must not wait behind the face's).
 
 After ``reopen_s`` without a message the socket is opened anew: libzmq does not reconnect a
 socket whose peer broke the protocol (e.g. sent a frame over
@@ -38,6 +40,8 @@ class PacketReader:
         capacity: the most packets queued; more are dropped (``overflow``).
         reopen_s: seconds without a message after which the socket is opened anew.
         notify: called (on the reader's thread) after each packet queued, or None.
+        divert: called (on the reader's thread) with each message and its arrival; a message
+            for which it returns True is not queued. None: every message is queued.
 
     Attributes:
         arrived: set on each packet queued (the consumer clears it before taking).
@@ -46,10 +50,12 @@ class PacketReader:
     """
 
     def __init__(self, open_socket: Callable[[], PacketSubscriber], capacity: int,
-                 reopen_s: float, notify: Callable[[], None] | None = None) -> None:
+                 reopen_s: float, notify: Callable[[], None] | None = None,
+                 divert: Callable[[bytes, float], bool] | None = None) -> None:
         self._open = open_socket
         self._sub = open_socket()
         self._capacity, self._reopen_s, self._notify = capacity, reopen_s, notify
+        self._divert = divert
         self._queue: deque[tuple[bytes, float]] = deque()
         self._closing = threading.Event()
         self.arrived = threading.Event()
@@ -73,6 +79,8 @@ class PacketReader:
                     continue
                 now = quiet_since = time.monotonic()
                 self.last_arrival = now
+                if self._divert is not None and self._divert(data, now):
+                    continue
                 if len(self._queue) >= self._capacity:
                     self.overflow += 1
                     continue

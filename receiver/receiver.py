@@ -106,6 +106,12 @@ clock and the packet's seq give on the sender's clock, moved to this host's by t
 ``receiver.clocksync`` estimate. None while either is missing (a sender that announces no
 clock, or answers no time request).
 
+Voice (``receiver.voiceplayer``): with ``audio`` the packet thread hands voice packets to the
+player before the face's queue; its jitter buffer is pulled by the speaker (``speaker``) or a
+clock of its own, each frame played goes into the video file's sound track where it was
+heard beside the frames (``--out``: the first sound at its out time less the first frame's),
+and the summary carries the voice's counts and the sync (``av_skew_ms_*``).
+
 Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
 counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
 
@@ -137,12 +143,13 @@ from facewire.receiver.acquire import ModelAcquirer, ReceiveError
 from facewire.receiver.clocksync import ClockSync
 from facewire.receiver.link import RECHECK_EVERY_S, RECHECK_TIMEOUT_S, Change, SenderLink
 from facewire.receiver.modelcache import ModelCache
-from facewire.receiver.output import FrameFolderWriter, VideoWriter
+from facewire.receiver.output import FrameFolderWriter, OutputError, VideoWriter
 from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.playout import FrameState, Playout
 from facewire.receiver.scene import StateRenderer, rest_q
 from facewire.receiver.stats import ReceiveStats
 from facewire.receiver.updates import UpdateFetcher
+from facewire.receiver.voiceplayer import VoicePlayer, voice_capture
 
 REOPEN_S = 8.0
 MAX_GAP_S = 10.0
@@ -166,7 +173,8 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             stop: threading.Event | None = None, max_frames: int | None = None,
             idle_timeout_s: float | None = None, on_frame: OnFrame | None = None,
             on_packet: OnPacket | None = None,
-            ready: threading.Event | None = None) -> dict[str, Any]:
+            ready: threading.Event | None = None, audio: bool = True,
+            speaker: str | None = None) -> dict[str, Any]:
     """Receive a sender's stream and render it until stopped (module docstring).
 
     Args:
@@ -193,6 +201,9 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             (``time.monotonic()`` s) as it enters the playout, in arrival order.
         ready: set once the receiver can play (a model, a renderer and a playout), e.g. the
             ``start`` of a ``sender.sender.send`` in the same process.
+        audio: play the voice (module docstring, "Voice"); False: voice packets are ignored.
+        speaker: the output device (index or name; "" the default output), or None to play
+            into the file (and the sync measure) only.
 
     Returns:
         The summary (``receiver.stats``, and ``connect``, ``out``, ``width``, ``height`` and
@@ -211,7 +222,7 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
     curve = client_keys(curve_dir) if curve_dir is not None else None
     session = _Session(connect, curve, local, ModelCache(cache_dir), out, frames_dir,
                        view or None, size, status, stop, max_frames, idle_timeout_s,
-                       on_frame, on_packet, ready)
+                       on_frame, on_packet, ready, audio, speaker)
     return session.run()
 
 
@@ -274,7 +285,8 @@ class _Session:
                  size: tuple[int, int] | None, status: Status | None,
                  stop: threading.Event | None, max_frames: int | None,
                  idle_timeout_s: float | None, on_frame: OnFrame | None,
-                 on_packet: OnPacket | None, ready: threading.Event | None) -> None:
+                 on_packet: OnPacket | None, ready: threading.Event | None,
+                 audio: bool = True, speaker: str | None = None) -> None:
         self.connect = connect
         self.curve, self.local, self.cache = curve, local, cache
         self.out, self.frames_dir, self.view, self.size = out, frames_dir, view, size
@@ -298,10 +310,17 @@ class _Session:
         self.base: PersonModel | None = None  # its model file (version 0)
         self.version = 0  # the model version rendered
         self.started = time.monotonic()
+        self.first_out: float | None = None  # when the first output frame was out
+        self.sound_started = False
         # the links to the sender: open from here, closed by run() (at once if one fails)
         with contextlib.ExitStack() as links:
+            self.voice = VoicePlayer(speaker, self._sound, self.say, self._voice_capture) \
+                if audio else None
+            if self.voice is not None:
+                links.callback(self.voice.close)
             self.reader = PacketReader(lambda: PacketSubscriber(self.connect, self.curve),
-                                       QUEUE_PACKETS, REOPEN_S)
+                                       QUEUE_PACKETS, REOPEN_S,
+                                       divert=None if self.voice is None else self.voice.push)
             links.callback(self.reader.close)
             self.link = SenderLink(self.connect, self.curve)
             links.callback(self.link.close)
@@ -326,6 +345,8 @@ class _Session:
                         self._play()
             except _End as end:
                 ended = end.reason
+            if self.voice is not None:
+                self.voice.close()  # no sound after the file is closed
             if self.writer is not None:
                 self.writer.close()
         return self._summary(ended, time.monotonic() - self.started)
@@ -586,7 +607,8 @@ class _Session:
                 image = self.scene.render(state)
             if self.writer is None and self.out is not None:
                 width, height = self.size
-                self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz)
+                self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz,
+                                          sound=self.voice is not None)
             elif self.writer is None and self.frames_dir is not None:
                 self.writer = FrameFolderWriter(self.frames_dir)
             if self.writer is not None:
@@ -594,9 +616,32 @@ class _Session:
             if self.on_frame is not None:
                 self.on_frame(image, state)
         now = time.monotonic()
+        self.first_out = now if self.first_out is None else self.first_out
+        if self.voice is not None and capture is not None:
+            self.voice.face(capture, now)
         frames = self.stats.frame(now, latency, None if capture is None else now - capture)
         if self.max_frames is not None and frames >= self.max_frames:
             raise _End("max_frames")
+
+    def _voice_capture(self, seq: int, near: float) -> float | None:
+        """Voice frame ``seq``'s capture time on this host's clock (``receiver.voiceplayer``),
+        or None without the Hello's voice origin or an offset estimate."""
+        hello = self.hello
+        best = self.clock.best() if self.clock is not None else None
+        if hello is None or hello.voice_origin_s is None or best is None:
+            return None
+        return voice_capture(seq, hello.voice_origin_s, near + best.offset_s) - best.offset_s
+
+    def _sound(self, pcm: np.ndarray, out: float) -> None:
+        """A voice frame heard at ``out``: into the video file's sound track, placed where it
+        was heard beside the frames (module docstring, "Voice"); before the first frame, none.
+        """
+        writer, first = self.writer, self.first_out
+        if not isinstance(writer, VideoWriter) or first is None or out < first:
+            return
+        with contextlib.suppress(ValueError, OutputError):  # the file closing: the end
+            writer.write_sound(pcm, None if self.sound_started else out - first)
+            self.sound_started = True
 
     def _live(self, state: FrameState | None) -> dict[str, Any]:
         return self.stats.live(time.monotonic(), state, self.playout)
@@ -613,4 +658,5 @@ class _Session:
             **self.stats.update_summary(self.updates, self.version),
             **self.acquirer.info,
             **(self.clock.summary() if self.clock is not None else ClockSync.EMPTY),
+            **(self.voice.summary() if self.voice is not None else {}),
         }

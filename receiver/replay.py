@@ -31,7 +31,16 @@ does not decode against the version it applies to is refused (``UpdateError``, n
 log).
 
 Output: a path ending in ``.mp4`` is an H.264 video (``receiver.output.VideoWriter``, encoded
-on its own thread); any other path is a folder of PNG frames. The model must be the one the
+on its own thread); any other path is a folder of PNG frames.
+
+Sound: a log with voice records (``protocol.log``) gives the video a sound track. The voice
+frames are decoded in their order (``log_sound``), a missing one rebuilt from the next's FEC
+or concealed (``protocol.opus.Decoder``), and frame ``j`` is placed at the first voice
+record's start (its record time less 20 ms: a sender logs a frame once captured) plus ``j -
+j0`` frames, on the file's timeline whose frame ``k`` is the log's first packet time plus ``k
+/ rate``: both on the log's record times, so the sound keeps the sync the log has (exact for
+a log of ``encode``, whose times are the source's; within the sender's processing delay for
+one of ``send --record``). The model must be the one the
 log was made with (its sha256 is in the log's Hello).
 """
 
@@ -51,6 +60,9 @@ from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.update import ModelVersions
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.log import PacketLog, read_log
+from facewire.protocol.opus import FRAME_S, SAMPLE_RATE, Decoder
+from facewire.protocol.voice import decode as decode_voice
+from facewire.protocol.voice import unwrap
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState, Playout, replay_states
 from facewire.receiver.scene import VIEWS, StateRenderer, rest_q
@@ -83,7 +95,8 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         ``corrupt`` ...), ``lost_records`` (damaged packet records), ``updates`` (the log's
         intact update records), ``updates_applied``, ``lost_updates`` (damaged update
         records), ``missing_serials``, ``clamped_frames`` (frames shown with an older
-        version than the one they refer to), ``width``, ``height``, ``view``, ``out``,
+        version than the one they refer to), ``voice_frames`` (the log's voice records),
+        ``sound_s`` (the sound track written, s), ``width``, ``height``, ``view``, ``out``,
         ``seconds``, ``render_fps``.
 
     Raises:
@@ -118,9 +131,12 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
     frames = _SourceFrames(source) if source is not None else None
     out = Path(out)
     out_width = width + (0 if frames is None else frames.width(height))
-    writer = VideoWriter(out, out_width, height, hello.rate_hz) if out.suffix == ".mp4" \
-        else FrameFolderWriter(out)
     t0 = float(np.min(log.times)) if len(log.times) else 0.0
+    sound = log_sound(log, t0) if out.suffix == ".mp4" else None
+    writer = VideoWriter(out, out_width, height, hello.rate_hz, sound=sound is not None) \
+        if out.suffix == ".mp4" else FrameFolderWriter(out)
+    if sound is not None and isinstance(writer, VideoWriter):
+        writer.write_sound(*sound)
     written = clamped = 0
     render_seconds = 0.0
     with StateRenderer(model, width, height, hello.camera, view) as renderer, writer:
@@ -142,9 +158,37 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
             "frames": written, **playout.stats, "lost_records": log.lost,
             "updates": len(log.updates), "updates_applied": versions.applied,
             "lost_updates": log.lost_updates, "missing_serials": list(log.missing_serials),
-            "clamped_frames": clamped,
+            "clamped_frames": clamped, "voice_frames": len(log.voice),
+            "sound_s": 0.0 if sound is None else round(len(sound[0]) / SAMPLE_RATE, 3),
             "seconds": round(elapsed, 2),
             "render_fps": round(written / render_seconds, 1) if render_seconds else None}
+
+
+def log_sound(log: PacketLog, t0: float) -> tuple[np.ndarray, float] | None:
+    """The log's voice as one sound track (module docstring, "Sound"): (N,) int16 at 48 kHz
+    and where it starts after ``t0`` (s, >= 0; sound before ``t0`` is cut); None without
+    voice records."""
+    if not log.voice:
+        return None
+    packets: dict[int, bytes] = {}
+    last = None
+    for record in log.voice:
+        packet = decode_voice(record.data)
+        last = unwrap(packet.seq, last)
+        packets.setdefault(last, packet.opus)
+    first = min(packets)
+    start = log.voice[0].time - FRAME_S - (next(iter(packets)) - first) * FRAME_S
+    decoder, frames = Decoder(), []
+    for j in range(first, max(packets) + 1):
+        if j in packets:
+            frames.append(decoder.decode(packets[j]))
+        elif j + 1 in packets:
+            frames.append(decoder.recover(packets[j + 1]))
+        else:
+            frames.append(decoder.conceal())
+    pcm = np.concatenate(frames)
+    skip = max(0, round((t0 - start) * SAMPLE_RATE))
+    return pcm[skip:], max(0.0, start - t0)
 
 
 class _Versions:

@@ -64,6 +64,7 @@ record stamped with the frame's presentation time in seconds from the start of t
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable
@@ -76,6 +77,7 @@ import numpy as np
 
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.progress import Progress, no_progress
+from facewire.models.infra.sound import read_sound
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
 from facewire.models.patch import TexturePatch
@@ -83,8 +85,12 @@ from facewire.models.rig import Rig
 from facewire.models.update import Update
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
+from facewire.protocol.opus import DEFAULT_BITRATE, FRAME_S, Encoder
 from facewire.protocol.packet import N_REGIONS, Flag, Frame
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps, stream_rate
+from facewire.protocol.voice import SEQ_MODULO as VOICE_SEQ_MODULO
+from facewire.protocol.voice import VoicePacket
+from facewire.protocol.voice import encode as encode_voice
 from facewire.sender.appearance import AppearanceSampler
 from facewire.sender.capture import (
     CaptureError,
@@ -104,6 +110,7 @@ from facewire.sender.pose import PoseSolver
 from facewire.sender.shading import ShadingEstimator
 from facewire.sender.smoothing import PoseFilter
 from facewire.sender.tracker import LandmarkTracker
+from facewire.sender.voice import FileVoice
 
 
 @dataclass(frozen=True)
@@ -435,10 +442,13 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
                  progress: Progress = no_progress, learn: bool = True,
-                 warn: Callable[[str], None] | None = None, heal: bool = True
-                 ) -> dict[str, Any]:
+                 warn: Callable[[str], None] | None = None, heal: bool = True,
+                 audio: bool = True, voice_bitrate: int = DEFAULT_BITRATE) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log, with
-    each model update it learns after the packet of the frame that learned it.
+    each model update it learns after the packet of the frame that learned it, and the
+    video's sound as voice records (``sender.voice.FileVoice``: frame ``j`` holds the sound
+    from the first frame's time plus ``j`` 20-ms frames, logged at its end's time, as a live
+    sender sends it once captured), interleaved with the packets by time.
 
     Args:
         model_path: the person model (``.fwm``).
@@ -450,15 +460,18 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         learn: learn unseen appearance (``sender.learn``); ``--no-learn`` turns it off.
         warn: called once, before encoding, with ``identity_warning``'s line when the model
-            cannot hold its person.
+            cannot hold its person, and with a line when the video has no sound track.
         heal: while learning, heal the base texture too (``sender.heal``).
+        audio: keep the video's sound in the log (``--no-audio``: not).
+        voice_bitrate: Opus's rate, bit/s.
 
     Returns:
         ``frames``, ``face_frames`` (the tracker saw a face), ``packets``, ``payload_kbps``
         (at 30 Hz), ``clamped`` (frames with CLAMPED), ``clamped_values``, ``held``,
         ``mirrored``, ``tracking_lost`` (frames with that flag), ``grazing`` (capped lifts),
         ``updates`` (model updates learned), ``update_regions`` (their regions, in order),
-        ``seconds`` (wall time), ``rate_hz``, ``camera``, ``model_sha256``, ``log``.
+        ``voice_packets`` (voice records), ``seconds`` (wall time), ``rate_hz``, ``camera``,
+        ``model_sha256``, ``log``.
 
     Raises:
         ModelFileError: the model is missing or corrupt (names the file).
@@ -477,11 +490,20 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     if identity is not None and warn is not None:  # once the source is open
         warn(identity)
     hello = pipeline.hello()
+    sound = None
+    if audio and not Path(source).is_dir():
+        sound = read_sound(source)
+        if sound is None and warn is not None:
+            warn(f"{source} has no sound track: the log holds the face alone")
+    if sound is not None:
+        hello = dataclasses.replace(hello, voice_bitrate=voice_bitrate)
+    talk = None if sound is None else _Talk(FileVoice(sound), Encoder(voice_bitrate))
     counts = {"frames": 0, "face_frames": 0, "packets": 0, "clamped": 0, "clamped_values": 0,
-              "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0, "updates": 0}
+              "held": 0, "mirrored": 0, "tracking_lost": 0, "grazing": 0, "updates": 0,
+              "voice_packets": 0}
     try:
         with src, LogWriter(out_log, hello) as log:
-            _encode_frames(src, pipeline, log, counts, progress)
+            _encode_frames(src, pipeline, log, counts, progress, talk)
     except CaptureError as exc:  # a frame that cannot be decoded: keep what came before it
         if counts["frames"] == 0:
             Path(out_log).unlink(missing_ok=True)
@@ -504,14 +526,42 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     }
 
 
+@dataclass
+class _Talk:
+    """``encode_video``'s voice: the file's sound, its encoder and the next frame's number."""
+
+    voice: FileVoice
+    encoder: Encoder
+    next: int = 0
+
+    def until(self, log: LogWriter, end: float) -> int:
+        """Log every voice frame that ends by ``end`` (s) and is not logged yet; how many."""
+        count = 0
+        while self.voice.t0 + (self.next + 1) * FRAME_S <= end + 1e-9:
+            opus = self.encoder.encode(self.voice.frame(self.next))
+            log.write_voice(encode_voice(VoicePacket(self.next % VOICE_SEQ_MODULO, opus)),
+                            self.voice.t0 + (self.next + 1) * FRAME_S)
+            self.next += 1
+            count += 1
+        return count
+
+
 def _encode_frames(src: Any, pipeline: SenderPipeline, log: LogWriter, counts: dict[str, int],
-                   progress: Progress) -> None:
-    """Run the pipeline on every frame of ``src`` into ``log``, adding to ``counts``."""
+                   progress: Progress, talk: _Talk | None = None) -> None:
+    """Run the pipeline on every frame of ``src`` into ``log``, adding to ``counts``; with
+    ``talk``, the voice frames that end by each frame's time after its packet, and at the end
+    those of the last frame's period."""
+    end = None
     for frame in progress(iter(src), "encoding", src.frames or None):
+        if talk is not None and end is None:
+            talk.voice.t0 = frame.time
+        end = frame.time
         out = pipeline.process(frame.image, frame.time)
         log.write(out.packet, frame.time)
         if out.update is not None and out.update_bytes is not None:  # after the frame's packet
             log.write_update(frame.time, out.update.serial, out.update_bytes)
+        if talk is not None:
+            counts["voice_packets"] += talk.until(log, frame.time)
         flags = out.frame.flags
         counts["frames"] += 1
         counts["packets"] += 1
@@ -523,3 +573,5 @@ def _encode_frames(src: Any, pipeline: SenderPipeline, log: LogWriter, counts: d
         counts["tracking_lost"] += bool(flags & Flag.TRACKING_LOST)
         counts["grazing"] += out.grazing
         counts["updates"] += out.update is not None
+    if talk is not None and end is not None:
+        counts["voice_packets"] += talk.until(log, end + 1.0 / pipeline.rate_hz)

@@ -81,10 +81,12 @@ from typing import Any
 
 import numpy as np
 
+from facewire.models.infra.sound import SoundError, read_sound
 from facewire.models.modelfile import ModelFileError, load_model
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
+from facewire.protocol.opus import DEFAULT_BITRATE, Encoder
 from facewire.protocol.rate import MAX_RATE_HZ, MIN_RATE_HZ, NOMINAL_HZ, payload_kbps
 from facewire.protocol.transport import (
     ControlServer,
@@ -100,6 +102,13 @@ from facewire.sender.pipeline import SenderPipeline, identity_warning, sender_ca
 from facewire.sender.responder import Responder
 from facewire.sender.slots import Clock, SlotClock, camera_slot
 from facewire.sender.updates import UpdateStore
+from facewire.sender.voice import (
+    FileVoice,
+    MicVoice,
+    VoiceSource,
+    VoiceSourceError,
+    VoiceThread,
+)
 
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
 STATUS_PERIOD_S = 1.0
@@ -129,8 +138,8 @@ def _log_writer(path: str | os.PathLike[str], hello: Hello) -> LogWriter:
                        ) from None
 
 
-def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
-            ) -> Iterator[tuple[np.ndarray, float, int]]:
+def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event,
+            passes: list[float] | None = None) -> Iterator[tuple[np.ndarray, float, int]]:
     """(image, time s, slot) of the frames to send, released in real time (module
     docstring); ``slots.origin_s`` is set by the first frame (``sender.slots``).
 
@@ -140,7 +149,8 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
     more than ``MAX_LAG_S`` late takes the present slot's number) and stamped with its media
     time ``t_0 + k / rate_hz``;
     a slot's frame is known once a frame stamped beyond its quarter-period tolerance has been
-    read, or the file has ended. A looped file's times keep increasing across passes. Waits
+    read, or the file has ended. A looped file's times keep increasing across passes (each
+    pass's start offset is appended to ``passes``, for the voice: ``sender.voice``). Waits
     end early when ``stop`` is set (the caller checks it).
 
     Raises:
@@ -174,6 +184,8 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event
         if not loop:
             break
         offset += last + 1.0 / source.rate_hz
+        if passes is not None:
+            passes.append(offset)
     assert held is not None  # the source held frames (above)
     while t0 + (slot - 0.25) * period <= offset + last:  # the slots of the last frame
         yield held, t0 + slot * period, slots.release(slot)
@@ -188,7 +200,8 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          learn: bool = True, updates: UpdateStore | None = None,
          insecure: bool = False,
          warn: Callable[[str], None] | None = None,
-         clock: Clock = time.monotonic) -> dict[str, Any]:
+         clock: Clock = time.monotonic, audio: bool = True, mic: str | None = None,
+         voice_bitrate: int = DEFAULT_BITRATE) -> dict[str, Any]:
     """Run the live sender until the source ends, ``stop`` is set, or Ctrl-C.
 
     Args:
@@ -219,6 +232,10 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             person (no face descriptors).
         clock: the sender's clock (``protocol.clock``): capture times and the answers to
             time requests; ``time.monotonic`` but in tests.
+        audio: send the voice (module docstring, "Voice"); False: the face alone.
+        mic: the microphone to take the voice from (``sender.voice.MicVoice``), or None for
+            the file's own sound track (a camera without one sends no voice).
+        voice_bitrate: Opus's rate, bit/s (``protocol.opus``).
 
     Returns:
         ``frames``, ``packets``, ``face_frames``, ``seconds`` (first frame to stop), ``fps``,
@@ -228,9 +245,10 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         ``model_bytes``, ``model_chunks``, ``rate_hz`` (the stream's), ``endpoint``,
         ``control_endpoint``, ``encrypted``, ``warning`` (``unencrypted_warning`` or None),
         ``control`` (``hello_requests``, ``chunk_requests``, ``update_requests``,
-        ``update_bytes``, ``errors``), ``update_bytes_total`` (the updates' bytes) and
-        ``stopped``
-        (``end``, ``stop`` or ``interrupt``).
+        ``update_bytes``, ``errors``), ``update_bytes_total`` (the updates' bytes),
+        ``voice`` (``"file"``, the mic's name, or None), ``voice_packets``, ``audio_kbps``
+        (voice packets' bytes over ``seconds``) and ``stopped`` (``end``, ``stop`` or
+        ``interrupt``).
 
     Raises:
         ValueError: rate out of range, or a frame range with a step.
@@ -259,7 +277,11 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         identity = identity_warning(model, model_path)
         if identity is not None and warn is not None:  # once the source and sockets are up
             warn(identity)
+        voice = _voice_source(source, src, audio, mic, warn or (lambda _: None))
+        encoder = None if voice is None else Encoder(voice_bitrate)
         hello = pipeline.hello()
+        if voice is not None:
+            hello = dataclasses.replace(hello, voice_bitrate=voice_bitrate)
         chunks = model_chunks(data, hello.model_sha256)
         log = stack.enter_context(_log_writer(record, hello)) if record is not None else None
         store = updates if updates is not None else UpdateStore(hello.model_sha256)
@@ -272,7 +294,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         slots = SlotClock(rate, MAX_LAG_S, clock, stop.wait)
         try:
             counts, stopped = _stream(src, pipeline, publisher, log, peers, slots, loop, stop,
-                                      report, start, store, responder)
+                                      report, start, store, responder, encoder, voice)
         except CaptureError:
             if log is not None and log.records == 0:
                 log.close()
@@ -284,7 +306,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
             "control_endpoint": control_at, "encrypted": curve is not None,
             "warning": unencrypted_warning(bind, curve_dir),
             "control": dict(responder.counts), "update_bytes_total": store.bytes_total,
-            "stopped": stopped}
+            "voice": None if voice is None else mic or "file", "stopped": stopped}
 
 
 def _check_rate(rate_hz: object) -> None:
@@ -299,24 +321,30 @@ def _rates(counts: dict[str, Any]) -> dict[str, Any]:
     counts = dict(counts)
     seconds, cpu = counts.pop("seconds"), counts.pop("cpu_seconds")
     per_second = 1.0 / seconds if seconds > 0 else 0.0
+    voice_bytes = counts.pop("voice_bytes")
     return {**counts, "seconds": round(seconds, 3),
             "fps": round(counts["frames"] * per_second, 2),
             "payload_kbps": round(payload_kbps(counts["packets"] * per_second), 3),
+            "audio_kbps": round(voice_bytes * 8 * per_second / 1000, 3),
             "cpu_percent": round(100 * cpu * per_second, 1)}
 
 
 def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             log: LogWriter | None, peers: PeerCounter, slots: SlotClock, loop: bool,
             stop: threading.Event, report: Status, hold: threading.Event | None,
-            store: UpdateStore, responder: Responder) -> tuple[dict[str, Any], str]:
+            store: UpdateStore, responder: Responder, encoder: Encoder | None = None,
+            voice: VoiceSource | None = None) -> tuple[dict[str, Any], str]:
     """The frame loop of ``send``: returns the counts and why it stopped. With ``hold``,
     the first frame waits until it is set (or ``stop`` is). Each packet's seq is its slot
     (``sender.slots``); once the first frame has set the slots' origin, the Hello announces
     it (``clock_origin_s``). An update the pipeline learns on a frame is published to the
     receivers (``store``) in its bytes and logged, after that frame's packet (which still
-    names the version before it)."""
+    names the version before it). The voice, when there is one, starts on its own thread once
+    the slots' origin is settled (``_start_voice``)."""
     counts: dict[str, Any] = {"frames": 0, "packets": 0, "face_frames": 0, "receivers_max": 0,
-                              "updates": 0}
+                              "updates": 0, "voice_packets": 0, "voice_bytes": 0}
+    passes = [0.0]
+    talker: VoiceThread | None = None
     start = cpu = None
     window = (0.0, 0)  # (start of the status period, frames up to its first)
     face = False
@@ -326,7 +354,7 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
         while hold is not None and not hold.wait(CONTROL_POLL_MS / 1000) \
                 and not stop.is_set():
             pass
-        for image, t, slot in _frames(src, slots, loop, stop):
+        for image, t, slot in _frames(src, slots, loop, stop, passes):
             if stop.is_set():
                 stopped = "stop"
                 break
@@ -346,6 +374,12 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
                 if log is not None:
                     log.write_update(epoch + time.monotonic(), out.update.serial,
                                      out.update_bytes)
+            if talker is None and voice is not None and encoder is not None \
+                    and counts["frames"] >= (0 if isinstance(src, CameraSource) else 1):
+                talker = _start_voice(voice, encoder, t - slot / slots.rate_hz, passes,
+                                      slots, publisher, log, responder, epoch)
+            if isinstance(voice, FileVoice):
+                voice.lag_s = slots.skipped / slots.rate_hz
             now = time.monotonic()
             face = out.points is not None
             counts["frames"] += 1
@@ -360,11 +394,59 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
             stopped = "stop" if stop.is_set() else "end"
     except KeyboardInterrupt:
         stopped = "interrupt"
+    if talker is not None:
+        talker.stop()
+        counts["voice_packets"], counts["voice_bytes"] = talker.packets, talker.bytes
     peers.count()
     counts["receivers_max"] = peers.most
     counts["seconds"] = 0.0 if start is None else time.monotonic() - start
     counts["cpu_seconds"] = 0.0 if cpu is None else time.process_time() - cpu
     return counts, stopped
+
+
+def _voice_source(source: str, src: Source, audio: bool, mic: str | None,
+                  warn: Callable[[str], None]) -> VoiceSource | None:
+    """Where the voice comes from (module docstring, "Voice"), or None, said in one line."""
+    if not audio:
+        return None
+    try:
+        if mic is not None:
+            return MicVoice(mic)
+        if isinstance(src, CameraSource) or Path(source).is_dir():
+            warn(f"{source} has no sound: the face goes without voice (give --mic DEVICE)")
+            return None
+        sound = read_sound(source)
+    except (VoiceSourceError, SoundError) as error:
+        warn(f"{error}; the face goes on without voice")
+        return None
+    if sound is None:
+        warn(f"{source} has no sound track: the face goes without voice")
+        return None
+    return FileVoice(sound)
+
+
+def _start_voice(voice: VoiceSource, encoder: Encoder, t0: float, passes: list[float],
+                 slots: SlotClock, publisher: PacketPublisher, log: LogWriter | None,
+                 responder: Responder, epoch: float) -> VoiceThread:
+    """Start the voice thread; its frames numbered from the slots' origin (a file's, cut
+    from ``t0``, the stream time of slot 0) or, for a microphone, from now; the Hello
+    announces the origin."""
+    if isinstance(voice, FileVoice):
+        assert slots.origin_s is not None  # set by the first frame
+        origin = slots.origin_s
+        voice.t0, voice.passes = t0, passes
+    else:
+        origin = time.monotonic()
+
+    def publish(data: bytes) -> None:
+        publisher.send(data)
+        if log is not None:
+            log.write_voice(data, epoch + time.monotonic())
+
+    talker = VoiceThread(voice, encoder, origin, publish)
+    responder.announce(dataclasses.replace(responder.hello, voice_origin_s=origin))
+    talker.start()
+    return talker
 
 
 def _status(counts: dict[str, Any], peers: PeerCounter, elapsed: float, period: float,

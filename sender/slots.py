@@ -64,6 +64,11 @@ class SlotClock:
         """The sender's clock minus ``time.monotonic()`` (a camera stamps with the latter)."""
         return self._clock() - time.monotonic()
 
+    @property
+    def skipped(self) -> int:
+        """The slot numbers left unused so far (a stall of more than ``max_lag_s``)."""
+        return self._skipped
+
     def release(self, k: int) -> int:
         """Wait for the time of the ``k``-th frame of the file's schedule (0, 1, ...) and
         return its slot number, ``k`` plus the numbers left unused (module docstring)."""

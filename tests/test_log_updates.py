@@ -17,7 +17,7 @@ from facewire.models import update as model_update
 from facewire.models.modelfile import load_model
 from facewire.models.update import apply_update, encode_update
 from facewire.protocol.control import Camera, Hello
-from facewire.protocol.log import RECORD_BYTES, LogError, LogWriter, read_log
+from facewire.protocol.log import FORMAT_VERSION, RECORD_BYTES, LogError, LogWriter, read_log
 from facewire.protocol.packet import FRAME_DTYPE, Flag, encode_frames
 
 
@@ -169,7 +169,7 @@ def test_writer_refuses_a_bad_update(tmp_path: Path, session) -> None:
             log.write_update(1.0, 1, b"")
     with pytest.raises(LogError, match="header.version"):
         data = bytearray((tmp_path / "w.fwlog").read_bytes())
-        data[8:10] = struct.pack(">H", 3)
+        data[8:10] = struct.pack(">H", FORMAT_VERSION + 1)
         (tmp_path / "w.fwlog").write_bytes(bytes(data))
         read_log(tmp_path / "w.fwlog")
 

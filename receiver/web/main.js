@@ -32,8 +32,12 @@
  * a browser that cannot load it still connects, plays and counts, and says why it shows no
  * face.
  *
+ * The voice (voice.js): a binary message whose first nibble is the voice's kind goes to the
+ * page's voice, which plays it through WebAudio in step with the face (after the user's first
+ * click, as browsers require, or at once where the page may play).
+ *
  * ``window.facewire`` (for tests): ``state`` (the last FrameState played), ``stats`` (stats.js
- * live statistics, refreshed with the panel), ``playout`` (its counts), ``counts`` (messages,
+ * live statistics, refreshed with the panel), ``voice`` (voice.js's counts and skews), ``playout`` (its counts), ``counts`` (messages,
  * packets, bytes, decoded, ignored: packets before a Hello, corrupt by reason, junk, clamped,
  * statuses: the slots played by playout status),
  * ``status`` (the status line's text), ``model`` ({sha256, held: versions held, shown}),
@@ -46,6 +50,7 @@
 import {N_REGIONS, VERSION, sameQuantisers} from "./packet.js";
 import {MAX_RATE_HZ, MIN_RATE_HZ, Playout, STATUSES} from "./playout.js";
 import {PageStats} from "./stats.js";
+import {PageVoice, isVoice} from "./voice.js";
 
 const RECONNECT_MIN_S = 0.5;
 const RECONNECT_MAX_S = 30.0;
@@ -130,6 +135,9 @@ class Page {
     this.drawn = 0;
     this.lastPacket = null;
     this.stats = new PageStats();
+    this.voice = new PageVoice(now, this.stats); // voice.js: after a click, or where allowed
+    this.voice.start();
+    document.addEventListener("click", () => this.voice.resume());
     this.counts = {messages: 0, packets: 0, bytes: 0, decoded: 0, ignored: 0, junk: 0, clamped: 0,
       corrupt: {size: 0, version: 0, crc: 0, reserved: 0, type: 0},
       statuses: Object.fromEntries(STATUSES.map((status) => [status, 0]))};
@@ -139,6 +147,7 @@ class Page {
     window.facewire = {
       get state() { return page.state; },
       get stats() { return page.live; },
+      get voice() { return structuredClone(page.voice.stats); },
       get playout() { return page.playout === null ? null : page.playout.stats; },
       get counts() { return structuredClone(page.counts); },
       get status() { return $("status").textContent; },
@@ -216,6 +225,11 @@ class Page {
 
   packet(data) {
     const arrival = now();
+    const bytes = new Uint8Array(data);
+    if (isVoice(bytes)) { // the voice: voice.js, beside the face's playout
+      this.voice.push(bytes, arrival);
+      return;
+    }
     this.counts.packets += 1;
     this.counts.bytes += data.byteLength;
     this.stats.packet(data.byteLength, arrival);
@@ -405,7 +419,10 @@ class Page {
       gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, this.pixel);
     }
     const end = performance.now();
-    if (state !== null) this.stats.frame(end / 1000, state, timed ? (end - start) / 1000 : null);
+    if (state !== null) {
+      this.stats.frame(end / 1000, state, timed ? (end - start) / 1000 : null);
+      this.voice.drawn(this.stats.capture(state), end / 1000);
+    }
   }
 
   // -- what the viewer reads ---------------------------------------------------------------

@@ -26,7 +26,9 @@
  * d, theta the gateway's clock minus the page's and d >= 0 its delay, so theta >= now_s - a:
  * the page takes the largest now_s - a of the last CLOCK_SAMPLES messages (the least
  * delayed), which errs by that message's delay (under a millisecond on one host). A played
- * packet's seq n (16 bits) is extended to the wrap nearest its arrival.
+ * packet's seq n (16 bits) is extended to the wrap nearest its arrival. A message may also
+ * carry ``voice_origin_s`` (voice frame j captured at voice_origin_s + j * 20 ms, gateway's
+ * clock): ``voiceCapture`` gives a voice packet's capture on the page's clock (voice.js).
  */
 
 export const WINDOW_S = 1.0;
@@ -34,6 +36,7 @@ export const MAX_GAP_S = 10.0; // receiver/receiver.py
 export const TIMED_FRAMES = 16;
 export const CLOCK_SAMPLES = 16;
 const SEQ_WRAP = 65536;
+const VOICE_RATE_HZ = 50; // protocol/voice.py: a frame per 20 ms
 
 function median(values) {
   if (values.length === 0) return null;
@@ -61,7 +64,8 @@ export class PageStats {
   clock(message, arrivalS) {
     const {origin_s: origin, rate_hz: rate, now_s: sent} = message;
     if (![origin, rate, sent].every(Number.isFinite) || !(rate > 0)) return false;
-    this._clock = {origin, rate};
+    const voice = Number.isFinite(message.voice_origin_s) ? message.voice_origin_s : null;
+    this._clock = {origin, rate, voice};
     this._thetas.push(sent - arrivalS);
     if (this._thetas.length > CLOCK_SAMPLES) this._thetas.shift();
     return true;
@@ -70,10 +74,20 @@ export class PageStats {
   /** The capture time of a played state on the page's clock, s, or null without a clock. */
   capture(state) {
     if (this._clock === null || state.arrival_s === null || state.seq === null) return null;
+    return this._capture(state.seq, state.arrival_s, this._clock.origin, this._clock.rate);
+  }
+
+  /** The capture time of voice frame ``seq`` (16 bits) that arrived at ``arrivalS``, on the
+   * page's clock, s; null without a clock that carries the voice's origin. */
+  voiceCapture(seq, arrivalS) {
+    if (this._clock === null || this._clock.voice === null) return null;
+    return this._capture(seq, arrivalS, this._clock.voice, VOICE_RATE_HZ);
+  }
+
+  _capture(seq, arrivalS, origin, rate) {
     const theta = Math.max(...this._thetas);
-    const {origin, rate} = this._clock;
-    const m = Math.round(((state.arrival_s + theta - origin) * rate - state.seq) / SEQ_WRAP);
-    return origin + (state.seq + SEQ_WRAP * m) / rate - theta;
+    const m = Math.round(((arrivalS + theta - origin) * rate - seq) / SEQ_WRAP);
+    return origin + (seq + SEQ_WRAP * m) / rate - theta;
   }
 
   /** A packet of ``size`` bytes arrived at ``arrivalS``. */

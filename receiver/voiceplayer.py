@@ -1,0 +1,168 @@
+"""The receiver's voice: voice packets in from the packet thread, sound out, kept beside the face.
+
+Packets. The packet socket's thread hands every message to ``push`` first
+(``receiver.packetreader``'s ``divert``): a voice packet (``protocol.voice``: its first
+nibble) is taken here and never queued behind the face's packets; one that does not decode
+is dropped and counted by its reason (``corrupt``), never played. The rest go to the face.
+
+Playing. A jitter buffer (``receiver.jitterbuffer``) is pulled once per 20 ms by the output
+device (``receiver.speaker.Speaker``, PortAudio's clock) or, without one, by a clock of our
+own (``SoundClock``): with ``--no-audio`` on the receiver there is no player at all; with a
+speaker asked for (``speaker``, or the default output) that cannot be opened, one line says
+so and the clock plays into the file alone. Each pulled frame goes to ``on_sound`` (for the
+video file's sound track) with the time it went out.
+
+Sync (``av_skew_ms``): both streams' capture times are on the sender's clock (the Hello's
+``clock_origin_s`` and ``voice_origin_s``; ``protocol.clock``), and the receiver moves them
+to its own with one offset estimate. For each voice frame played, its latency (out time minus
+capture) less the latency of the last face frame out (``face``: the receiver reports each
+frame it shows; none when it was out more than ``FACE_STALE_S`` before) is the skew: what
+the viewer meets at that moment, positive when the sound comes later after its capture than
+the face does after its own. The offset cancels in that difference, so only the two
+streams' own delays count. Over the session: ``av_skew_ms_median``, ``av_skew_ms_p95`` (the
+95th percentile: how far behind the sound is at worst but 5 %) and ``av_skew_ms_p5`` (the
+5th: how far ahead, when negative); ITU-R BT.1359 finds sound noticed from 45 ms ahead of
+the picture or 125 ms behind it.
+
+Thread safety: ``push`` runs on the packet thread, the pull on the device's or the clock's,
+``face`` and ``summary`` on the render loop's; one lock guards the buffer and the records.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from facewire.protocol.clock import capture_s
+from facewire.protocol.opus import FRAME_S
+from facewire.protocol.voice import VoiceError, decode, is_voice
+from facewire.receiver.jitterbuffer import JitterBuffer
+from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
+
+VOICE_RATE_HZ = 1.0 / FRAME_S  # voice frames are slots of 50 Hz on the sender's clock
+FACE_STALE_S = 0.5  # a face frame older than this is no reference for the skew
+SKEWS_KEPT = 30_000  # 10 minutes of voice frames
+
+OnSound = Callable[[np.ndarray, float], None]
+ToLocal = Callable[[int, float], float | None]
+
+
+class VoicePlayer:
+    """See the module docstring.
+
+    Args:
+        speaker: the output device's index or name, "" for the default output, None for no
+            device (the sound only handed on).
+        on_sound: called with each pulled frame ((FRAME_SAMPLES,) int16) and its out time
+            (``time.monotonic()``), on the player's thread.
+        say: one line of text (a speaker that cannot be opened).
+        to_local: the capture time of voice frame ``seq`` (wire number) on this host's clock,
+            given a time near it on this host's clock; None while the Hello's voice origin or
+            the clock offset is unknown.
+    """
+
+    def __init__(self, speaker: str | None, on_sound: OnSound | None,
+                 say: Callable[[str], None], to_local: ToLocal) -> None:
+        self._buffer = JitterBuffer()
+        self._lock = threading.Lock()
+        self._on_sound, self._to_local = on_sound, to_local
+        self._face: tuple[float, float] | None = None  # the last face frame's (capture, out)
+        self.skews: deque[float] = deque(maxlen=SKEWS_KEPT)
+        self.latencies: deque[float] = deque(maxlen=SKEWS_KEPT)  # capture to out, s
+        self.corrupt: dict[str, int] = {}
+        self.bytes = 0
+        self.first: float | None = None  # the first arrival
+        self.last: float | None = None
+        self.device = "none"
+        self._pulled: int | None = None  # the frame of the last pull (player's thread)
+        self._output: Speaker | SoundClock
+        if speaker is not None:
+            try:
+                self._output = Speaker(self._pull, speaker or None, self._heard)
+                self.device = speaker or "default"
+            except SpeakerError as error:
+                say(f"{error}; the voice goes into the file only")
+                self._output = SoundClock(self._pull, self._heard)
+        else:
+            self._output = SoundClock(self._pull, self._heard)
+        self._output.start()
+
+    def push(self, data: bytes, arrival: float) -> bool:
+        """Take ``data`` if it is a voice packet (True), else leave it to the face (False)."""
+        if not is_voice(data):
+            return False
+        try:
+            packet = decode(data)
+        except VoiceError as error:
+            with self._lock:
+                self.corrupt[error.reason] = self.corrupt.get(error.reason, 0) + 1
+            return True
+        with self._lock:
+            self._buffer.push(packet, arrival)
+            self.bytes += len(data)
+            self.first = arrival if self.first is None else self.first
+            self.last = arrival
+        return True
+
+    def face(self, capture: float, out: float) -> None:
+        """A face frame captured at ``capture`` was out at ``out`` (this host's clock)."""
+        with self._lock:
+            self._face = (capture, out)
+
+    def _pull(self) -> np.ndarray:
+        with self._lock:
+            pcm = self._buffer.pull()
+            self._pulled = self._buffer.pulled
+        return pcm
+
+    def _heard(self, pcm: np.ndarray, out: float) -> None:
+        n = self._pulled
+        if n is not None:
+            capture = self._to_local(n % 65536, out)
+            with self._lock:
+                if capture is not None:
+                    self.latencies.append(out - capture)
+                face = self._face
+                if capture is not None and face is not None and out - face[1] < FACE_STALE_S:
+                    self.skews.append((out - capture) - (face[1] - face[0]))
+        if self._on_sound is not None and n is not None:
+            self._on_sound(pcm, out)
+
+    def close(self) -> None:
+        """Stop the device or the clock."""
+        self._output.stop()
+
+    def summary(self) -> dict[str, Any]:
+        """``voice_*`` counts (``receiver.jitterbuffer``'s, ``voice_corrupt`` with the packets
+        that did not decode), ``voice_target_ms`` (the buffer's depth), ``audio_kbps`` (voice
+        packets' bytes over their span), ``av_skew_ms_median``, ``_p95``, ``_p5``,
+        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples)
+        and ``speaker`` (the device, or "none")."""
+        with self._lock:
+            stats = dict(self._buffer.stats)
+            skews = np.array(self.skews) * 1000
+            latencies = np.array(self.latencies) * 1000
+            span = (self.last - self.first) if self.first is not None and self.last else 0.0
+            corrupt = sum(self.corrupt.values())
+        def pct(q: float, values: np.ndarray = skews) -> float | None:
+            return round(float(np.percentile(values, q)), 1) if len(values) else None
+
+        return {**{f"voice_{k}": v for k, v in stats.items() if k != "corrupt"},
+                "voice_corrupt": corrupt + stats["corrupt"],
+                "voice_target_ms": round(self._buffer.target * FRAME_S * 1000),
+                "audio_kbps": round(self.bytes * 8 / span / 1000, 3) if span > 0 else 0.0,
+                "av_skew_ms_median": pct(50), "av_skew_ms_p95": pct(95),
+                "av_skew_ms_p5": pct(5),
+                "voice_glass_to_glass_ms_median": pct(50, latencies),
+                "voice_glass_to_glass_ms_p95": pct(95, latencies), "speaker": self.device}
+
+
+def voice_capture(seq: int, origin_s: float, near_s: float) -> float:
+    """Voice frame ``seq``'s capture time (sender clock) of a voice stream from ``origin_s``,
+    extended to the wrap nearest ``near_s`` (``protocol.clock.capture_s`` at 50 Hz)."""
+    return capture_s(seq, origin_s, VOICE_RATE_HZ, near_s)
+
