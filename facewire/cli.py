@@ -758,7 +758,6 @@ def _check(_: argparse.Namespace) -> int:
     print(check_egl())
     print(check_hand_model())
     print(check_sound())
-    print(check_sound())
     return 0
 
 
