@@ -204,7 +204,7 @@ def test_pages_get_the_model_first_then_every_packet_unchanged_and_in_order(
         assert a.kinds().index("hello") < a.kinds().index("model")
         sent_hello = next(t for t in texts if t["type"] == "hello")
         fields = dataclasses.asdict(hello)
-        del fields["clock_origin_s"], fields["voice_origin_s"]  # in clock messages, on the gateway's clock
+        del fields["clock_origin_s"], fields["voice_origin_s"]  # both go in clock messages
         assert sent_hello == {"type": "hello", **json.loads(json.dumps(fields))}
         announced = next(t for t in texts if t["type"] == "model")
         sha = model.sha256
