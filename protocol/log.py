@@ -49,7 +49,8 @@ near it: each of its bytes is hashed once). It reports what was lost: a run of u
 bytes that begins with an update record's head (tag, serial and length in range) holds one
 lost update record of that length (or the rest of the run, whichever is shorter); the rest of
 the run counts as its length in packet records, rounded, and at least one; a run that begins
-with a voice record's head (tag and length in range) counts one lost voice record.
+with a voice record's head (tag and length in range) and is exactly that record's length
+counts one lost voice record (a voice head is short enough to turn up by chance in garbage).
 ``PacketLog.missing_serials`` are the update serials between 1 and the highest any intact
 record names (an update's own, or a packet's ``serial``) that no intact
 update record holds: the updates a replay cannot apply, whose frames it plays clamped.
@@ -440,9 +441,9 @@ class _Records:
         if head is not None:
             self.lost_updates += 1
             size -= min(size, _UPDATE_HEAD.size + head[2] + _CRC.size)
-        elif voice is not None:
+        elif voice is not None and size == _VOICE_HEAD.size + voice + _CRC.size:
             self.lost_voice += 1
-            size -= min(size, _VOICE_HEAD.size + voice + _CRC.size)
+            size = 0
         if size > 0:
             self.lost += max(1, round(size / RECORD_BYTES))
 

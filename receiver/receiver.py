@@ -138,7 +138,7 @@ from facewire.models.modelfile import PersonModel, load_model
 from facewire.protocol.clock import capture_s
 from facewire.protocol.control import Hello
 from facewire.protocol.keys import CurveClient, client_keys
-from facewire.protocol.transport import PacketSubscriber
+from facewire.protocol.transport import PacketSubscriber, control_endpoint
 from facewire.receiver.acquire import ModelAcquirer, ReceiveError
 from facewire.receiver.clocksync import ClockSync
 from facewire.receiver.link import RECHECK_EVERY_S, RECHECK_TIMEOUT_S, Change, SenderLink
@@ -312,6 +312,7 @@ class _Session:
         self.started = time.monotonic()
         self.first_out: float | None = None  # when the first output frame was out
         self.sound_started = False
+        control_endpoint(connect)  # a malformed address is refused before any socket opens
         # the links to the sender: open from here, closed by run() (at once if one fails)
         with contextlib.ExitStack() as links:
             self.voice = VoicePlayer(speaker, self._sound, self.say, self._voice_capture) \

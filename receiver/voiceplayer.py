@@ -9,7 +9,8 @@ Playing. A jitter buffer (``receiver.jitterbuffer``) is pulled once per 20 ms by
 device (``receiver.speaker.Speaker``, PortAudio's clock) or, without one, by a clock of our
 own (``SoundClock``): with ``--no-audio`` on the receiver there is no player at all; with a
 speaker asked for (``speaker``, or the default output) that cannot be opened, one line says
-so and the clock plays into the file alone. Each pulled frame goes to ``on_sound`` (for the
+so (for the default output, whose absence on a server is the rule, nothing is said) and
+the clock plays into the file alone. Each pulled frame goes to ``on_sound`` (for the
 video file's sound track) with the time it went out.
 
 Sync (``av_skew_ms``): both streams' capture times are on the sender's clock (the Hello's
@@ -59,7 +60,7 @@ class VoicePlayer:
             device (the sound only handed on).
         on_sound: called with each pulled frame ((FRAME_SAMPLES,) int16) and its out time
             (``time.monotonic()``), on the player's thread.
-        say: one line of text (a speaker that cannot be opened).
+        say: one line of text (a named speaker that cannot be opened).
         to_local: the capture time of voice frame ``seq`` (wire number) on this host's clock,
             given a time near it on this host's clock; None while the Hello's voice origin or
             the clock offset is unknown.
@@ -85,7 +86,8 @@ class VoicePlayer:
                 self._output = Speaker(self._pull, speaker or None, self._heard)
                 self.device = speaker or "default"
             except SpeakerError as error:
-                say(f"{error}; the voice goes into the file only")
+                if speaker:  # a device the user named; the default's absence goes unsaid
+                    say(f"{error}; the voice goes into the file only")
                 self._output = SoundClock(self._pull, self._heard)
         else:
             self._output = SoundClock(self._pull, self._heard)

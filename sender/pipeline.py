@@ -77,7 +77,7 @@ import numpy as np
 
 from facewire.models.geometry import Intrinsics, Pose
 from facewire.models.infra.progress import Progress, no_progress
-from facewire.models.infra.sound import read_sound
+from facewire.models.infra.sound import SoundError, read_sound
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
 from facewire.models.rig import Rig
@@ -456,7 +456,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         progress: wraps an iterable to show progress: ``progress(items, label, total)``.
         learn: learn unseen appearance (``sender.learn``); ``--no-learn`` turns it off.
         warn: called once, before encoding, with ``identity_warning``'s line when the model
-            cannot hold its person, and with a line when the video has no sound track.
+            cannot hold its person, and after encoding with a line when the video's sound
+            track is missing or cannot be decoded.
         audio: keep the video's sound in the log (``--no-audio``: not).
         voice_bitrate: Opus's rate, bit/s.
 
@@ -484,11 +485,15 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     if identity is not None and warn is not None:  # once the source is open
         warn(identity)
     hello = pipeline.hello()
-    sound = None
+    sound, unheard = None, None  # unheard: why the log has no sound, said once it is done
     if audio and not Path(source).is_dir():
-        sound = read_sound(source)
-        if sound is None and warn is not None:
-            warn(f"{source} has no sound track: the log holds the face alone")
+        try:
+            sound = read_sound(source)
+        except SoundError as error:  # the frames may still decode: the face goes on
+            unheard = f"{error}; the log holds the face alone"
+        else:
+            if sound is None:
+                unheard = f"{source} has no sound track: the log holds the face alone"
     if sound is not None:
         hello = dataclasses.replace(hello, voice_bitrate=voice_bitrate)
     talk = None if sound is None else _Talk(FileVoice(sound), Encoder(voice_bitrate))
@@ -507,6 +512,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     if counts["frames"] == 0:
         Path(out_log).unlink(missing_ok=True)
         raise CaptureError(f"{source}: no frames to encode")
+    if unheard is not None and warn is not None:
+        warn(unheard)
     return {
         **counts,
         "update_regions": [u.region for u in pipeline.updates],
