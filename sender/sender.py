@@ -30,8 +30,8 @@ play one slot per ``1 / rate_hz`` on their own clock, so the sender keeps that s
 frame that is late (the machine was busy) is sent at once and the next ones catch up, rather
 than every later frame being shifted (which would leave the stream slower than announced and
 the receivers' buffers running dry). A frame more than ``MAX_LAG_S`` late (a stalled machine)
-goes out as the present slot, the seqs in between unused, so that every packet's seq still
-names its capture time.
+starts the slots' clock again at itself, and the Hello announces the new origin
+(``sender.slots``): seqs stay consecutive.
 
 Capture time (``sender.slots``, ``protocol.clock``). Each packet's seq is its slot, captured
 at ``origin + seq / rate_hz`` on the sender's clock (``clock``, the monotonic clock); once the
@@ -146,7 +146,7 @@ def _frames(source: Source, slots: SlotClock, loop: bool, stop: threading.Event,
     A camera delivers in real time and limits its own rate; its frames are numbered by
     ``sender.slots.camera_slot``. A file is resampled to the slots of the rate, slot ``k``
     released at ``origin + k / rate_hz`` and numbered (``SlotClock.release``: a frame
-    more than ``MAX_LAG_S`` late takes the present slot's number) and stamped with its media
+    more than ``MAX_LAG_S`` late starts the clock again at itself) and stamped with its media
     time ``t_0 + k / rate_hz``;
     a slot's frame is known once a frame stamped beyond its quarter-period tolerance has been
     read, or the file has ended. A looped file's times keep increasing across passes (each
@@ -378,8 +378,9 @@ def _stream(src: Source, pipeline: SenderPipeline, publisher: PacketPublisher,
                     and counts["frames"] >= (0 if isinstance(src, CameraSource) else 1):
                 talker = _start_voice(voice, encoder, t - slot / slots.rate_hz, passes,
                                       slots, publisher, log, responder, epoch)
-            if isinstance(voice, FileVoice):
-                voice.lag_s = slots.skipped / slots.rate_hz
+            if isinstance(voice, FileVoice) and talker is not None \
+                    and slots.origin_s is not None:
+                voice.lag_s = slots.origin_s - talker.origin_s  # the face's clock moved
             now = time.monotonic()
             face = out.points is not None
             counts["frames"] += 1

@@ -8,9 +8,9 @@ Sources (``open_voice``):
   runs on across passes; ``passes`` holds each pass's start offset (the send loop's, as it
   reads the file), and stream time ``t`` is file time ``t - o`` for the last pass offset
   ``o`` whose first frame is at or before ``t``, so the sound loops exactly where the frames
-  do. After the face's stream stalled and skipped slots (``sender.slots``), the face's
-  stream time is ``lag_s`` behind its capture clock; the voice follows it (the send loop
-  sets ``lag_s``). A file without a sound track sends no voice (one line says so);
+  do. After the face's stream stalled and its clock started again later (``sender.slots``),
+  the face's stream time is ``lag_s`` behind the voice's capture clock; the voice follows it
+  (the send loop sets ``lag_s``). A file without a sound track sends no voice (one line says so);
 - a microphone (``mic:N`` or a device name, through sounddevice/PortAudio): 48 kHz mono
   blocks of one frame each, as the device delivers them. No such device, or no PortAudio, is
   one clear line (``VoiceSourceError``), and the face goes on without voice.
