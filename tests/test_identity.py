@@ -104,7 +104,7 @@ def test_the_sender_warns_once_about_a_model_without_descriptors(generic_model: 
                                                                  tmp_path: Path) -> None:
     said: list[str] = []
     encode_video(generic_model, clip, tmp_path / "out.fwlog", frames=slice(0, 3),
-                 learn=False, warn=said.append)
+                 learn=False, warn=said.append, audio=False)  # the clip has no sound to say
     assert len(said) == 1 and "cannot hold its person" in said[0]
     assert said[0] == identity_warning(load_model(generic_model), generic_model)
     assert "\n" not in said[0]
