@@ -70,7 +70,9 @@ included, duplicates not)::
     due(n) = min(o) + n P + margin,   margin = min(P + max(o) - min(o) + GUARD_S, depth P)
 
 and ``margin = depth P`` until the stream has ``MIN_JITTER_PACKETS`` arrivals (its first
-packets tell little of its jitter, and a sender warming up sends unevenly).
+second tells little of its jitter: a sender warming up sends unevenly, and one stall of a busy
+machine in it is more than the spread of the few packets before; a packet overtaken then was
+given up as late when its successor came in such a stall).
 
 ``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
 ``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
@@ -158,7 +160,7 @@ HOLD_S = 0.2
 EASE_S = 0.5
 JUMP_S = 2.0
 JITTER_PACKETS = 64
-MIN_JITTER_PACKETS = 8
+MIN_JITTER_PACKETS = 30  # a second at 30 Hz
 GUARD_S = 0.005
 MAX_DEPTH = 1024
 MAX_REPLAY_SLOTS = 1 << 24  # about 6 days at 30 Hz

@@ -21,7 +21,13 @@ from facewire.protocol.packet import (
     decode,
     encode,
 )
-from facewire.receiver.playout import STATUSES, FrameState, Playout, replay_states
+from facewire.receiver.playout import (
+    MIN_JITTER_PACKETS,
+    STATUSES,
+    FrameState,
+    Playout,
+    replay_states,
+)
 
 RATE = 30.0
 DEPTH = 3
@@ -517,7 +523,8 @@ def test_a_stray_far_packet_moves_nothing() -> None:
 
 def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline() -> None:
     rng = np.random.default_rng(7)
-    packets = [encode(make_frame(s, rng)) for s in range(40)]
+    n = MIN_JITTER_PACKETS  # the first slot played once the margin is judged from the jitter
+    packets = [encode(make_frame(s, rng)) for s in range(n + 10)]
     playout = Playout(RATE, depth=DEPTH)
     period = 1 / RATE
     assert not playout.ready and playout.due() is None and playout.ahead == 0
@@ -528,28 +535,29 @@ def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline
         states.append(playout.pop())
     assert [s.seq for s in states] == [None] * DEPTH + [0]
     assert playout.margin_s == pytest.approx(DEPTH * period)  # too few packets to judge
-    for s in range(1, 10):  # steady arrivals, each played on arrival
+    for s in range(1, n):  # steady arrivals, each played on arrival
+        assert playout.margin_s == pytest.approx(DEPTH * period)
         playout.push(packets[s], s * period)
         assert playout.ready and playout.pop().seq == s
     # no jitter: the margin is one period and the guard
     assert playout.margin_s == pytest.approx(period + 0.005)
-    assert playout.due() == pytest.approx(10 * period + period + 0.005)
-    # slot 11 overtakes slot 10 by a few ms: slot 10 is waited for, then both play
-    playout.push(packets[11], 11 * period)
+    assert playout.due() == pytest.approx(n * period + period + 0.005)
+    # slot n + 1 overtakes slot n by a few ms: slot n is waited for, then both play
+    playout.push(packets[n + 1], (n + 1) * period)
     assert not playout.ready and playout.ahead == 2
-    playout.push(packets[10], 11 * period + 0.004)
+    playout.push(packets[n], (n + 1) * period + 0.004)
     assert playout.ready
-    assert [playout.pop().seq, playout.pop().seq] == [10, 11]
+    assert [playout.pop().seq, playout.pop().seq] == [n, n + 1]
     assert playout.stats["late"] == 0
-    # slot 12 is lost: nothing is ready until its deadline; slot 13 plays after it
-    playout.push(packets[13], 13 * period)
+    # slot n + 2 is lost: nothing is ready until its deadline; slot n + 3 plays after it
+    playout.push(packets[n + 3], (n + 3) * period)
     assert not playout.ready
     due = playout.due()
-    # the jitter so far: slot 10 came one period and 4 ms after its earliest time
-    assert due == pytest.approx(12 * period + period + (period + 0.004) + 0.005)
+    # the jitter so far: slot n came one period and 4 ms after its earliest time
+    assert due == pytest.approx((n + 2) * period + period + (period + 0.004) + 0.005)
     state = playout.pop()  # the caller pops at the deadline
-    assert state.seq == 12 and state.status == "held"
-    assert playout.ready and playout.pop().seq == 13
+    assert state.seq == n + 2 and state.status == "held"
+    assert playout.ready and playout.pop().seq == n + 3
     assert playout.stats["concealed"] == 1
 
 
@@ -557,12 +565,13 @@ def test_the_margin_follows_the_jitter_up_to_the_depth() -> None:
     rng = np.random.default_rng(8)
     playout = Playout(RATE, depth=DEPTH)
     period = 1 / RATE
-    for s in range(20):  # every other packet 50 ms late
+    n = MIN_JITTER_PACKETS + 12
+    for s in range(n):  # every other packet 50 ms late
         playout.push(encode(make_frame(s, rng)), s * period + (0.05 if s % 2 else 0.0))
         while playout.ready:
             playout.pop()
     assert playout.margin_s == pytest.approx(period + 0.05 + 0.005)
-    for s in range(20, 40):  # jitter beyond the depth: capped
+    for s in range(n, n + 20):  # jitter beyond the depth: capped
         playout.push(encode(make_frame(s, rng)), s * period + (0.3 if s % 2 else 0.0))
     assert playout.margin_s == pytest.approx(DEPTH * period)
 
