@@ -19,6 +19,10 @@ Scores, PESQ-WB MOS-LQO (1.04 .. 4.64, higher is better):
 - ``pesq_wb``: a map from each loss rate (percent, as text: ``"10"``) to the score with that
   share of the packets lost.
 
+``recovered``: for each loss rate, the share of the lost frames rebuilt from the next
+packet's in-band FEC (the rest concealed); ``fec_packets``: the share of packets carrying FEC
+(both 0 under about 17 kbit/s: ``protocol.opus``).
+
 Also ``audio_kbps``: the voice packets' payload rate (bytes on the packet socket, without
 ZeroMQ's framing), the figure set beside the face's 12 kbit/s budget.
 """
@@ -40,6 +44,7 @@ from facewire.protocol.opus import (
     SAMPLE_RATE,
     Decoder,
     Encoder,
+    has_fec,
 )
 from facewire.protocol.voice import SEQ_MODULO, VoicePacket, decode, encode
 from facewire.receiver.jitterbuffer import JitterBuffer
@@ -86,8 +91,8 @@ def _frames(pcm: np.ndarray) -> np.ndarray:
 
 
 def received(frames: np.ndarray, bitrate: int, loss_percent: float, seed: int = 0
-             ) -> tuple[np.ndarray, int]:
-    """The sound a receiver plays, and the voice packets' bytes in all.
+             ) -> tuple[np.ndarray, list[bytes], dict[str, int]]:
+    """The sound a receiver plays, the voice packets sent and the jitter buffer's counts.
 
     Args:
         frames: (F, FRAME_SAMPLES) int16, the source in 20-ms frames.
@@ -97,8 +102,9 @@ def received(frames: np.ndarray, bitrate: int, loss_percent: float, seed: int = 
 
     Returns:
         ((F + tail) * FRAME_SAMPLES,) int16 as pulled from the jitter buffer (a pull per
-        frame, from the first packet's arrival until every frame has had its turn), and the
-        total bytes of the packets sent.
+        frame, from the first packet's arrival until every frame has had its turn), the F
+        voice packets (``protocol.voice``) and ``JitterBuffer.stats`` with ``lost``, the
+        packets dropped.
     """
     encoder = Encoder(bitrate, loss_percent=max(1, round(loss_percent)))
     packets = [encode(VoicePacket(j % SEQ_MODULO, encoder.encode(f))) for j, f in
@@ -110,7 +116,7 @@ def received(frames: np.ndarray, bitrate: int, loss_percent: float, seed: int = 
         if j < len(packets) and not lost[j]:
             buffer.push(decode(packets[j]), j * FRAME_S)
         out.append(buffer.pull())
-    return np.concatenate(out), sum(map(len, packets))
+    return np.concatenate(out), packets, {**buffer.stats, "lost": int(lost.sum())}
 
 
 def losses(text: str) -> tuple[float, ...]:
@@ -153,15 +159,42 @@ def speech_quality(source: str | os.PathLike[str], bitrate: int = DEFAULT_BITRAT
         "pesq_wb_source": round(pesq_wb(reference, reference), 3),
         "pesq_wb_opus": round(pesq_wb(reference, align(reference, codec_only)), 3),
     }
-    size, scores = 0, {}
+    packets: list[bytes] = []
+    scores, recovered, fec = {}, {}, 0.0
     for loss in losses:
-        played, size = received(frames, bitrate, loss)
+        played, packets, stats = received(frames, bitrate, loss)
         scores[f"{loss:g}"] = round(pesq_wb(reference, align(reference, played)), 3)
+        recovered[f"{loss:g}"] = round(stats["recovered"] / stats["lost"], 3) \
+            if stats["lost"] else None
+        fec = max(fec, sum(has_fec(decode(p).opus) for p in packets) / len(packets))
     summary["pesq_wb"] = scores
-    summary["audio_kbps"] = round(size * 8 / (len(frames) * FRAME_S) / 1000, 3)
+    summary["recovered"] = recovered
+    summary["fec_packets"] = round(fec, 3)
+    summary["audio_kbps"] = round(sum(map(len, packets)) * 8 / (len(frames) * FRAME_S) / 1000,
+                                  3)
     lines = [f"{summary['source']}: {summary['seconds']} s of sound, Opus at "
-             f"{bitrate / 1000:g} kbit/s ({summary['audio_kbps']} kbit/s of voice packets)",
+             f"{bitrate / 1000:g} kbit/s ({summary['audio_kbps']} kbit/s of voice packets, "
+             f"{round(fec * 100)} % carrying FEC)",
              f"PESQ-WB: source {summary['pesq_wb_source']}, codec alone "
              f"{summary['pesq_wb_opus']}, " + ", ".join(
                  f"{loss} % loss {score}" for loss, score in scores.items())]
     return summary, lines
+
+
+def speech_table(sources: list[str], bitrate: int = DEFAULT_BITRATE,
+                 losses: tuple[float, ...] = DEFAULT_LOSSES) -> tuple[dict[str, Any], list[str]]:
+    """``facewire bench speech``: ``speech_quality`` of each clip in one run, and the lowest
+    score at each loss over them (``pesq_wb_min``).
+
+    Raises:
+        SpeechError, SoundError: as ``speech_quality``, for the first clip that fails.
+    """
+    clips, lines = [], []
+    for source in sources:
+        summary, clip_lines = speech_quality(source, bitrate, losses)
+        clips.append(summary)
+        lines += clip_lines
+    lowest = {loss: min(c["pesq_wb"][loss] for c in clips) for loss in clips[0]["pesq_wb"]}
+    lines.append(f"lowest PESQ-WB over {len(clips)} clips: " + ", ".join(
+        f"{loss} % loss {score}" for loss, score in lowest.items()))
+    return {"bitrate": bitrate, "clips": clips, "pesq_wb_min": lowest}, lines

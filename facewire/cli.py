@@ -681,6 +681,15 @@ def _bench_sync(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_speech(args: argparse.Namespace) -> int:
+    from facewire.bench.speech import losses, speech_table
+    from facewire.report import report
+
+    report(*speech_table(args.source, round(args.voice_kbps * 1000), losses(args.loss)),
+           args.json)
+    return 0
+
+
 def _bench_fanout(args: argparse.Namespace) -> int:
     from facewire.bench.fanout import DEFAULT_VIEWERS, fanout
     from facewire.report import report
@@ -1044,6 +1053,17 @@ def _add_bench(sub: Commands) -> None:
                      help="packet losses to score the speech at, percent (default %(default)s)")
     _add_json(bsy)
     bsy.set_defaults(run=_bench_sync)
+    bsp = bsub.add_parser("speech", help="the voice's speech quality (PESQ-WB) through its "
+                          "real packets and jitter buffer at packet losses, against the source "
+                          "and the codec alone, one line per clip (no face, no model)")
+    bsp.add_argument("--source", required=True, action="append", metavar="V",
+                     help="a video or sound file with a sound track (repeatable)")
+    bsp.add_argument("--voice-kbps", type=float, default=DEFAULT_BITRATE / 1000,
+                     help="Opus's rate, kbit/s, 6 to 24 (default %(default)g)")
+    bsp.add_argument("--loss", default="0,10,30", metavar="L,L,...",
+                     help="packet losses to score the speech at, percent (default %(default)s)")
+    _add_json(bsp)
+    bsp.set_defaults(run=_bench_speech)
     bc = bsub.add_parser("clips", help="every single-person shared clip: a model from its first "
                          "40 %%, scored on the rest beside x264 at its floor, one table")
     bc.add_argument("--data", required=True, help="the shared data folder (holds video/)")

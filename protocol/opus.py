@@ -14,11 +14,12 @@ set for speech on a lossy link:
   bytes (``packet_bytes``), and the voice's share of the link is known before it starts;
 - in-band FEC on, tuned for ``loss_percent`` expected loss: packet n may also carry a coarse
   copy of packet n - 1 (SILK's LBRR frame), which the decoder uses when n - 1 is lost and n
-  arrived (``Decoder.recover``). libopus spends bits on it only where they leave enough for
-  the speech itself: in wideband, from about 20 kbit/s (measured with libopus 1.6.1: none of
-  400 packets at 16 kbit/s, 321 of 400 at 20 kbit/s). At the default rate, under the voice's
-  12 kbit/s budget, packets carry none and ``recover`` is concealment; FEC stays on so that a
-  stream given a higher ``--voice-kbps`` gains it;
+  arrived (``Decoder.recover``; ``has_fec`` tells whether a packet carries one). libopus
+  spends bits on it only where they leave enough for the speech itself: in wideband from
+  about 20 kbit/s at 10 % expected loss, 17 kbit/s at 25 % or more, never at 16 kbit/s or
+  under (docs/DESIGN.md section 12). At the default rate, under the voice's 12 kbit/s
+  budget, packets carry none and a lost frame is concealed; FEC stays on so that a stream
+  given a higher ``--voice-kbps`` gains it;
 - bandwidth at most wideband (8 kHz of audio): at these rates a wider band takes bits from
   the speech.
 
@@ -93,6 +94,7 @@ def _library() -> ctypes.CDLL:
     lib.opus_decoder_destroy.argtypes = [handle]
     lib.opus_decode.argtypes = [handle, bytes_p, ctypes.c_int32, pcm_p, ctypes.c_int, ctypes.c_int]
     lib.opus_packet_get_nb_samples.argtypes = [bytes_p, ctypes.c_int32, ctypes.c_int32]
+    lib.opus_packet_has_lbrr.argtypes = [bytes_p, ctypes.c_int32]
     lib.opus_strerror.restype = ctypes.c_char_p
     lib.opus_get_version_string.restype = ctypes.c_char_p
     return lib
@@ -101,6 +103,13 @@ def _library() -> ctypes.CDLL:
 def version() -> str:
     """libopus's version string, e.g. ``"libopus 1.5.2"``."""
     return _library().opus_get_version_string().decode()
+
+
+def has_fec(data: bytes) -> bool:
+    """Whether the Opus packet ``data`` carries in-band FEC (an LBRR frame) for the frame
+    before it; False for a packet that does not parse."""
+    return 0 < len(data) <= MAX_PACKET_BYTES and _library().opus_packet_has_lbrr(
+        data, len(data)) == 1
 
 
 def _check(code: int, what: str) -> int:

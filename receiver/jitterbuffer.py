@@ -20,10 +20,11 @@ comes back to the target instead of staying high.
 What a pull plays, for the frame ``n`` whose turn it is:
 
 - ``n``'s packet is buffered: it is decoded (``played``);
-- it is missing and ``n + 1``'s is buffered: ``n`` is rebuilt from ``n + 1``'s in-band FEC
-  (``recovered``; ``protocol.opus.Decoder.recover``, which conceals when the packet carries
-  no FEC, as at rates under about 20 kbit/s);
-- neither: Opus's loss concealment (``concealed``); after ``MAX_CONCEALED`` concealed frames
+- it is missing and ``n + 1``'s is buffered and carries in-band FEC
+  (``protocol.opus.has_fec``): ``n`` is rebuilt from it (``recovered``;
+  ``protocol.opus.Decoder.recover``);
+- neither: Opus's loss concealment (``concealed``; the case of every lost frame at rates
+  under about 17 kbit/s, whose packets carry no FEC); after ``MAX_CONCEALED`` concealed frames
   in a row the stream is taken as stopped, the buffer is reset (decoder state, numbering and
   jitter history) and primes again on the next packet (``resets``), so a sender that pauses
   is followed by silence, not by a concealment that fades forever.
@@ -41,7 +42,7 @@ from collections import deque
 
 import numpy as np
 
-from facewire.protocol.opus import FRAME_S, FRAME_SAMPLES, Decoder, OpusError
+from facewire.protocol.opus import FRAME_S, FRAME_SAMPLES, Decoder, OpusError, has_fec
 from facewire.protocol.voice import VoicePacket, unwrap
 
 MIN_DEPTH = 2
@@ -122,28 +123,32 @@ class JitterBuffer:
         self.pulled = n
         data = self._packets.pop(n, None)
         following = self._packets.get(n + 1)
+        stream_on = data is not None or following is not None
         try:
             if data is not None:
                 out = self._decoder.decode(data)
                 self.stats["played"] += 1
-            elif following is not None:
+            elif following is not None and has_fec(following):
                 out = self._decoder.recover(following)
                 self.stats["recovered"] += 1
             else:
-                out = self._conceal()
+                out = self._conceal(stream_on)
         except OpusError:
             self.stats["corrupt"] += 1
-            out = self._conceal()
-        if data is not None or following is not None:
+            out = self._conceal(stream_on)
+        if stream_on:
             self._concealed_run = 0
         return out
 
-    def _conceal(self) -> np.ndarray:
+    def _conceal(self, stream_on: bool) -> np.ndarray:
+        """A frame of concealment; the ``MAX_CONCEALED``-th in a row with no packet at or
+        after it (``stream_on`` False) resets the buffer."""
         self.stats["concealed"] += 1
-        self._concealed_run += 1
         out = self._decoder.conceal()
-        if self._concealed_run >= MAX_CONCEALED:
-            self._reset()
+        if not stream_on:
+            self._concealed_run += 1
+            if self._concealed_run >= MAX_CONCEALED:
+                self._reset()
         return out
 
     def _reset(self) -> None:
