@@ -15,7 +15,7 @@ from conftest import free_endpoint, start
 
 from facewire.bench.bandwidth import bandwidth
 from facewire.bench.inspect import inspect_log
-from facewire.bench.speech import SpeechError, speech_quality
+from facewire.bench.speech import SpeechError, speech_quality, speech_table
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
 from facewire.protocol.control import Camera, Hello, HelloRequest
@@ -187,20 +187,50 @@ def test_the_buffer_plays_through_jitter_reordering_loss_and_a_wrap(
     assert _aligned_r(frames, played) > 0.85
 
 
-def test_lost_packets_are_recovered_or_concealed_and_the_sound_goes_on(
-        speech: np.ndarray) -> None:
+def test_packets_carry_fec_only_at_rates_over_the_voices_budget(speech: np.ndarray) -> None:
+    """libopus spends bits on in-band FEC from about 17-20 kbit/s (protocol.opus): none at the
+    default rate, most packets (all but those without voice) at 20 kbit/s."""
+    assert not any(map(opus.has_fec, _packets(speech)))
+    assert not any(map(opus.has_fec, _packets(speech, 16_000)))
+    assert sum(map(opus.has_fec, _packets(speech, 20_000))) >= 0.7 * len(speech)
+    assert not opus.has_fec(b"") and not opus.has_fec(bytes(opus.MAX_PACKET_BYTES + 1))
+
+
+@pytest.mark.parametrize("bitrate", [opus.DEFAULT_BITRATE, 20_000])
+def test_lost_packets_are_recovered_from_fec_or_concealed_and_the_sound_goes_on(
+        speech: np.ndarray, bitrate: int) -> None:
     frames = speech[:300]
-    packets = _packets(frames)
+    packets = _packets(frames, bitrate)
     arrivals = np.arange(len(packets)) * opus.FRAME_S + 0.03
     lost = set(range(40, len(packets), 10)) | {100, 101, 102}
     buffer = JitterBuffer()
     played = _play(packets, np.where(np.isin(np.arange(len(packets)), list(lost)), np.inf,
                                      arrivals), buffer)
     stats = buffer.stats
-    assert stats["recovered"] >= len(lost) - 3  # each single loss rebuilt from the next packet
-    assert stats["concealed"] >= 2  # 100 and 101 have no following packet to rebuild from
-    assert stats["played"] == len(packets) - len(lost)
+    # a lost frame is rebuilt exactly when the next packet arrived and carries FEC
+    rebuilt = sum(k + 1 not in lost and opus.has_fec(packets[k + 1]) for k in lost)
+    assert stats["recovered"] == rebuilt
+    # the rest concealed, and past the last packet a frame or two before the pulls stop
+    assert 0 <= stats["concealed"] - (len(lost) - rebuilt) <= 3
+    assert (rebuilt == 0) == (bitrate == opus.DEFAULT_BITRATE)
+    assert rebuilt >= len(lost) // 2 or bitrate == opus.DEFAULT_BITRATE
+    assert stats["played"] == len(packets) - len(lost) and stats["resets"] == 0
     assert _aligned_r(frames, played) > 0.85
+
+
+def test_ten_lost_frames_in_a_row_before_packets_come_again_do_not_reset(
+        speech: np.ndarray) -> None:
+    """The tenth concealment in a row resets the buffer only when no packet follows: here
+    packet 50 is buffered when frame 49's turn comes (its packet, without FEC, is no
+    recovery)."""
+    packets = _packets(speech[:100])
+    arrivals = np.arange(len(packets)) * opus.FRAME_S + 0.03
+    arrivals[40:50] = np.inf
+    buffer = JitterBuffer()
+    _play(packets, arrivals, buffer)
+    assert buffer.stats["resets"] == 0
+    assert 10 <= buffer.stats["concealed"] <= 13  # and past the last packet, as above
+    assert buffer.stats["played"] == 90
 
 
 def test_a_stopped_stream_turns_to_silence_and_a_new_one_primes_again(
@@ -367,9 +397,27 @@ def test_speech_quality_falls_with_loss_and_the_codec_alone_holds_speech(
     assert summary["audio_kbps"] == pytest.approx(
         (opus.packet_bytes(opus.DEFAULT_BITRATE) + voice.HEADER_BYTES + voice.CRC_BYTES)
         * 8 / opus.FRAME_S / 1000, rel=0.01)
+    # at the default rate no packet carries FEC: every lost frame is concealed
+    assert summary["fec_packets"] == 0 and summary["recovered"] == {"0": None, "30": 0.0}
     assert "30 % loss" in lines[-1]
     with pytest.raises(SpeechError, match="no sound track"):
         speech_quality(shared_data / "video" / "openface_gaze.avi")
+
+
+def test_bench_speech_scores_clips_in_one_run_and_fec_lifts_the_speech_under_loss(
+        shared_data: Path) -> None:
+    """At 20 kbit/s libopus carries FEC: lost frames with voice are rebuilt and the speech at 10 %
+    loss scores well above the default rate's, whose lost frames are all concealed."""
+    clips = [str(shared_data / "video" / name) for name in ("retalk_2.mp4", "retalk_1.mp4")]
+    low, lines = speech_table(clips, losses=(10,))
+    high, _ = speech_table(clips, 20_000, losses=(10,))
+    assert [c["source"] for c in low["clips"]] == clips and len(lines) == 2 * 2 + 1
+    assert low["pesq_wb_min"]["10"] == min(c["pesq_wb"]["10"] for c in low["clips"])
+    for slow, fast in zip(low["clips"], high["clips"]):
+        assert slow["recovered"]["10"] == 0 and fast["recovered"]["10"] >= 0.4
+        assert fast["fec_packets"] >= 0.4  # pauses carry none
+        assert fast["pesq_wb"]["10"] > slow["pesq_wb"]["10"] + 0.3
+        assert fast["audio_kbps"] == pytest.approx(22.0, rel=0.01)
 
 
 def test_send_streams_the_files_voice_beside_the_face_and_logs_it(
