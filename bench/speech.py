@@ -5,7 +5,8 @@ Speech quality is PESQ wideband (ITU-T P.862.2, through the ``pesq`` package: th
 reference code), the received sound scored against the clip's own sound track, both
 resampled to 16 kHz (PESQ-WB's rate; ``scipy.signal.resample_poly``, 48 kHz / 3). The
 received sound comes from the voice's real path: 20-ms frames encoded by the sender's Opus
-(``protocol.opus``) at ``bitrate``, made voice packets (``protocol.voice``), a seeded uniform
+(``protocol.opus``) at ``bitrate``, set as the sender sets it (tuned for its default expected
+loss, whatever the loss measured), made voice packets (``protocol.voice``), a seeded uniform
 share of them dropped, the rest delivered on time into the receiver's jitter buffer
 (``receiver.jitterbuffer``), which is pulled once per frame as a speaker would. The buffer's
 delay and Opus's look-ahead shift the sound; it is aligned to the source by the lag of their
@@ -106,7 +107,7 @@ def received(frames: np.ndarray, bitrate: int, loss_percent: float, seed: int = 
         voice packets (``protocol.voice``) and ``JitterBuffer.stats`` with ``lost``, the
         packets dropped.
     """
-    encoder = Encoder(bitrate, loss_percent=max(1, round(loss_percent)))
+    encoder = Encoder(bitrate)
     packets = [encode(VoicePacket(j % SEQ_MODULO, encoder.encode(f))) for j, f in
                enumerate(frames)]
     lost = np.random.default_rng(seed).random(len(packets)) < loss_percent / 100
@@ -160,13 +161,13 @@ def speech_quality(source: str | os.PathLike[str], bitrate: int = DEFAULT_BITRAT
         "pesq_wb_opus": round(pesq_wb(reference, align(reference, codec_only)), 3),
     }
     packets: list[bytes] = []
-    scores, recovered, fec = {}, {}, 0.0
+    scores, recovered = {}, {}
     for loss in losses:
         played, packets, stats = received(frames, bitrate, loss)
         scores[f"{loss:g}"] = round(pesq_wb(reference, align(reference, played)), 3)
         recovered[f"{loss:g}"] = round(stats["recovered"] / stats["lost"], 3) \
             if stats["lost"] else None
-        fec = max(fec, sum(has_fec(decode(p).opus) for p in packets) / len(packets))
+    fec = sum(has_fec(decode(p).opus) for p in packets) / len(packets)
     summary["pesq_wb"] = scores
     summary["recovered"] = recovered
     summary["fec_packets"] = round(fec, 3)
