@@ -43,6 +43,10 @@ difference and cost almost nothing once compressed: the capture copies the refer
 texels wherever it saw no change, so an update carries only the texels that changed. The
 coding is lossless, so the sender's model and every receiver's stay identical.
 
+An update's bytes of format 2 are a texture patch instead (``models.patch``: tiles of the
+base texture corrected during the session); ``Update`` is either kind, and
+``decode_update``, ``apply_update``, ``update_head`` and ``ModelVersions`` take both.
+
 Decoding treats the bytes as hostile, like a model file: at most ``MAX_UPDATE_BYTES``, a
 map with exactly these keys and types, every size checked against the region it names
 before anything is inflated, and no zlib stream inflated past the one size it must have (a
@@ -62,12 +66,20 @@ import numpy as np
 
 from facewire.models.fields import (
     HEX64,
+    PATCH_REGION,
     TEMPLATE_SIZE,
     check_integer,
     check_number,
     check_region_name,
 )
 from facewire.models.modelfile import Area, ModelError, PersonModel, Region
+from facewire.models.patch import (
+    TexturePatch,
+    apply_patch,
+    decode_patch,
+    is_patch,
+    patch_shell,
+)
 from facewire.protocol.control import MAX_UPDATE_BYTES
 from facewire.protocol.packet import MAX_SERIAL
 
@@ -132,14 +144,20 @@ class ModelUpdate:
         object.__setattr__(self, "opacity", opacity)
 
 
-def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
-    """The model with ``update``'s state in its region (the module docstring's rules), held
-    in memory (its ``sha256`` is "": its version is the base sha256 and the serial).
+Update = ModelUpdate | TexturePatch
+
+
+def apply_update(model: PersonModel, update: Update) -> PersonModel:
+    """The model with ``update``'s state in its region (the module docstring's rules), or
+    with its texture patch (``models.patch.apply_patch``), held in memory (its ``sha256``
+    is "": its version is the base sha256 and the serial).
 
     Raises ``ModelError`` naming the field when the update does not fit the model: an
     unknown region, a position or replaced index out of range, the rest state replaced, a
     region already at ``MAX_LEARNED_LAYERS`` states, or layer images of the wrong shape.
     """
+    if isinstance(update, TexturePatch):
+        return apply_patch(model, update)
     old, keep = _neighbours(model, update)
     k = old.layers.shape[0]
     rest = old.rest
@@ -231,7 +249,7 @@ def encode_update(update: ModelUpdate, model: PersonModel) -> bytes:
 
 
 def decode_update(data: bytes, model: PersonModel, base_sha256: str,
-                  where: str = "update") -> ModelUpdate:
+                  where: str = "update") -> Update:
     """The update held in ``data``, checked against ``model`` (the version it applies to,
     which comes from the model file ``base_sha256``).
 
@@ -246,7 +264,12 @@ def decode_update(data: bytes, model: PersonModel, base_sha256: str,
             message names ``where`` and the field.
     """
     try:
-        return _decode(data, model, base_sha256)
+        fields = _map(data)
+        if is_patch(fields):
+            patch = decode_patch(fields, model, base_sha256)
+            apply_patch(model, patch)
+            return patch
+        return _decode(_checked(fields), model, base_sha256)
     except ModelError as e:
         raise UpdateError(f"{where}: {e}") from e
 
@@ -269,15 +292,19 @@ def update_head(data: bytes, where: str = "update") -> UpdateHead:
         UpdateError: the bytes are malformed; the message names ``where`` and the field.
     """
     try:
-        shell = _shell(_unpack(data))
+        fields = _map(data)
+        if is_patch(fields):
+            patch = patch_shell(fields)
+            return UpdateHead(patch.base_sha256, patch.serial, PATCH_REGION, 0, None)
+        shell = _shell(_checked(fields))
     except ModelError as e:
         raise UpdateError(f"{where}: {e}") from e
     return UpdateHead(shell.base_sha256, shell.serial, shell.region, shell.position,
                       shell.replaces)
 
 
-def _unpack(data: bytes) -> dict[str, Any]:
-    """The update's msgpack map, its keys, format, template and areas' types checked."""
+def _map(data: bytes) -> dict[str, Any]:
+    """The update's msgpack map (of either format), its sizes bounded."""
     if not isinstance(data, (bytes, bytearray)) or len(data) > MAX_UPDATE_BYTES:
         raise UpdateError(f"expected at most {MAX_UPDATE_BYTES} bytes")
     try:
@@ -286,7 +313,14 @@ def _unpack(data: bytes) -> dict[str, Any]:
                                  max_array_len=64, max_map_len=16, max_ext_len=0)
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as e:
         raise UpdateError(f"not a msgpack map: {e}") from e
-    if not isinstance(fields, dict) or set(fields) != _KEYS:
+    if not isinstance(fields, dict):
+        raise UpdateError("expected a msgpack map")
+    return fields
+
+
+def _checked(fields: dict[str, Any]) -> dict[str, Any]:
+    """A state update's map, its keys, format, template and areas' types checked."""
+    if set(fields) != _KEYS:
         raise UpdateError(f"expected a map with the keys {sorted(_KEYS)}")
     if fields["format"] != FORMAT:
         raise UpdateError(f"format: {fields['format']!r}, expected {FORMAT}")
@@ -301,7 +335,7 @@ def _unpack(data: bytes) -> dict[str, Any]:
 
 
 def _shell(fields: dict[str, Any]) -> ModelUpdate:
-    """The update of ``_unpack``'s fields, every scalar checked; its layers are stand-ins
+    """The update of ``_checked``'s fields, every scalar checked; its layers are stand-ins
     until inflated."""
     return ModelUpdate(
         base_sha256=fields["base_sha256"], serial=fields["serial"], region=fields["region"],
@@ -310,8 +344,7 @@ def _shell(fields: dict[str, Any]) -> ModelUpdate:
         .astype(np.float32), layers=(np.zeros((1, 1, 3), np.uint8),))
 
 
-def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
-    fields = _unpack(data)
+def _decode(fields: dict[str, Any], model: PersonModel, base_sha256: str) -> ModelUpdate:
     if fields["base_sha256"] != base_sha256:
         raise UpdateError("base_sha256: made for another model file")
     shell = _shell(fields)
@@ -369,7 +402,7 @@ class ModelVersions:
             raise ModelError("versions: the base must be a model read from its file (its "
                              "sha256 known)")
         self.base = base
-        self.updates: list[ModelUpdate] = []
+        self.updates: list[Update] = []
         self.pending: dict[int, bytes] = {}
         self._models = [base]
 
@@ -378,7 +411,7 @@ class ModelVersions:
         """The newest version held: every update up to it is applied."""
         return len(self._models) - 1
 
-    def add(self, serial: int, data: bytes, where: str = "update") -> list[ModelUpdate]:
+    def add(self, serial: int, data: bytes, where: str = "update") -> list[Update]:
         """Take update ``serial``'s bytes; returns the updates this made applicable, in order
         (none when it waits for an earlier one, or was held already).
 
