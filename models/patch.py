@@ -58,7 +58,7 @@ import numpy as np
 from facewire.models.archive import decode_png, png_bytes
 from facewire.models.fields import HEX64, PATCH_REGION, ModelError, check_integer
 from facewire.models.modelfile import Area, PersonModel
-from facewire.models.regions import texel_rect
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.control import MAX_UPDATE_BYTES
 from facewire.protocol.packet import MAX_SERIAL
 
@@ -149,7 +149,6 @@ def apply_patch(model: PersonModel, patch: TexturePatch) -> PersonModel:
     """
     texture = model.texture.copy()
     height, width = texture.shape[:2]
-    changed = np.zeros(texture.shape, np.int16)
     for n, (tile, (rows, cols)) in enumerate(zip(patch.tiles, patch.rects(), strict=True)):
         if rows.stop > height or cols.stop > width:
             raise PatchError(f"patch {patch.serial}: tiles[{n}]: texels [{rows.start}:"
@@ -161,10 +160,9 @@ def apply_patch(model: PersonModel, patch: TexturePatch) -> PersonModel:
         old = texture[rows, cols].astype(np.int16)
         new = np.clip(np.rint(old + d), 0, 255).astype(np.int16)
         texture[rows, cols] = new.astype(np.uint8)
-        changed[rows, cols] += new - old
     regions = []
     for region in model.regions:
-        parts = [_moved(part, changed) for part in region.parts()]
+        parts = [_moved(part, model.texture, texture) for part in region.parts()]
         if all(p is q for p, q in zip(parts, region.parts(), strict=True)):
             regions.append(region)
             continue
@@ -174,13 +172,14 @@ def apply_patch(model: PersonModel, patch: TexturePatch) -> PersonModel:
                                file_bytes=0)
 
 
-def _moved(area: Area, changed: np.ndarray) -> Area:
-    """The area with the texture's change under it added to each of its layers (itself when
-    nothing under it changed)."""
-    rows, cols = texel_rect(area.uv_rect, changed.shape[:2])[1]
-    under = changed[rows, cols]
-    if under.shape != area.layers.shape[1:] or not under.any():
+def _moved(area: Area, old: np.ndarray, new: np.ndarray) -> Area:
+    """The area with the texture's change under it (``new - old``, (H, W, 3) uint8 each)
+    added to each of its layers (itself when nothing under it changed)."""
+    rows, cols = texel_rect(area.uv_rect, old.shape[:2])[1]
+    if (new[rows, cols].shape != area.layers.shape[1:]
+            or np.array_equal(new[rows, cols], old[rows, cols])):
         return area
+    under = new[rows, cols].astype(np.int16) - old[rows, cols]
     layers = np.clip(area.layers.astype(np.int16) + under, 0, 255).astype(np.uint8)
     return Area(area.uv_rect, layers, area.mask)
 

@@ -266,9 +266,7 @@ def decode_update(data: bytes, model: PersonModel, base_sha256: str,
     try:
         fields = _map(data)
         if is_patch(fields):
-            patch = decode_patch(fields, model, base_sha256)
-            apply_patch(model, patch)
-            return patch
+            return decode_patch(fields, model, base_sha256)
         return _decode(_checked(fields), model, base_sha256)
     except ModelError as e:
         raise UpdateError(f"{where}: {e}") from e
@@ -388,8 +386,12 @@ class ModelVersions:
     values refer to version s is shown with ``model(s)``: version s when held, else the
     newest held, whose regions clamp Q to the layers they have (``receiver.render``).
 
-    Each version shares every array with the one before but its updated region's, so a
-    version costs the memory of that region's states.
+    Held in memory are the base, the newest version and one other (the one before the
+    newest, or the one ``model`` gave last); any other is made again when asked for, from
+    the nearest of those below it, by applying its updates once more (``apply_update`` is
+    exact: the same version, array for array). So a session's versions cost at most three
+    models whatever their number: a texture patch's version has a texture of its own
+    (``models.patch``), which every version held would otherwise keep for the session.
 
     Attributes:
         base: the model file (version 0); its ``sha256`` is the session's base sha256.
@@ -404,12 +406,13 @@ class ModelVersions:
         self.base = base
         self.updates: list[Update] = []
         self.pending: dict[int, bytes] = {}
-        self._models = [base]
+        self._newest = base
+        self._last = (0, base)  # the other version held, and its serial
 
     @property
     def held(self) -> int:
         """The newest version held: every update up to it is applied."""
-        return len(self._models) - 1
+        return len(self.updates)
 
     def add(self, serial: int, data: bytes, where: str = "update") -> list[Update]:
         """Take update ``serial``'s bytes; returns the updates this made applicable, in order
@@ -425,12 +428,13 @@ class ModelVersions:
         applied = []
         while self.held + 1 in self.pending:
             n = self.held + 1
-            update = decode_update(self.pending.pop(n), self._models[-1], self.base.sha256,
+            update = decode_update(self.pending.pop(n), self._newest, self.base.sha256,
                                    where if n == serial else f"update {n}")
             if update.serial != n:
                 raise UpdateError(f"{where}: serial: the bytes say {update.serial}, the "
                                   f"record {n}")
-            self._models.append(apply_update(self._models[-1], update))
+            self._last = (self.held, self._newest)
+            self._newest = apply_update(self._newest, update)
             self.updates.append(update)
             applied.append(update)
         return applied
@@ -438,4 +442,11 @@ class ModelVersions:
     def model(self, serial: int) -> PersonModel:
         """The version to show a frame whose Q values refer to version ``serial`` with:
         ``serial`` itself when held, else the newest held."""
-        return self._models[min(max(int(serial), 0), self.held)]
+        n = min(max(int(serial), 0), self.held)
+        if n == self.held:
+            return self._newest
+        start, model = self._last if self._last[0] <= n else (0, self.base)
+        for update in self.updates[start:n]:
+            model = apply_update(model, update)
+        self._last = (n, model)
+        return model

@@ -60,8 +60,8 @@ from facewire.models.archive import png_bytes
 from facewire.models.geometry import Intrinsics
 from facewire.models.modelfile import PersonModel
 from facewire.models.patch import MAX_TILE_SIDE, TexturePatch, Tile, tile_diff
-from facewire.models.regions import texel_rect
 from facewire.models.rig import Rig
+from facewire.models.texelgrid import texel_rect
 from facewire.sender.enroll.occluders import OccluderFinder
 from facewire.sender.texels import AreaTexels, area_surface, welded_normals
 

@@ -125,7 +125,7 @@ from facewire.models.landmarks import outer_eye_distance
 from facewire.models.manifest import ModelInfo, RegionFrames, SelfCheck, SourceRange
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region, model_summary, save_model
-from facewire.models.regions import texel_rect
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.clean import sharpness
 from facewire.sender.enroll.confidence import texture_confidence
