@@ -5,6 +5,8 @@
 - a patch's bytes decode to the patch that was encoded, apply only inside its tiles, and
   move the layers of a region over them by the texture's change (so the region's volume
   a (L - B) does not change);
+- a session's versions hold three models' textures however many patches it has, and give
+  each version exactly as its updates make it;
 - a patch out of the texture, of a wrong size, with a broken PNG or another model's sha256
   is refused naming the field, and changes nothing;
 - a log holding a patch is replayed with it and ``model build --from-log`` keeps it.
@@ -13,7 +15,9 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
+import tracemalloc
 from pathlib import Path
 
 import msgpack
@@ -145,6 +149,36 @@ def test_a_corrupt_patch_is_refused_naming_its_field(confident: Path, case: str)
     with pytest.raises(UpdateError, match=r"^update 1: " + named):
         versions.add(1, data, "update 1")
     assert versions.held == 0 and versions.model(1) is model
+
+
+def test_a_sessions_versions_hold_three_textures_whatever_the_patches(confident: Path
+                                                                     ) -> None:
+    """Twelve patches held (a gateway's session): the versions' memory stays that of the
+    base, the newest and one other, and every version, asked for in any order, is the one
+    its updates make."""
+    small = load_model(confident)
+    texture = np.repeat(np.repeat(small.texture, 8, axis=0), 8, axis=1)  # 512 x 1024: the
+    model = dataclasses.replace(small, texture=texture, confidence=None)  # textures weigh
+    patches = [_patch(model.sha256, n, row=4 + 12 * (n % 4), col=8 + 8 * n)
+               for n in range(1, 13)]
+    versions = ModelVersions(model)
+    tracemalloc.start()
+    try:
+        for patch in patches:
+            versions.add(patch.serial, encode_patch(patch))
+        gc.collect()
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert versions.held == 12
+    assert held < 3 * model.texture.nbytes, held
+    made = [model]
+    for patch in patches:
+        made.append(apply_patch(made[-1], patch))
+    for serial in (7, 3, 12, 0, 11, 5, 6, 6, 2):
+        version = versions.model(serial)
+        assert np.array_equal(version.texture, made[serial].texture), serial
+        assert np.array_equal(version.regions[0].layers, made[serial].regions[0].layers)
 
 
 def test_a_log_keeps_its_patches_for_replay_and_build_from_log(confident: Path,
