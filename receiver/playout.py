@@ -71,8 +71,7 @@ included, duplicates not)::
 
 and ``margin = depth P`` until the stream has ``MIN_JITTER_PACKETS`` arrivals (its first
 second tells little of its jitter: a sender warming up sends unevenly, and one stall of a busy
-machine in it is more than the spread of the few packets before; a packet overtaken then was
-given up as late when its successor came in such a stall).
+machine can exceed the spread of the few packets before it).
 
 ``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
 ``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
