@@ -43,7 +43,8 @@ frame is rendered with the version its packet names, the one the sender classifi
 renders it (a replay of the session's log shows the same: ``receiver.replay``);
 ``model_updates`` lists each version past the model file's by ``serial`` and the video frame
 of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
-the last version's.
+the last version's. The texture's confidence and its healing (``texture_confidence_mean``,
+``patches``, ``first_patch_s``) are ``bench.healing``'s.
 
 What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
 full-frame detection per image, nothing carried from frame to frame) on the real frame, on
@@ -137,6 +138,7 @@ from facewire.bench.clips import subset
 from facewire.bench.encoding import Run, decode_run, encode_frames
 from facewire.bench.fidelity import gray_ssim, psnr, x264_reference
 from facewire.bench.geometry import GeometryNME, geometry_nme
+from facewire.bench.healing import healing_measures
 from facewire.bench.identity import identity_measures
 from facewire.bench.jitter import filter_lag, render_jitter, sent_points
 from facewire.bench.jitter import lines as steady_lines
@@ -323,6 +325,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
     summary["model_updates"] = _model_updates(decoded, run.indices)
+    summary.update(healing_measures(model, pipeline.updates, decoded["serial"], run.times))
     appearance = _appearance(model, camera, decoded, run.tracked, posed, run.images,
                              stream_rate(src.rate_hz), summary["payload_kbps"], progress,
                              keep_examples=keep_eyes, versions=run.versions)

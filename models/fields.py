@@ -33,6 +33,7 @@ MAX_AREAS = 4
 TEMPLATE_SIZE = 16
 DESCRIPTOR_SIZE = 128  # dlib's face descriptor (sender.identity)
 MAX_DESCRIPTORS = 16
+PATCH_REGION = "texture"  # the region a record names for a texture patch (models.patch)
 
 REGION_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}", re.ASCII)
 HEX64 = re.compile(r"[0-9a-f]{64}", re.ASCII)

@@ -121,6 +121,7 @@ MAX_LEARNED_UPDATES = 2047  # a session's serials (protocol.packet.MAX_SERIAL)
 MESH_FIELDS = ("vertices", "triangles", "uv", "tags", "landmarks", "phantoms")
 TEXTURE_MEMBER = "textures/neutral.png"
 DESCRIPTORS_MEMBER = "arrays/descriptors.npy"
+CONFIDENCE_MEMBER = "textures/confidence.png"
 MANIFEST_MEMBER = "model.json"
 
 
@@ -442,6 +443,7 @@ SPECS = (
     Spec(re.compile(r"arrays/descriptors\.npy"), "npy", "float32", ("D", DESCRIPTOR_SIZE),
          MAX_SMALL_BYTES),
     Spec(re.compile(r"textures/neutral\.png"), "png", "uint8", ("H", "W", 3), MAX_MEMBER_BYTES),
+    Spec(re.compile(r"textures/confidence\.png"), "png", "uint8", ("H", "W"), MAX_MEMBER_BYTES),
     Spec(re.compile(rf"regions/{_R}/(area_[1-9]/)?layer_[0-9]{{2}}\.png", re.ASCII), "png",
           "uint8", ("h", "w", 3), MAX_MEMBER_BYTES),
     Spec(re.compile(rf"regions/{_R}/(area_[1-9]/)?mask\.png", re.ASCII), "png", "uint8",
@@ -456,12 +458,16 @@ def member_spec(name: str) -> Spec | None:
 
 
 
-def expected_members(regions: list[RegionEntry], descriptors: bool = False) -> set[str]:
-    """The members a model of these regions holds; ``descriptors``: with the optional
-    ``arrays/descriptors.npy`` (the model file lists it in ``members`` when it has it)."""
+def expected_members(regions: list[RegionEntry], descriptors: bool = False,
+                     confidence: bool = False) -> set[str]:
+    """The members a model of these regions holds; ``descriptors``, ``confidence``: with the
+    optional ``arrays/descriptors.npy``, ``textures/confidence.png`` (the model file lists
+    each in ``members`` when it has it)."""
     names = {f"arrays/{f}.npy" for f in MESH_FIELDS} | {TEXTURE_MEMBER}
     if descriptors:
         names.add(DESCRIPTORS_MEMBER)
+    if confidence:
+        names.add(CONFIDENCE_MEMBER)
     for r in regions:
         for folder in area_folders(r):
             names |= {f"{folder}/layer_{j:02d}.png" for j in range(r.layers)}

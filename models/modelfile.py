@@ -27,6 +27,10 @@ member                          dtype, shape     content
 ``arrays/descriptors.npy``      float32 (D,      optional: the person's face descriptors
                                 128)             (``sender.identity``), 1 <= D <= 16, finite
 ``textures/neutral.png``        uint8 (H, W, 3)  neutral texture, 8-bit RGB PNG; row 0 is v = 1
+``textures/confidence.png``     uint8 (H, W)     optional: how well the enrollment saw each
+                                                 texel of the neutral texture, 0 (never) ..
+                                                 255 (``sender.enroll.confidence``), 8-bit
+                                                 grey PNG the texture's size
 ``regions/R/layer_JJ.png``      uint8 (h, w, 3)  region R's appearance state JJ (00 .. k-1),
                                                  8-bit RGB PNG covering the region's
                                                  ``uv_rect``; row 0 is its top (v = v1)
@@ -39,11 +43,13 @@ member                          dtype, shape     content
 ``regions/R/area_N/mask.png``   uint8 (h, w)     the alpha of further area N's layers
 ==============================  ===============  ==============================================
 
-N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``arrays/descriptors.npy`` is the one
-optional member: present when the model was built with its person's descriptors (whom the
-sender follows: ``sender.identity``), absent in models built before them, which still load
-(``PersonModel.descriptors`` None). It leaves ``format_version`` at 4: a reader that
-predates it refuses such a model by name ("not a member of a facewire model").
+N, M >= 1; 1 <= H, W, h, w <= 4096; 1 <= k <= 64. ``arrays/descriptors.npy`` is optional:
+present when the model was built with its person's descriptors (whom the sender follows:
+``sender.identity``), absent in models built before them, which still load
+(``PersonModel.descriptors`` None). ``textures/confidence.png`` is optional likewise (its
+shape must be the texture's; ``PersonModel.confidence`` None without it). Neither raises
+``format_version`` from 4: a reader that predates one refuses such a model by name ("not a
+member of a facewire model").
 ``.npy`` members are numpy format 1.0 or 2.0, little-endian, never object arrays (read
 with ``allow_pickle=False``, and refused from their header before that). The manifest
 ``model.json`` (its keys, the records it holds, the versions and what each added) and the
@@ -102,6 +108,7 @@ from facewire.models.fields import (
     MAX_IMAGE_SIDE,
     MAX_LAYERS,
     MAX_REGIONS,
+    PATCH_REGION,
     TEMPLATE_SIZE,
     ModelError,
     ModelFileError,
@@ -116,6 +123,7 @@ from facewire.models.fields import (
 from facewire.models.geometry import Intrinsics
 from facewire.models.infra.atomic import write_atomically
 from facewire.models.manifest import (
+    CONFIDENCE_MEMBER,
     DESCRIPTORS_MEMBER,
     FORMAT,
     FORMAT_VERSION,
@@ -276,6 +284,9 @@ class PersonModel:
         descriptors: (D, 128) float32, finite, 1 <= D <= 16: the person's face descriptors
             (``sender.identity``: whom the sender follows), or None (older models). The
             optional member ``arrays/descriptors.npy``.
+        confidence: (H, W) uint8, the texture's shape: how well the enrollment saw each
+            texel (``sender.enroll.confidence``; 255 = fully), or None (older models). The
+            optional member ``textures/confidence.png``.
     """
 
     mesh: Mesh
@@ -290,6 +301,7 @@ class PersonModel:
     region_frames: dict[str, RegionFrames] | None = None
     learned: Learned | None = None
     descriptors: np.ndarray | None = None
+    confidence: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("mesh", Mesh), ("camera", Intrinsics), ("info", ModelInfo)):
@@ -329,11 +341,25 @@ class PersonModel:
             if not isinstance(self.learned, Learned):
                 raise ModelError(f"learned: expected a Learned or None, got "
                                  f"{type_name(self.learned)}")
-            strange = [u.region for u in self.learned.updates if u.region not in names]
+            strange = [u.region for u in self.learned.updates
+                       if u.region not in names and u.region != PATCH_REGION]
             if strange:
                 raise ModelError(f"learned.updates: {strange[0]!r} is not a region of the model")
         if self.descriptors is not None:
             check_descriptors(self.descriptors)
+        if self.confidence is not None:
+            check_confidence(self.confidence, (h, w))
+
+
+def check_confidence(confidence: object, shape: tuple[int, int]) -> None:
+    """A model's ``confidence``: (H, W) uint8, the texture's (H, W); ``ModelError`` names
+    the field."""
+    field = f"confidence ({CONFIDENCE_MEMBER})"
+    check_ndarray(confidence, field, np.uint8, 2)
+    assert isinstance(confidence, np.ndarray)
+    if confidence.shape != shape:
+        raise ModelError(f"{field}: expected the texture's shape {shape}, got "
+                         f"{confidence.shape}")
 
 
 def check_descriptors(descriptors: object) -> None:
@@ -442,7 +468,8 @@ def load_model_bytes(data: bytes, where: str = "<model>") -> PersonModel:
         return PersonModel(mesh, arrays[TEXTURE_MEMBER], manifest.camera, manifest.info,
                            tuple(regions), hashlib.sha256(data).hexdigest(), len(data),
                            manifest.coverage, manifest.self_check, manifest.region_frames,
-                           manifest.learned, arrays.get(DESCRIPTORS_MEMBER))
+                           manifest.learned, arrays.get(DESCRIPTORS_MEMBER),
+                           arrays.get(CONFIDENCE_MEMBER))
     except ModelError as e:
         raise ModelFileError(f"{where}: {e}") from e
 
@@ -519,6 +546,8 @@ def _encode(model: PersonModel) -> bytes:
         put(f"regions/{r.name}/templates.npy", r.templates, npy_bytes(r.templates))
     if model.descriptors is not None:
         put(DESCRIPTORS_MEMBER, model.descriptors, npy_bytes(model.descriptors))
+    if model.confidence is not None:
+        put(CONFIDENCE_MEMBER, model.confidence, png_bytes(model.confidence))
     c, i = model.camera, model.info
     manifest = {
         "format": FORMAT,
@@ -555,7 +584,8 @@ def _encode(model: PersonModel) -> bytes:
 def _check_members(manifest: Manifest, entries: dict[str, zipfile.ZipInfo],
                    where: str) -> set[str]:
     """The members the manifest requires: each in the zip and declared, region sizes agreeing."""
-    expected = expected_members(manifest.regions, DESCRIPTORS_MEMBER in manifest.members)
+    expected = expected_members(manifest.regions, DESCRIPTORS_MEMBER in manifest.members,
+                                CONFIDENCE_MEMBER in manifest.members)
     for name in sorted(expected | entries.keys() | manifest.members.keys()):
         if name == MANIFEST_MEMBER:
             continue

@@ -53,10 +53,10 @@ area the layer images cover, is the template area grown by the region's ``layer_
 (``LAYER_MARGIN_MM``; ``EYE_LAYER_MARGIN_MM`` for the eye regions, so that their layers
 cover all of the eyeball the lid opening can show, not only the template area: a closed
 lid's layer must hide the whole opening) on every side, plus ``RAMP_TEXELS`` + 2 texels,
-snapped outward to texel edges of the model's texture (``texel_rect``), so that a layer's
-pixels are the texture's own texels. The UV layout is the generic head's for every model
-(fitting moves vertices, never UVs), so the rectangles are computed once, on the generic
-head.
+snapped outward to texel edges of the model's texture (``models.texelgrid.texel_rect``), so
+that a layer's pixels are the texture's own texels. The UV layout is the generic head's for
+every model (fitting moves vertices, never UVs), so the rectangles are computed once, on the
+generic head.
 
 The alpha ramp (``ramp_mask``): a layer's alpha over the neutral texture is 1 inside and
 falls linearly to 0 over the ``RAMP_TEXELS`` = 10 texels next to the rectangle's border:
@@ -84,6 +84,7 @@ import numpy as np
 from facewire.models.fields import TEMPLATE_SIZE
 from facewire.models.head import generic_head
 from facewire.models.mesh import Tag
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.errors import FacewireError
 
 SUPERSAMPLE = 2
@@ -201,27 +202,6 @@ def _layer_rect(tag: Tag, box: tuple[float, float, float, float], margin: float,
     pad_u, pad_v = (RAMP_TEXELS + 2) / w, (RAMP_TEXELS + 2) / h
     grown = (outer[0] - pad_u, outer[1] - pad_v, outer[2] + pad_u, outer[3] + pad_v)
     return texel_rect(grown, texture_shape)[0]
-
-
-def texel_rect(rect: tuple[float, float, float, float], texture_shape: tuple[int, int]
-               ) -> tuple[tuple[float, float, float, float], tuple[slice, slice]]:
-    """A UV rectangle grown to texel edges and clipped to [0, 1], and its texel slices.
-
-    Args:
-        rect: (u0, v0, u1, v1), UV, v up.
-        texture_shape: (H, W) texels; texel row r spans v in [1 - (r+1)/H, 1 - r/H].
-
-    Returns:
-        The snapped rectangle, and (rows, columns) slices of the texture it covers (row 0 at
-        its top, v = v1).
-    """
-    h, w = texture_shape
-    c0 = max(0, int(np.floor(rect[0] * w + 1e-9)))
-    c1 = min(w, int(np.ceil(rect[2] * w - 1e-9)))
-    r0 = max(0, int(np.floor((1.0 - rect[3]) * h + 1e-9)))
-    r1 = min(h, int(np.ceil((1.0 - rect[1]) * h - 1e-9)))
-    snapped = (c0 / w, 1.0 - r1 / h, c1 / w, 1.0 - r0 / h)
-    return snapped, (slice(r0, r1), slice(c0, c1))
 
 
 def ramp_mask(shape: tuple[int, int], ramp: int = RAMP_TEXELS) -> np.ndarray:

@@ -43,6 +43,10 @@ difference and cost almost nothing once compressed: the capture copies the refer
 texels wherever it saw no change, so an update carries only the texels that changed. The
 coding is lossless, so the sender's model and every receiver's stay identical.
 
+An update's bytes of format 2 are a texture patch instead (``models.patch``: tiles of the
+base texture corrected during the session); ``Update`` is either kind, and
+``decode_update``, ``apply_update``, ``update_head`` and ``ModelVersions`` take both.
+
 Decoding treats the bytes as hostile, like a model file: at most ``MAX_UPDATE_BYTES``, a
 map with exactly these keys and types, every size checked against the region it names
 before anything is inflated, and no zlib stream inflated past the one size it must have (a
@@ -62,12 +66,20 @@ import numpy as np
 
 from facewire.models.fields import (
     HEX64,
+    PATCH_REGION,
     TEMPLATE_SIZE,
     check_integer,
     check_number,
     check_region_name,
 )
 from facewire.models.modelfile import Area, ModelError, PersonModel, Region
+from facewire.models.patch import (
+    TexturePatch,
+    apply_patch,
+    decode_patch,
+    is_patch,
+    patch_shell,
+)
 from facewire.protocol.control import MAX_UPDATE_BYTES
 from facewire.protocol.packet import MAX_SERIAL
 
@@ -132,14 +144,20 @@ class ModelUpdate:
         object.__setattr__(self, "opacity", opacity)
 
 
-def apply_update(model: PersonModel, update: ModelUpdate) -> PersonModel:
-    """The model with ``update``'s state in its region (the module docstring's rules), held
-    in memory (its ``sha256`` is "": its version is the base sha256 and the serial).
+Update = ModelUpdate | TexturePatch
+
+
+def apply_update(model: PersonModel, update: Update) -> PersonModel:
+    """The model with ``update``'s state in its region (the module docstring's rules), or
+    with its texture patch (``models.patch.apply_patch``), held in memory (its ``sha256``
+    is "": its version is the base sha256 and the serial).
 
     Raises ``ModelError`` naming the field when the update does not fit the model: an
     unknown region, a position or replaced index out of range, the rest state replaced, a
     region already at ``MAX_LEARNED_LAYERS`` states, or layer images of the wrong shape.
     """
+    if isinstance(update, TexturePatch):
+        return apply_patch(model, update)
     old, keep = _neighbours(model, update)
     k = old.layers.shape[0]
     rest = old.rest
@@ -231,7 +249,7 @@ def encode_update(update: ModelUpdate, model: PersonModel) -> bytes:
 
 
 def decode_update(data: bytes, model: PersonModel, base_sha256: str,
-                  where: str = "update") -> ModelUpdate:
+                  where: str = "update") -> Update:
     """The update held in ``data``, checked against ``model`` (the version it applies to,
     which comes from the model file ``base_sha256``).
 
@@ -246,7 +264,10 @@ def decode_update(data: bytes, model: PersonModel, base_sha256: str,
             message names ``where`` and the field.
     """
     try:
-        return _decode(data, model, base_sha256)
+        fields = _map(data)
+        if is_patch(fields):
+            return decode_patch(fields, model, base_sha256)
+        return _decode(_checked(fields), model, base_sha256)
     except ModelError as e:
         raise UpdateError(f"{where}: {e}") from e
 
@@ -269,15 +290,19 @@ def update_head(data: bytes, where: str = "update") -> UpdateHead:
         UpdateError: the bytes are malformed; the message names ``where`` and the field.
     """
     try:
-        shell = _shell(_unpack(data))
+        fields = _map(data)
+        if is_patch(fields):
+            patch = patch_shell(fields)
+            return UpdateHead(patch.base_sha256, patch.serial, PATCH_REGION, 0, None)
+        shell = _shell(_checked(fields))
     except ModelError as e:
         raise UpdateError(f"{where}: {e}") from e
     return UpdateHead(shell.base_sha256, shell.serial, shell.region, shell.position,
                       shell.replaces)
 
 
-def _unpack(data: bytes) -> dict[str, Any]:
-    """The update's msgpack map, its keys, format, template and areas' types checked."""
+def _map(data: bytes) -> dict[str, Any]:
+    """The update's msgpack map (of either format), its sizes bounded."""
     if not isinstance(data, (bytes, bytearray)) or len(data) > MAX_UPDATE_BYTES:
         raise UpdateError(f"expected at most {MAX_UPDATE_BYTES} bytes")
     try:
@@ -286,7 +311,14 @@ def _unpack(data: bytes) -> dict[str, Any]:
                                  max_array_len=64, max_map_len=16, max_ext_len=0)
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as e:
         raise UpdateError(f"not a msgpack map: {e}") from e
-    if not isinstance(fields, dict) or set(fields) != _KEYS:
+    if not isinstance(fields, dict):
+        raise UpdateError("expected a msgpack map")
+    return fields
+
+
+def _checked(fields: dict[str, Any]) -> dict[str, Any]:
+    """A state update's map, its keys, format, template and areas' types checked."""
+    if set(fields) != _KEYS:
         raise UpdateError(f"expected a map with the keys {sorted(_KEYS)}")
     if fields["format"] != FORMAT:
         raise UpdateError(f"format: {fields['format']!r}, expected {FORMAT}")
@@ -301,7 +333,7 @@ def _unpack(data: bytes) -> dict[str, Any]:
 
 
 def _shell(fields: dict[str, Any]) -> ModelUpdate:
-    """The update of ``_unpack``'s fields, every scalar checked; its layers are stand-ins
+    """The update of ``_checked``'s fields, every scalar checked; its layers are stand-ins
     until inflated."""
     return ModelUpdate(
         base_sha256=fields["base_sha256"], serial=fields["serial"], region=fields["region"],
@@ -310,8 +342,7 @@ def _shell(fields: dict[str, Any]) -> ModelUpdate:
         .astype(np.float32), layers=(np.zeros((1, 1, 3), np.uint8),))
 
 
-def _decode(data: bytes, model: PersonModel, base_sha256: str) -> ModelUpdate:
-    fields = _unpack(data)
+def _decode(fields: dict[str, Any], model: PersonModel, base_sha256: str) -> ModelUpdate:
     if fields["base_sha256"] != base_sha256:
         raise UpdateError("base_sha256: made for another model file")
     shell = _shell(fields)
@@ -355,8 +386,12 @@ class ModelVersions:
     values refer to version s is shown with ``model(s)``: version s when held, else the
     newest held, whose regions clamp Q to the layers they have (``receiver.render``).
 
-    Each version shares every array with the one before but its updated region's, so a
-    version costs the memory of that region's states.
+    Held in memory are the base, the newest version and one other (the one before the
+    newest, or the one ``model`` gave last); any other is made again when asked for, from
+    the nearest of those below it, by applying its updates once more (``apply_update`` is
+    exact: the same version, array for array). So a session's versions cost at most three
+    models whatever their number: a texture patch's version has a texture of its own
+    (``models.patch``), which every version held would otherwise keep for the session.
 
     Attributes:
         base: the model file (version 0); its ``sha256`` is the session's base sha256.
@@ -369,16 +404,17 @@ class ModelVersions:
             raise ModelError("versions: the base must be a model read from its file (its "
                              "sha256 known)")
         self.base = base
-        self.updates: list[ModelUpdate] = []
+        self.updates: list[Update] = []
         self.pending: dict[int, bytes] = {}
-        self._models = [base]
+        self._newest = base
+        self._last = (0, base)  # the other version held, and its serial
 
     @property
     def held(self) -> int:
         """The newest version held: every update up to it is applied."""
-        return len(self._models) - 1
+        return len(self.updates)
 
-    def add(self, serial: int, data: bytes, where: str = "update") -> list[ModelUpdate]:
+    def add(self, serial: int, data: bytes, where: str = "update") -> list[Update]:
         """Take update ``serial``'s bytes; returns the updates this made applicable, in order
         (none when it waits for an earlier one, or was held already).
 
@@ -392,12 +428,13 @@ class ModelVersions:
         applied = []
         while self.held + 1 in self.pending:
             n = self.held + 1
-            update = decode_update(self.pending.pop(n), self._models[-1], self.base.sha256,
+            update = decode_update(self.pending.pop(n), self._newest, self.base.sha256,
                                    where if n == serial else f"update {n}")
             if update.serial != n:
                 raise UpdateError(f"{where}: serial: the bytes say {update.serial}, the "
                                   f"record {n}")
-            self._models.append(apply_update(self._models[-1], update))
+            self._last = (self.held, self._newest)
+            self._newest = apply_update(self._newest, update)
             self.updates.append(update)
             applied.append(update)
         return applied
@@ -405,4 +442,11 @@ class ModelVersions:
     def model(self, serial: int) -> PersonModel:
         """The version to show a frame whose Q values refer to version ``serial`` with:
         ``serial`` itself when held, else the newest held."""
-        return self._models[min(max(int(serial), 0), self.held)]
+        n = min(max(int(serial), 0), self.held)
+        if n == self.held:
+            return self._newest
+        start, model = self._last if self._last[0] <= n else (0, self.base)
+        for update in self.updates[start:n]:
+            model = apply_update(model, update)
+        self._last = (n, model)
+        return model

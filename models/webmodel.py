@@ -67,7 +67,10 @@ new images::
      "blobs": [[offset, length], ...]}
 
 The blobs are the new states' PNGs (``models.archive.png_bytes``, as a model file stores
-them). The mesh, texture, regions' names, rectangles and sizes stay as they were.
+them). The mesh, regions' names, rectangles and sizes stay as they were. A texture patch
+(``models.patch``) adds ``"texture": [{"rect": [row, col, h, w], "image": blob}]``: the
+texels of the smallest rectangle holding every changed texel, as one PNG of the new texture
+there; the regions whose layers it moved are listed as changed, their states as new images.
 """
 
 from __future__ import annotations
@@ -83,6 +86,7 @@ from facewire.models.fields import ModelError
 from facewire.models.framing import FOV_DEG, head_field
 from facewire.models.gltf import BinBuilder, embed_base_colour, glb_bytes, mesh_document
 from facewire.models.modelfile import PersonModel, Region, png_members
+from facewire.models.patch import changed_rect
 from facewire.models.rig import N_RESIDUALS, Rig, lips_apart
 
 FORMAT = 1
@@ -156,7 +160,7 @@ def update_bin(previous: PersonModel, version: PersonModel) -> bytes:
 
     Args:
         previous: version n - 1 (``models.update.ModelVersions.model``).
-        version: version n: the same mesh, texture and region layout, other states.
+        version: version n: the same mesh and region layout, other states or texels.
 
     Raises:
         ModelError: ``version`` is not a version of ``previous``'s model (names the field).
@@ -184,12 +188,18 @@ def update_bin(previous: PersonModel, version: PersonModel) -> bytes:
             continue
         regions.append({"index": i, "name": new.name, "opacity": list(new.opacity),
                         "rest": new.rest, "states": states})
+    header: dict[str, Any] = {"format": FORMAT, "regions": regions}
+    rect = changed_rect(previous.texture, version.texture)
+    if rect is not None:
+        rows, cols = rect
+        header["texture"] = [{"rect": [rows.start, cols.start, rows.stop - rows.start,
+                                       cols.stop - cols.start], "image": len(blobs)}]
+        blobs.append(png_bytes(np.ascontiguousarray(version.texture[rows, cols])))
     offsets, size = [], 0
     for blob in blobs:
         offsets.append([size, len(blob)])
         size += -(-len(blob) // 8) * 8
-    return _container(UPDATE_MAGIC, {"format": FORMAT, "regions": regions, "blobs": offsets},
-                      {}, blobs)
+    return _container(UPDATE_MAGIC, {**header, "blobs": offsets}, {}, blobs)
 
 
 def _states(old: Region, new: Region, blobs: list[bytes]) -> list[dict[str, Any]]:

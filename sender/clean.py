@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from facewire.models.mesh import Mesh
-from facewire.models.regions import texel_rect
+from facewire.models.texelgrid import texel_rect
 
 BLUR_BOX_PX = 128
 SHARP_RATIO = 0.6  # a frame is sharp when its sharpness is at least this times the median

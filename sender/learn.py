@@ -28,11 +28,15 @@ a pose was fitted and the face was not just lost or re-acquired (flags), the hea
 (``sender.clean.ring_occluded`` against the base texture). A frame under the bound ends the
 run. ``HOLD_FRAMES`` consecutive novel frames with ``CAPTURE_FRAMES`` clean ones among them
 (a blink lasts 3-6 frames at 30 Hz: it never gets there) make a capture, unless the region
-learned within ``COOLDOWN_S``, or the session's last update is too recent for the traffic's
-budget: after an update of B bytes (``models.update.encode_update``) the next comes no
-sooner than 8 B / ``UPDATE_BPS`` seconds (8 kbit/s, the budget over any minute; nothing is
-held meanwhile), so the learning never makes updates faster, on average, than the wire may
-carry them (the transport paces each one within the budget over any second).
+learned within ``COOLDOWN_S``, or the traffic's budget is spent (nothing is held
+meanwhile): the learning keeps the transport's own token bucket (``protocol.shaper.BUCKET``:
+700 B/s, 17000 B deep), each update spending its bytes times ``WIRE_FACTOR`` (the chunk
+messages' fields), and issues an update (a state or a texture patch, ``sender.heal``) only
+while the bucket is not in debt: a first burst as deep as the wire's, then no faster, on
+average, than the wire may carry them (the transport paces each chunk within the budget over
+any second). While the healing's last look found tiles to patch, or it has not looked
+since the model last changed (``Healer.wanting``), no capture is made: the texture heals
+first (a hand baked into it is what the viewer sees).
 
 Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
 images, one per area of the region, read the way enrollment reads them (``sender.texels``:
@@ -97,8 +101,8 @@ region's texels on the mesh once per session (the mouth's area and the ring arou
 ``sender.texels.area_surface`` and the surface points, some 70 ms each); the rest (reading
 five frames' layers and rings, the medians, the update's bytes) some 70 ms. Over those 216
 frames that is 0.9-1.1 ms a frame on average, over the 0.5 ms target; the traffic budget
-spaces updates at least 8 s apart (8 kB), so over a minute with one or two captures it is
-0.3-0.4 ms. ``facewire bench speed`` reports ``learn_ms`` (median) and
+spaces 8-kB updates some 15 s apart once its first 17 kB are spent, so over a minute with
+one or two captures it is 0.3-0.4 ms. ``facewire bench speed`` reports ``learn_ms`` (median) and
 ``learn_ms_per_frame`` (mean, captures included).
 """
 
@@ -115,16 +119,19 @@ import numpy as np
 from facewire.models.fields import TEMPLATE_SIZE
 from facewire.models.geometry import Intrinsics
 from facewire.models.modelfile import PersonModel
+from facewire.models.patch import TexturePatch, encode_patch
 from facewire.models.regions import REGION_NAMES, spec
 from facewire.models.rig import Rig
 from facewire.models.update import (
     MAX_LEARNED_LAYERS,
     ModelUpdate,
+    Update,
     apply_update,
     encode_update,
     references,
 )
 from facewire.protocol.packet import Flag
+from facewire.protocol.shaper import BUCKET
 from facewire.sender.classify import FrameClassification, RegionClassifiers
 from facewire.sender.clean import (
     REGION_PARTS,
@@ -134,6 +141,7 @@ from facewire.sender.clean import (
     sharpness,
 )
 from facewire.sender.cues import region_cues
+from facewire.sender.heal import LOOK_EVERY, Healer
 from facewire.sender.texels import AreaTexels, area_surface, state_layers, welded_normals
 
 NOVEL_FACTOR = 2.5  # phi over this many times the region's template spacing is unseen ...
@@ -145,7 +153,7 @@ SHARPNESS_EVERY = 15  # frames between the session's sharpness reference samples
 CUE_EVERY = 5  # frames between the states' cue statistics samples
 SHARPNESS_WINDOW = 40  # reference samples kept
 COOLDOWN_S = 3.0  # a region learns again at the earliest this long after its last update
-UPDATE_BPS = 8000.0  # the update traffic's budget over a minute, bit/s
+WIRE_FACTOR = 1.3  # an update's bytes on the wire per byte (290 B of fields per 1 KiB chunk)
 CHANGE_LEVELS = 12.0  # grey levels a texel must change by (smoothed) to be part of a state ...
 CHANGE_SIGMA = 1.5  # ... the difference's Gaussian, texels ...
 CHANGE_GROW = 2  # ... and the changed area grown by this many texels
@@ -195,7 +203,8 @@ class Learner:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rig: Rig,
-                 classifiers: RegionClassifiers, background: bool = False) -> None:
+                 classifiers: RegionClassifiers, background: bool = False,
+                 heal: bool = True) -> None:
         if not can_learn(model):
             raise ValueError("model: learning needs the model's file identity (sha256) and "
                              "the regions of models.regions.REGIONS, in that order")
@@ -203,7 +212,7 @@ class Learner:
         self.camera = camera
         self.rig = rig
         self.serial = 0
-        self.updates: list[ModelUpdate] = []
+        self.updates: list[Update] = []
         self.update_bytes: dict[int, bytes] = {}  # serial -> the update's bytes
         self.base_sha256 = model.sha256
         self.names = REGION_NAMES
@@ -223,7 +232,7 @@ class Learner:
                 self._cue_sum[r][round(region.rest)] += neutral[r]
                 self._cue_count[r][round(region.rest)] += 1
         self._learned_at = np.full(count, -np.inf)
-        self._quiet_until = -np.inf  # no update before this time (the traffic budget)
+        self._budget = _Budget()
         self._frames = 0
         self._sharp: deque[float] = deque(maxlen=SHARPNESS_WINDOW)
         self._normals: np.ndarray | None = None
@@ -231,12 +240,14 @@ class Learner:
         self._rings: dict[str, tuple[AreaTexels, np.ndarray]] = {}
         self._worker = ThreadPoolExecutor(1, "learn") if background else None
         self._pending: tuple[int, Future[_Fused | None]] | None = None
+        self.healer = Healer(model, camera, rig) if heal else None
+        self._healing: Future[TexturePatch | None] | None = None
         # the worker's search for every region's texels, at session start (None: inline)
         self.prepared = None if self._worker is None else self._worker.submit(self._prepare)
 
     def observe(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
                 translation: np.ndarray, residuals: np.ndarray, samples: np.ndarray,
-                result: FrameClassification, flags: Flag, time_s: float) -> ModelUpdate | None:
+                result: FrameClassification, flags: Flag, time_s: float) -> Update | None:
         """One classified frame: notice, hold, and when a capture is due, capture.
 
         Args:
@@ -250,17 +261,21 @@ class Learner:
             time_s: the frame's time, s.
 
         Returns:
-            The update issued on this frame (already applied to ``model``), or None. In the
-            background, the capture a frame makes due is issued by a later frame.
+            The update issued on this frame (already applied to ``model``): a region's new
+            state or a texture patch (``sender.heal``), or None. In the background, the
+            capture a frame makes due is issued by a later frame.
         """
         self._frames += 1
-        issued = None
+        issued: Update | None = None
         if self._pending is not None and self._pending[1].done():
             r, fused = self._pending[0], self._pending[1].result()
             self._pending = None
             issued = None if fused is None else self._issue(r, fused, time_s)
         if self._frames % SHARPNESS_EVERY == 1:
             self._sharp.append(sharpness(image, points))
+        if self.healer is not None and issued is None:
+            issued = self._heal(image, points, rotation, translation, residuals, result,
+                                flags, time_s)
         novel = result.score > self.bound
         state = np.rint(result.q).astype(np.int64)
         for i in np.flatnonzero(~novel):
@@ -276,7 +291,7 @@ class Learner:
                 self._cue_sum[i][state[i]] += cues[i]
                 self._cue_count[i][state[i]] += 1
         if issued is not None or self._pending is not None or not novel.any() \
-                or time_s < self._quiet_until:  # learning, nothing new, or no budget yet
+                or not self._budget.allows(time_s):  # learning, nothing new, or no budget
             return issued
         assert cues is not None
         clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
@@ -293,8 +308,8 @@ class Learner:
         due = [int(i) for i in np.flatnonzero(novel) if self._run[i] >= HOLD_FRAMES
                and len(self._held[i]) >= CAPTURE_FRAMES
                and time_s - self._learned_at[i] >= COOLDOWN_S]
-        if not due:
-            return None
+        if not due or (self.healer is not None and self.healer.wanting):
+            return None  # nothing due, or the texture heals first
         r = max(due, key=lambda i: result.score[i] / self.bound[i])  # the most unlike
         if self.prepared is not None and not self.prepared.done():
             return None  # the worker is still finding the texels on the mesh
@@ -304,6 +319,42 @@ class Learner:
             return None
         fused = self._capture(r, held)
         return None if fused is None else self._issue(r, fused, time_s)
+
+    def _heal(self, image: np.ndarray, points: np.ndarray, rotation: np.ndarray,
+              translation: np.ndarray, residuals: np.ndarray, result: FrameClassification,
+              flags: Flag, time_s: float) -> TexturePatch | None:
+        """The healing's part of a frame (``sender.heal``): a clean frame read now and
+        then, a patch looked for after a read while the budget allows one (on the worker
+        in the background) and issued."""
+        healer = self.healer
+        assert healer is not None
+        clean = not (flags & _BAD_FLAGS) and _yaw_deg(rotation) <= MAX_YAW_DEG
+        if healer.due(clean) and (not self._sharp or sharpness(image, points)
+                                  >= SHARP_RATIO * float(np.median(self._sharp))):
+            healer.read(image, points, rotation, translation, residuals, result.q)
+        made = None
+        if self._healing is not None:
+            if not self._healing.done():
+                return None
+            made, self._healing = self._healing.result(), None
+        elif healer.fresh >= LOOK_EVERY and self._budget.allows(time_s) \
+                and self._pending is None:
+            healer.fresh = 0
+            reads = healer.held()
+            if self._worker is not None:
+                self._healing = self._worker.submit(healer.patch, reads, self.base_sha256, 1)
+                return None
+            made = healer.patch(reads, self.base_sha256, 1)
+        if made is None or not self._budget.allows(time_s):
+            return None
+        patch = dataclasses.replace(made, serial=self.serial + 1)
+        data = self.update_bytes[patch.serial] = encode_patch(patch)
+        self._budget.spend(time_s, len(data))
+        self.model = apply_update(self.model, patch)
+        self.serial = patch.serial
+        self.updates.append(patch)
+        healer.take(self.model)
+        return patch
 
     def _capture(self, r: int, held: list[_Held]) -> _Fused | None:
         """Region r's new state from the last ``CAPTURE_FRAMES`` of its held frames whose
@@ -407,13 +458,39 @@ class Learner:
             for layer, reference in zip(layers, references(self.model, update), strict=True)))
         data = self.update_bytes[update.serial] = encode_update(update, self.model)
         self._learned_at[r] = time_s
-        self._quiet_until = time_s + 8 * len(data) / UPDATE_BPS
+        self._budget.spend(time_s, len(data))
         self.model = apply_update(self.model, update)
         self.serial = update.serial
         self.updates.append(update)
+        if self.healer is not None:
+            self.healer.take(self.model)
         for stats, value in ((self._cue_sum, cue), (self._cue_count, 1), (self._used, 0)):
             stats[r] = np.insert(stats[r][kept], position, value)
         return update
+
+
+class _Budget:
+    """The update traffic's token bucket as the learning keeps it (module docstring)."""
+
+    def __init__(self) -> None:
+        self.rate, self.depth = BUCKET
+        self.tokens = self.depth
+        self.time: float | None = None
+
+    def _refill(self, time_s: float) -> None:
+        if self.time is not None:
+            self.tokens = min(self.depth, self.tokens + self.rate * max(time_s - self.time, 0))
+        self.time = time_s
+
+    def allows(self, time_s: float) -> bool:
+        """Whether an update may be issued at ``time_s`` (the bucket is not in debt)."""
+        self._refill(time_s)
+        return self.tokens > 0
+
+    def spend(self, time_s: float, size: int) -> None:
+        """An update of ``size`` bytes issued at ``time_s``."""
+        self._refill(time_s)
+        self.tokens -= WIRE_FACTOR * size
 
 
 def _block(seen: np.ndarray, x: np.ndarray, y: np.ndarray) -> int:

@@ -80,8 +80,9 @@ from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.models.landmarks import N_LANDMARKS
 from facewire.models.modelfile import PersonModel, load_model, model_summary
+from facewire.models.patch import TexturePatch
 from facewire.models.rig import Rig
-from facewire.models.update import ModelUpdate
+from facewire.models.update import Update
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.log import LogWriter
 from facewire.protocol.opus import DEFAULT_BITRATE, FRAME_S, Encoder
@@ -157,7 +158,7 @@ class SenderOutput:
     identified: bool = False
     clamped: int = 0
     grazing: int = 0
-    update: ModelUpdate | None = None
+    update: Update | None = None
     update_bytes: bytes | None = None
 
 
@@ -174,6 +175,7 @@ class SenderPipeline:
             loaded from its file, with the regions of ``models.regions.REGIONS``, can).
         background: capture learned states on a worker thread (a live stream: the frames
             go on meanwhile), not on the frame that makes them due.
+        heal: while learning, heal the base texture too (``sender.heal``: texture patches).
 
     Attributes:
         model: the model as learned so far (version ``serial``).
@@ -181,7 +183,7 @@ class SenderPipeline:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ,
-                 learn: bool = True, background: bool = False) -> None:
+                 learn: bool = True, background: bool = False, heal: bool = True) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
@@ -208,13 +210,13 @@ class SenderPipeline:
             else None
         self._landmarks = landmarks
         self.eye_gate = EyeGate(regions, landmarks)
-        self.learner = Learner(model, camera, self.rig, self.classifiers, background) \
+        self.learner = Learner(model, camera, self.rig, self.classifiers, background, heal) \
             if learn and self.classifiers is not None and can_learn(model) else None
         self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()
 
     @property
-    def updates(self) -> list[ModelUpdate]:
+    def updates(self) -> list[Update]:
         """The model updates this session issued, in order (the transport sends them, the log
         keeps them); empty when not learning."""
         return [] if self.learner is None else self.learner.updates
@@ -320,11 +322,13 @@ class SenderPipeline:
             update_bytes=None if update is None or self.learner is None
             else self.learner.update_bytes[update.serial])
 
-    def _learned(self, update: ModelUpdate) -> None:
+    def _learned(self, update: Update) -> None:
         """Take the learner's new model: its region's templates into the classifier, its
         rest state into the eye gate, from the next frame on."""
         assert self.learner is not None and self.classifiers is not None
         self.model = self.learner.model
+        if isinstance(update, TexturePatch):  # the texture only: nothing to classify anew
+            return
         regions = self.model.regions[:N_REGIONS]
         changed = [r.name for r in regions].index(update.region)
         self.classifiers = RegionClassifiers([
@@ -438,8 +442,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
                  out_log: str | os.PathLike[str], frames: slice | None = None,
                  focal: float | None = None, calib: str | os.PathLike[str] | None = None,
                  progress: Progress = no_progress, learn: bool = True,
-                 warn: Callable[[str], None] | None = None, audio: bool = True,
-                 voice_bitrate: int = DEFAULT_BITRATE) -> dict[str, Any]:
+                 warn: Callable[[str], None] | None = None, heal: bool = True,
+                 audio: bool = True, voice_bitrate: int = DEFAULT_BITRATE) -> dict[str, Any]:
     """Run the sender pipeline over a video (or folder of images) into a packet log, with
     each model update it learns after the packet of the frame that learned it, and the
     video's sound as voice records (``sender.voice.FileVoice``: frame ``j`` holds the sound
@@ -458,6 +462,7 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
         warn: called once, before encoding, with ``identity_warning``'s line when the model
             cannot hold its person, and after encoding with a line when the video's sound
             track is missing or cannot be decoded.
+        heal: while learning, heal the base texture too (``sender.heal``).
         audio: keep the video's sound in the log (``--no-audio``: not).
         voice_bitrate: Opus's rate, bit/s.
 
@@ -480,7 +485,8 @@ def encode_video(model_path: str | os.PathLike[str], source: str | os.PathLike[s
     src = open_source(str(source), frames=slice(0, None) if frames is None else frames,
                       pace=False)
     camera = sender_camera(src.width, src.height, focal, calib)
-    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn)
+    pipeline = SenderPipeline(model, camera, rate_hz=stream_rate(src.rate_hz), learn=learn,
+                              heal=heal)
     identity = identity_warning(model, model_path)
     if identity is not None and warn is not None:  # once the source is open
         warn(identity)

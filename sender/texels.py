@@ -44,8 +44,9 @@ import numpy as np
 
 from facewire.models.geometry import Intrinsics, vertex_normals
 from facewire.models.mesh import Mesh
-from facewire.models.regions import ramp_mask, texel_rect
+from facewire.models.regions import ramp_mask
 from facewire.models.rig import Rig
+from facewire.models.texelgrid import texel_rect
 from facewire.sender.appearance import SurfacePoints, bilinear, project
 
 SHADED = ("forehead", "brow_furrow")  # skin regions whose layers take the base's shading

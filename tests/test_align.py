@@ -14,7 +14,8 @@ import pytest
 
 from facewire.models.infra.raster import Camera
 from facewire.models.modelfile import PersonModel, load_model
-from facewire.models.regions import RAMP_TEXELS, ramp_mask, texel_rect
+from facewire.models.regions import RAMP_TEXELS, ramp_mask
+from facewire.models.texelgrid import texel_rect
 from facewire.sender.enroll.align import MAX_SHIFT, MIN_GAIN, SCALE, register_views
 from facewire.sender.enroll.glare import glare_texels
 from facewire.sender.enroll.registration import MIN_NCC, local_ncc, weighted_median

@@ -81,18 +81,23 @@ class _Process:
 
 
 class _Viewer(threading.Thread):
-    """A normal page's WebSocket, counting the packets it gets."""
+    """A normal page's WebSocket, counting the packets it gets and keeping the newest model
+    version announced (``update`` messages)."""
 
     def __init__(self, url: str) -> None:
         super().__init__(daemon=True)
         self.ws = connect(url.replace("http://", "ws://"))
         self.packets = 0
+        self.serial = 0
         self.start()
 
     def run(self) -> None:
         with contextlib.suppress(ConnectionClosed):
             for message in self.ws:
                 self.packets += isinstance(message, bytes)
+                if isinstance(message, str) and (text := json.loads(message))["type"] == \
+                        "update":
+                    self.serial = max(self.serial, text["serial"])
 
 
 class _Stream(threading.Thread):
@@ -132,6 +137,18 @@ def _judge(cost: Cost, err: Path, name: str) -> None:
     assert tracebacks(err) == 0, err.read_text(errors="replace")[-3000:]
 
 
+def _holds_updates(viewer: _Viewer, person_model: Path, shared_data: Path) -> None:
+    """Wait until the viewer's gateway has announced every update of the sender's log: their
+    versions are the session's memory, not an attack's (the log's healing patches take some
+    50 MB on their way in, which a window that met them counted)."""
+    newest = max((u.serial for u in encoded_log(person_model, shared_data / "video" /
+                                                "lp_d0.mp4").updates), default=0)
+    deadline = time.monotonic() + 60
+    while viewer.serial < newest:
+        assert time.monotonic() < deadline, f"updates: {viewer.serial} of {newest} announced"
+        time.sleep(0.1)
+
+
 @pytest.fixture(scope="module")
 def sender(person_model: Path, shared_data: Path) -> Iterator[LogSender]:
     log = encoded_log(person_model, shared_data / "video" / "lp_d0.mp4")
@@ -142,9 +159,10 @@ def sender(person_model: Path, shared_data: Path) -> Iterator[LogSender]:
 
 
 @pytest.fixture(scope="module")
-def gateway(sender: LogSender, tmp_path_factory: pytest.TempPathFactory
-            ) -> Iterator[tuple[_Process, str, _Viewer]]:
-    """``facewire web`` with its token in the environment, and a viewer getting packets."""
+def gateway(sender: LogSender, person_model: Path, shared_data: Path,
+            tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[_Process, str, _Viewer]]:
+    """``facewire web`` with its token in the environment, and a viewer getting packets,
+    measured from once it holds the session's model updates (``_holds_updates``)."""
     folder = tmp_path_factory.mktemp("web")
     port = _port()
     process = _Process(["web", "--connect", sender.endpoint, "--http", f"127.0.0.1:{port}",
@@ -154,6 +172,7 @@ def gateway(sender: LogSender, tmp_path_factory: pytest.TempPathFactory
     wait_serving(url, process.popen, process.err)
     viewer = _Viewer(url.replace("/?", "/stream?"))
     _keeps_coming(lambda: viewer.packets, "packets")
+    _holds_updates(viewer, person_model, shared_data)
     settle(process.pid)
     yield process, url, viewer
     summary = json.loads(process.stop().strip().splitlines()[-1])
@@ -232,7 +251,7 @@ def test_web_slowloris_path_traversal_token_and_origin_still_hold(
 
 
 def test_web_at_the_open_files_limit_answers_the_page_and_logs_one_line(
-        sender: LogSender, tmp_path: Path) -> None:
+        sender: LogSender, person_model: Path, shared_data: Path, tmp_path: Path) -> None:
     """Under ``ulimit -n 128``, with --allow-remote and --host: 200 idle connections, then
     DNS rebinding and duplicate headers."""
     port = _port()
@@ -245,6 +264,7 @@ def test_web_at_the_open_files_limit_answers_the_page_and_logs_one_line(
         wait_serving(url, process.popen, process.err)
         viewer = _Viewer(url.replace("/?", "/stream?"))
         _keeps_coming(lambda: viewer.packets, "packets")
+        _holds_updates(viewer, person_model, shared_data)
         settle(process.pid)
         cost = measure(process.pid, idle(port, 200, 3.0), lambda: (get(url)[0] == 200
                                                                    or pytest.fail("no page")))

@@ -40,7 +40,8 @@ def _run(model_path: Path, video: Path, frames: slice, learn: bool = True,
     its packets' serials; each frame's learning time appended to ``costs``."""
     info = video_info(video)
     pipeline = SenderPipeline(load_model(model_path), sender_camera(info.width, info.height),
-                              rate_hz=info.rate_hz, learn=learn, background=background)
+                              rate_hz=info.rate_hz, learn=learn, background=background,
+                              heal=False)  # the states' learning (the texture's: test_heal)
     if pipeline.learner is not None and pipeline.learner.prepared is not None:
         pipeline.learner.prepared.result()  # a session whose start is over (seconds before)
     issued, qs, serials = [], [], []
@@ -121,7 +122,7 @@ def test_no_learn_issues_nothing(closed_mouth: Path, shared_data: Path, tmp_path
 def test_encode_logs_each_update_after_the_packet_of_its_frame(
         closed_mouth: Path, shared_data: Path, tmp_path: Path) -> None:
     video = shared_data / "video" / "lp_d0.mp4"
-    summary = encode_video(closed_mouth, video, tmp_path / "on.fwlog", slice(0, 40))
+    summary = encode_video(closed_mouth, video, tmp_path / "on.fwlog", slice(0, 40), heal=False)
     assert summary["updates"] == 1 and summary["update_regions"] == ["mouth"]
     log = read_log(tmp_path / "on.fwlog")
     assert [u.serial for u in log.updates] == [1] and not log.missing_serials

@@ -32,8 +32,8 @@ from facewire.models.regions import (
     ramp_mask,
     spec,
     template_samples,
-    texel_rect,
 )
+from facewire.models.texelgrid import texel_rect
 
 MODEL_TEXTURE = (1024, 2048)  # (H, W) the model's texture
 S = TEMPLATE_SIZE * SUPERSAMPLE

@@ -20,8 +20,9 @@ from facewire.models.infra.raster import Camera, MeshRenderer, RenderError, orbi
 from facewire.models.manifest import ModelInfo
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region
-from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask, texel_rect
+from facewire.models.regions import RAMP_TEXELS, REGIONS, place, ramp_mask
 from facewire.models.shading import LOG_GAIN_MAX, LOG_GAIN_MIN, SCALE_MM, log_gain
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.control import Camera as HelloCamera
 from facewire.receiver.render import EACH_AREA, SHADERS, FaceRenderer, fragment_source
 from facewire.receiver.views import head_centre, sender_view, virtual_view

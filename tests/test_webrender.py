@@ -19,6 +19,7 @@ from conftest import zip_members
 
 from facewire.models.gltf import read_glb
 from facewire.models.modelfile import ModelError, PersonModel, load_model
+from facewire.models.patch import TexturePatch, Tile, apply_patch
 from facewire.models.rig import Rig
 from facewire.models.update import ModelUpdate, apply_update
 from facewire.models.webmodel import model_glb, rig_bin, update_bin
@@ -168,7 +169,8 @@ def test_the_update_file_makes_the_next_version(model: PersonModel) -> None:
     assert len(header["blobs"]) == len(new.parts())
     assert _container(update_bin(version, version), b"FWUP")[0]["regions"] == []
     with pytest.raises(ModelError, match="not a version of the previous model"):
-        update_bin(model, dataclasses.replace(version, texture=version.texture[:-1]))
+        update_bin(model, dataclasses.replace(version, texture=version.texture[:-1],
+                                              confidence=None))
 
 
 # ---- the page's modules in real headless Chromium (WebGL2 through SwiftShader) ------------
@@ -256,6 +258,7 @@ def page(model: PersonModel, glb: bytes, tmp_path_factory: pytest.TempPathFactor
     chromium = find_chromium()
     rig = rig_bin(model)
     update = update_bin(model, learned_version(model))
+    patch = update_bin(model, patched_version(model))
     binary = "application/octet-stream"
     bad_rig = bytearray(rig)
     header = _container(rig, b"FWRG")[0]
@@ -266,6 +269,7 @@ def page(model: PersonModel, glb: bytes, tmp_path_factory: pytest.TempPathFactor
     bad_update[body:body + 8] = b"notapng!"  # the new state's first image
     extra = {"/test.html": ("text/html", TEST_PAGE), "/m.glb": (binary, glb),
              "/m.rig": (binary, rig), "/m/1.upd": (binary, update),
+             "/m/p1.upd": (binary, patch),
              "/cut.glb": (binary, glb[:len(glb) // 2]), "/nan.rig": (binary, bytes(bad_rig)),
              "/bad.upd": (binary, bytes(bad_update))}
     folder = tmp_path_factory.mktemp("chromium")
@@ -395,6 +399,43 @@ def test_an_update_renders_like_pythons_version(page, model: PersonModel, states
     assert min(ssim) >= 0.97
     assert any(shows)
     assert all(b < s - 0.005 for b, s, show in zip(before, ssim, shows, strict=True) if show)
+
+
+def patched_version(model: PersonModel) -> PersonModel:
+    """Version 1 of ``model`` made by a texture patch: the cheek beside the nose, and the
+    mouth's side, 80 levels darker (``models.patch``)."""
+    h, w = model.texture.shape[:2]
+    uv = model.mesh.uv[model.mesh.landmarks].astype(np.float64)
+    u, v = uv[31] + 0.35 * (uv[3] - uv[31])
+    dark = np.full((16, 16, 3), 108, np.uint8)
+    tile = Tile(int((1 - v) * h) - 64, int(u * w) - 64, dark)
+    return apply_patch(model, TexturePatch(model.sha256, 1, 8, (tile,)))
+
+
+def test_a_texture_patch_renders_like_pythons_version(page, model: PersonModel, states
+                                                      ) -> None:
+    from facewire.receiver.scene import StateRenderer
+
+    browser, session = page
+    hello, played = states
+    version = patched_version(model)
+    assert "texture" in _container(update_bin(model, version), b"FWUP")[0]
+    assert _evaluate(browser, session, """(async () => {
+        window.p1 = await t.model.loadUpdate(m, {type: "update", serial: 1, url: "/m/p1.upd"});
+        return [p1.serial, p1.texture !== m.texture]; })()""") == [1, True]
+    shown = [dataclasses.replace(s, serial=1) for s in played[::8]]
+    ours = _page_frames(browser, session, hello, shown, "p1")
+    with StateRenderer(version, WIDTH, HEIGHT, hello.camera) as python:
+        theirs = [python.render(s) for s in shown]
+        rig = python.rig
+    with StateRenderer(model, WIDTH, HEIGHT, hello.camera) as before:
+        old = [before.render(s) for s in shown]
+    ssim = [_face_ssim(rig, hello, s, a, b) for s, a, b in zip(shown, ours, theirs, strict=True)]
+    unlike = [_face_ssim(rig, hello, s, a, b) for s, a, b in zip(shown, ours, old, strict=True)]
+    print(f"patch: face SSIM page vs Python's patched version: {np.round(ssim, 4)}; vs the "
+          f"file's: {np.round(unlike, 4)}")
+    assert min(ssim) >= 0.97
+    assert np.mean(unlike) < np.mean(ssim) - 0.005
 
 
 def test_corrupt_files_are_refused_and_the_model_kept(page) -> None:

@@ -334,6 +334,7 @@ export async function applyUpdate(model, buffer, serial, where = "update") {
       fail(where, `blobs[${i}]: outside the file`);
     return new Uint8Array(buffer, body + b[0], b[1]);
   });
+  const texture = await patchedTexture(model.texture, header.texture, blobs, where);
   const regions = model.regions.slice();
   for (const [c, change] of header.regions.entries()) {
     const at = `${where}: regions[${c}]`;
@@ -368,10 +369,35 @@ export async function applyUpdate(model, buffer, serial, where = "update") {
     }
     const areas = old.areas.map((area, n) => ({ uvRect: area.uvRect, h: area.h, w: area.w,
                                                 layers: layers[n], mask: area.mask }));
-    regions[change.index] = makeRegion(old.name, change.opacity, change.rest, areas,
-                                       model.texture);
+    regions[change.index] = makeRegion(old.name, change.opacity, change.rest, areas, texture);
   }
-  return { ...model, serial, regions };
+  return { ...model, serial, regions, texture };
+}
+
+// The texture an update's optional `texture` entry makes of `texture` (a patch,
+// models/patch.py): [{rect: [row, col, h, w], image: blob}], each blob the PNG of the
+// rectangle's new texels; the texture itself when there is no entry.
+async function patchedTexture(texture, tiles, blobs, where) {
+  if (tiles === undefined) return texture;
+  if (!Array.isArray(tiles) || tiles.length < 1 || tiles.length > 64)
+    fail(where, "texture: expected 1 to 64 tiles");
+  const W = texture.width, H = texture.height, rgba = new Uint8ClampedArray(texture.rgba);
+  for (const [t, tile] of tiles.entries()) {
+    const at = `${where}: texture[${t}]`;
+    const rect = tile?.rect;
+    if (!Array.isArray(rect) || rect.length !== 4 || !isCount(rect[0], 0, H - 1) ||
+        !isCount(rect[1], 0, W - 1) || !isCount(rect[2], 1, H - rect[0]) ||
+        !isCount(rect[3], 1, W - rect[1]))
+      fail(at, "rect: expected [row, col, h, w] inside the texture");
+    if (!isCount(tile.image, 0, blobs.length - 1)) fail(at, `image: no blob ${tile.image}`);
+    const image = await decodePng(blobs[tile.image], `${at}.image`);
+    const [row, col, h, w] = rect;
+    if (image.width !== w || image.height !== h)
+      fail(at, `image: ${image.width} x ${image.height}, the rect is ${w} x ${h}`);
+    for (let y = 0; y < h; y++)
+      rgba.set(image.rgba.subarray(4 * y * w, 4 * (y + 1) * w), 4 * ((row + y) * W + col));
+  }
+  return { width: W, height: H, rgba };
 }
 
 // ---- regions: volumes and draw order -----------------------------------------------------

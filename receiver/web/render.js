@@ -194,8 +194,13 @@ export class FaceRenderer {
   // uploaded again; when the draw order changed too, the groups and programs are made anew.
   setModel(model) {
     const gl = this.gl, old = this.model;
-    if (old && (model.positions !== old.positions || model.texture !== old.texture))
+    if (old && (model.positions !== old.positions || model.texture.width !== old.texture.width ||
+                model.texture.height !== old.texture.height))
       throw new Error("setModel: a version of another model; make a new FaceRenderer");
+    if (old && model.texture !== old.texture) { // a texture patch (models/patch.py)
+      gl.deleteTexture(this._texture);
+      this._texture = this._uploadTexture(model.texture);
+    }
     const areas = regionAreas(model);
     const layout = areas.map((a) => a.region).join(",");
     if (old && layout === this._layout) {

@@ -125,9 +125,10 @@ from facewire.models.landmarks import outer_eye_distance
 from facewire.models.manifest import ModelInfo, RegionFrames, SelfCheck, SourceRange
 from facewire.models.mesh import Mesh
 from facewire.models.modelfile import Area, PersonModel, Region, model_summary, save_model
-from facewire.models.regions import texel_rect
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.sender.clean import sharpness
+from facewire.sender.enroll.confidence import texture_confidence
 from facewire.sender.enroll.coverage import MEASURES, Coverage, measure_coverage
 from facewire.sender.enroll.evidence import (
     clean_views,
@@ -374,7 +375,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
         sharp = [k for k in calm if k in sharp] or calm
     unoccluded = [k for k in sharp if not occlusions[k].occluded]
     fit = _fit(points, camera, where, unoccluded or sharp)
-    fit, chosen, images, texture, evidence = _base_texture(
+    fit, chosen, images, texture, evidence, confidence = _base_texture(
         read, indices, points, blur, fit, camera, where, photo,
         {k for k, o in enumerate(occlusions) if o.occluded})
     occluders = _occluders_report(indices, occlusions)
@@ -387,7 +388,7 @@ def _build(source: str, read: Callable[[slice], Iterable[VideoFrame]], width: in
     if guide is not None:  # the recording is temporary: name what was recorded
         source, made_from = guide.origin, guide.origin_range
     model = PersonModel(
-        mesh=fit.mesh, texture=texture,
+        mesh=fit.mesh, texture=texture, confidence=confidence,
         camera=camera, descriptors=who.descriptors if photo and who is not None  # one image
         else _descriptors(read, indices, points, who),
         info=ModelInfo(name=name, source_video=source, frames_used=used,
@@ -534,12 +535,12 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
                   points: list[np.ndarray | None], blur: list[float], fit: Fit,
                   camera: Intrinsics, where: str, photo: bool, handed: set[int]
                   ) -> tuple[Fit, tuple[int, ...], dict[int, np.ndarray], np.ndarray,
-                             dict[str, Any]]:
+                             dict[str, Any], np.ndarray]:
     """Step 3: the fit (fitted again when the neutral frame was occluded), the views fused
     (positions in ``indices``; none of the ``handed`` ones, a hand on the face, while
     others are candidates),
-    the decoded images by frame index, the filled base texture and the evidence the build
-    reports."""
+    the decoded images by frame index, the filled base texture, the evidence the build
+    reports and the texture's confidence map (``sender.enroll.confidence``)."""
     surface = uv_surface(fit.mesh, TEXTURE_SIZE)
     scores = frame_scores(points, fit, camera, blur)
     scores = {f: c for f, c in scores.items() if f not in handed} or scores
@@ -571,7 +572,10 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
                 "neutral_occluded": first_neutral,
                 "doubled": {part: round(fusion.doubled_fraction(mask), 3)
                             for part, mask in part_masks(fit.mesh, surface.size).items()}}
-    return fit, chosen, images, texture, evidence
+    confidence = texture_confidence(fusion, np.array([blur[k] for k in chosen]),
+                                    np.array([k in handed for k in chosen]), occluded,
+                                    part_masks(fit.mesh, surface.size))
+    return fit, chosen, images, texture, evidence, confidence
 
 
 def photo_face_texels(surface: UVSurface, camera: ViewCamera, points: np.ndarray,

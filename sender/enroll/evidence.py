@@ -102,7 +102,7 @@ import numpy as np
 
 from facewire.models.geometry import Intrinsics
 from facewire.models.mesh import Mesh
-from facewire.models.regions import texel_rect
+from facewire.models.texelgrid import texel_rect
 from facewire.sender.clean import PARTS, part_rect
 from facewire.sender.enroll.fit import Fit, frame_costs
 from facewire.sender.enroll.fusion import Fusion

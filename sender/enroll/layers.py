@@ -105,8 +105,9 @@ from facewire.models.landmarks import eye_aspect_ratio
 from facewire.models.manifest import RegionFrames
 from facewire.models.mesh import Mesh, Tag
 from facewire.models.modelfile import Area, PersonModel, Region
-from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask, texel_rect
+from facewire.models.regions import REGION_NAMES, REGIONS, RegionSpec, place, ramp_mask
 from facewire.models.rig import Rig
+from facewire.models.texelgrid import texel_rect
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.rate import stream_rate
 from facewire.sender.appearance import AppearanceSampler

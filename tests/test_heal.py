@@ -1,0 +1,60 @@
+"""The texture heals during the session (issue 24, part 2): a blotch the enrollment never saw
+is corrected by patches the sender ships, and the session's patches are what a receiver
+applies.
+
+Real parts: the model lp_d0.mp4 builds (``person_model``), given a dark blotch on the cheek
+that the enrollment believed (confidence 255 there), and the real sender pipeline, learning,
+over lp_d0.mp4's own frames, which show that cheek clean.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from facewire.models.modelfile import load_model, save_model
+from facewire.models.patch import TexturePatch, Tile, apply_patch
+from facewire.models.update import ModelVersions
+from facewire.sender.capture import open_source
+from facewire.sender.pipeline import SenderPipeline, sender_camera
+
+
+def _blotched(person_model: Path, out: Path) -> tuple[Path, tuple[slice, slice]]:
+    """The model with a dark 128 x 128-texel blotch on its right cheek, and its texels."""
+    model = load_model(person_model)
+    h, w = model.texture.shape[:2]
+    uv = model.mesh.uv[model.mesh.landmarks].astype(np.float64)
+    u, v = uv[31] + 0.35 * (uv[3] - uv[31])  # the cheek beside the nose
+    row, col = int((1 - v) * h) - 64, int(u * w) - 64
+    dark = np.full((16, 16, 3), 128 - 20, np.uint8)  # -80 levels (models.patch.DIFF_STEP 4)
+    blotch = apply_patch(model, TexturePatch(model.sha256, 1, 8, (Tile(row, col, dark),)))
+    confidence = np.full((h, w), 255, np.uint8)
+    save_model(dataclasses.replace(blotch, confidence=confidence), out)
+    return out, (slice(row + 16, row + 112), slice(col + 16, col + 112))
+
+
+def test_a_blotch_seen_clean_is_healed_by_patches(person_model: Path, shared_data: Path,
+                                                 tmp_path: Path) -> None:
+    path, inner = _blotched(person_model, tmp_path / "blotched.fwm")
+    model = load_model(path)
+    truth = load_model(person_model).texture[inner].astype(np.float64)
+    src = open_source(str(shared_data / "video" / "lp_d0.mp4"), pace=False)
+    pipeline = SenderPipeline(model, sender_camera(src.width, src.height), learn=True)
+    issued: list[tuple[float, bytes]] = []
+    with src:
+        for frame in src:
+            out = pipeline.process(frame.image, frame.time)
+            if out.update_bytes is not None:
+                issued.append((frame.time, out.update_bytes))
+    patches = [u for u in pipeline.updates if isinstance(u, TexturePatch)]
+    assert patches, "no patch was issued"
+    before = np.abs(model.texture[inner] - truth).mean()
+    after = np.abs(pipeline.model.texture[inner] - truth).mean()
+    assert before > 60 and after < 0.4 * before, (before, after)
+    # a receiver applying the session's bytes holds the sender's texture, texel for texel
+    versions = ModelVersions(model)
+    for serial, (_, data) in enumerate(issued, 1):
+        versions.add(serial, data)
+    assert np.array_equal(versions.model(len(issued)).texture, pipeline.model.texture)
