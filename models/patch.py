@@ -65,7 +65,7 @@ from facewire.protocol.packet import MAX_SERIAL
 FORMAT = 2
 MAX_TILES = 64
 MAX_TILE_SIDE = 64
-MAX_SCALE = 8
+MAX_SCALE = 16
 DIFF_STEP = 4  # grey levels per step of a stored difference
 _KEYS = {"format", "base_sha256", "serial", "scale", "tiles"}
 _TILE_KEYS = {"row", "col", "shape", "png"}

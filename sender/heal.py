@@ -31,13 +31,18 @@ d (per channel) and the views' spread, the median absolute deviation of their lu
 differences. The cell needs healing when the views agree (spread under ``SPREAD_LEVELS``)
 and either disagree with the model (|luma d| smoothed by a Gaussian of ``SMOOTH`` cells
 over ``DEPART_LEVELS``) or the model saw it badly (confidence under ``LOW_CONFIDENCE``)
-and d is over ``NOISE_LEVELS``. The cells that need it, grown by ``GROW`` cells and
-feathered, take their d; a tile of ``TILE`` x ``TILE`` cells is patched when more than
-``TILE_SHARE`` of its seen cells need healing, the largest disagreements first, at most
-``MAX_TILES`` tiles and ``PATCH_BYTES`` of PNG a patch, none patched within the last
-``REPATCH_READS`` reads (the rest waits for the next, so the
-first reaches the viewers soon), the correction tapered to zero at the chosen tiles' outer
-edges and clipped to ``MAX_CHANGE``. Before a patch is issued, the held frames it is made of are
+and d is over ``NOISE_LEVELS``. d is smoothed over the seen cells by the same Gaussian
+(the views' noise would bloat the patch's PNG by a third). The cells that need it, grown
+by ``GROW`` cells and feathered, take their d; a tile of ``TILE`` x ``TILE`` cells is
+patched when more than ``TILE_SHARE`` of its seen cells need healing, the largest
+disagreements first, at most ``MAX_TILES`` tiles and ``PATCH_BYTES`` of PNG a patch, none
+patched within the last ``REPATCH_READS`` reads (the rest waits for the next, so the first
+reaches the viewers soon), the correction tapered to zero at the chosen tiles' outer edges
+and clipped to ``MAX_CHANGE``. The patch stores the correction at ``STORE`` x ``STORE``
+cells a pixel (scale ``SCALE * STORE`` texels: the correction is smooth), and chosen tiles
+side by side in a row as one stored tile (one PNG's header and one tile's fields, not
+several: a hand's tiles are mostly neighbours); its PNG bytes are counted so. Before a patch
+is issued, the held frames it is made of are
 asked for hands (``sender.enroll.occluders``, MediaPipe's hand tracker: a hand that
 moves with the face and agrees with itself would otherwise be painted in); a frame with a
 hand on the face is dropped and the correction waits for clean ones. A patch is applied at
@@ -67,6 +72,7 @@ from facewire.sender.texels import AreaTexels, area_surface, welded_normals
 
 SCALE = 8  # texels per healing cell, a side
 TILE = 16  # cells per tile side (128 texels)
+STORE = 2  # cells per stored difference pixel, a side (the correction is smooth)
 EVERY = 3  # frames between reads
 LOOK_EVERY = 2  # new reads before the healing looks for a correction again
 HAND_REST = 25  # frames without reads after a hand was found on the face
@@ -78,13 +84,13 @@ SPREAD_LEVELS = 10.0  # grey levels: the views agree under this spread
 DEPART_LEVELS = 20.0  # grey levels: a disagreement with the model that counts
 NOISE_LEVELS = 6.0  # grey levels: a low-confidence cell's difference that counts
 LOW_CONFIDENCE = 90  # of 255
-SMOOTH = 1.0  # cells, the disagreement's Gaussian
+SMOOTH = 1.0  # cells, the Gaussian of the disagreement and of the correction
 GROW = 2  # cells the needing cells are grown by
 TILE_SHARE = 0.2  # of a tile's seen cells needing healing, over which it is patched
 REPATCH_READS = 15  # reads before a patched tile may be patched again
-MAX_TILES = 32  # tiles a patch
-PATCH_BYTES = 6000  # a patch's tiles stop at this many bytes of PNG: at the wire's first
-#                     3.6 kB/s it reaches a receiver within some 2 s of its issue
+MAX_TILES = 48  # tiles a patch (a patch holds at most models.patch.MAX_TILES)
+PATCH_BYTES = 7400  # a patch's tiles stop at this many bytes of PNG: with its fields, nine
+#                     1-KiB chunks at most, which the wire's three a 1.1 s bring in 2.2 s
 MAX_CHANGE = 120.0  # grey levels a cell may change by in one patch
 BOX_GROW = 0.25  # the landmarks' UV box grown by this of its size on each side ...
 BOX_UP = 0.8  # ... and by this upwards (the forehead)
@@ -281,6 +287,10 @@ class Healer:
         # to zero at the chosen tiles' outer edge, so no tile's edge shows
         taper = cv2.distanceTransform(np.pad(inside, 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
         weight = np.where(enough, np.minimum(weight, np.clip(taper / (GROW + 1), 0, 1)), 0.0)
+        # smoothed over the seen cells (a normalised Gaussian): the views' noise left out of
+        # the patch, whose PNG it would bloat
+        cover = cv2.GaussianBlur(enough.astype(np.float32), (0, 0), SMOOTH)
+        d = cv2.GaussianBlur(d, (0, 0), SMOOTH) / np.maximum(cover, 1e-3)[..., None]
         d = np.clip(d, -MAX_CHANGE, MAX_CHANGE) * weight[..., None]
         return d, chosen
 
@@ -308,20 +318,43 @@ class Healer:
         if found is None or self._hands(reads):
             return None
         d, where = found
-        tiles = []
-        size = 0
-        side = min(TILE, MAX_TILE_SIDE)
+        picked: list[tuple[int, int]] = []
+        tiles: list[Tile] = []
         for r, c in where:
-            cells = (slice(r, min(r + side, d.shape[0])), slice(c, min(c + side, d.shape[1])))
-            base = self.base[cells]
-            diff = tile_diff(base + d[cells], base)
-            tiles.append(Tile(SCALE * (self.rows.start + r), SCALE * (self.cols.start + c), diff))
-            self._patched[r, c] = self.read_count
-            size += len(png_bytes(diff))
-            if size >= PATCH_BYTES:
+            picked.append((r, c))
+            tiles = self._tiles(d, picked)
+            if sum(len(png_bytes(t.diff)) for t in tiles) >= PATCH_BYTES:
                 break
+        for r, c in picked:
+            self._patched[r, c] = self.read_count
         self.patches += 1
-        return TexturePatch(base_sha256, serial, SCALE, tuple(tiles))
+        return TexturePatch(base_sha256, serial, SCALE * STORE, tuple(tiles))
+
+    def _tiles(self, d: np.ndarray, picked: list[tuple[int, int]]) -> list[Tile]:
+        """The patch's tiles of correction ``d`` (h, w, 3) over the ``picked`` tiles (their
+        first cells in the box): the picked tiles side by side in a row are one tile (fewer
+        PNG headers and fields), ``STORE`` cells a stored pixel."""
+        span = MAX_TILE_SIDE * STORE // TILE  # picked tiles a stored tile may join
+        runs: list[tuple[int, int, int]] = []  # (row, column, tiles) in cells
+        for r, c in sorted(picked):
+            if runs and runs[-1][0] == r and runs[-1][1] + TILE * runs[-1][2] == c \
+                    and runs[-1][2] < span:
+                runs[-1] = (r, runs[-1][1], runs[-1][2] + 1)
+            else:
+                runs.append((r, c, 1))
+        tiles = []
+        for r, c, n in runs:
+            h = (min(r + TILE, d.shape[0]) - r) // STORE
+            w = (min(c + n * TILE, d.shape[1]) - c) // STORE
+            if h == 0 or w == 0:
+                continue
+            cells = (slice(r, r + STORE * h), slice(c, c + STORE * w))
+            base = cv2.resize(self.base[cells], (w, h), interpolation=cv2.INTER_AREA)
+            target = cv2.resize(self.base[cells] + d[cells], (w, h),
+                                interpolation=cv2.INTER_AREA)
+            tiles.append(Tile(SCALE * (self.rows.start + r), SCALE * (self.cols.start + c),
+                              tile_diff(target, base)))
+        return tiles
 
     def close(self) -> None:
         """Free the hand tracker, if made."""

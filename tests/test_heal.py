@@ -1,6 +1,6 @@
 """The texture heals during the session (issue 24, part 2): a blotch the enrollment never saw
 is corrected by patches the sender ships, and the session's patches are what a receiver
-applies.
+applies; a patch's neighbouring tiles travel as one stored tile and carry the correction.
 
 Real parts: the model lp_d0.mp4 builds (``person_model``), given a dark blotch on the cheek
 that the enrollment believed (confidence 255 there), and the real sender pipeline, learning,
@@ -18,6 +18,7 @@ from facewire.models.modelfile import load_model, save_model
 from facewire.models.patch import TexturePatch, Tile, apply_patch
 from facewire.models.update import ModelVersions
 from facewire.sender.capture import open_source
+from facewire.sender.heal import SCALE, STORE, TILE, Healer
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 
@@ -58,3 +59,24 @@ def test_a_blotch_seen_clean_is_healed_by_patches(person_model: Path, shared_dat
     for serial, (_, data) in enumerate(issued, 1):
         versions.add(serial, data)
     assert np.array_equal(versions.model(len(issued)).texture, pipeline.model.texture)
+
+
+def test_neighbouring_tiles_are_stored_as_one_and_carry_the_correction(
+        person_model: Path) -> None:
+    model = load_model(person_model)
+    pipeline = SenderPipeline(model, sender_camera(640, 480), learn=False)
+    healer = Healer(model, pipeline.camera, pipeline.rig)
+    d = np.full(healer.base.shape, 20.0, np.float32)  # +20 levels over the whole box
+    picked = [(0, 0), (0, TILE), (0, 2 * TILE), (TILE, 0)]  # a row of three, and one below
+    tiles = healer._tiles(d, picked)
+    assert len(tiles) == 2
+    patch = TexturePatch(model.sha256, 1, SCALE * STORE, tuple(tiles))
+    changed = apply_patch(model, patch).texture.astype(np.int16) - model.texture
+    row, col = SCALE * healer.rows.start, SCALE * healer.cols.start
+    side = SCALE * TILE
+    inside = np.zeros(model.texture.shape[:2], bool)
+    inside[row:row + side, col:col + 3 * side] = True
+    inside[row + side:row + 2 * side, col:col + side] = True
+    unclipped = inside & (model.texture.max(axis=2) < 200)
+    assert np.abs(changed[unclipped] - 20).max() <= 2
+    assert not changed[~inside].any()

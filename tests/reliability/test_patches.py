@@ -26,7 +26,7 @@ from lossy import LossyRelay
 from updatesender import UpdateSender
 
 from facewire.models.modelfile import load_model
-from facewire.models.patch import TexturePatch, Tile, encode_patch
+from facewire.models.patch import MAX_SCALE, TexturePatch, Tile, encode_patch
 from facewire.models.update import UpdateError, decode_update
 from facewire.protocol.control import Camera, Hello
 from facewire.protocol.packet import Frame, encode
@@ -59,7 +59,7 @@ def _corrupt(valid: bytes, rng: np.random.Generator) -> bytes:
         tile["png"] = bytes(png[:cut]) + bytes(rng.integers(0, 256, int(rng.integers(0, 40)),
                                                              np.uint8))
     elif kind == 4:
-        body["scale"] = int(rng.choice([0, 9, -1, 1 << 20]))
+        body["scale"] = int(rng.choice([0, MAX_SCALE + 1, -1, 1 << 20]))
     else:
         body["tiles"] = [tile] * int(rng.integers(65, 80))
     return msgpack.packb(body, use_bin_type=True)
