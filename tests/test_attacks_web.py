@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import resource
 import socket
 import subprocess
@@ -137,16 +138,24 @@ def _judge(cost: Cost, err: Path, name: str) -> None:
     assert tracebacks(err) == 0, err.read_text(errors="replace")[-3000:]
 
 
-def _holds_updates(viewer: _Viewer, person_model: Path, shared_data: Path) -> None:
-    """Wait until the viewer's gateway has announced every update of the sender's log: their
-    versions are the session's memory, not an attack's (the log's healing patches take some
-    50 MB on their way in, which a window that met them counted)."""
+def _holds_updates(serial: Callable[[], int], person_model: Path, shared_data: Path) -> None:
+    """Wait until ``serial()`` (the model version a gateway announced, or a receiver holds)
+    is the newest of the sender's log: the versions are the session's memory, not an
+    attack's (the log's healing patches take some 50 MB on their way in, which a window that
+    met them counted)."""
     newest = max((u.serial for u in encoded_log(person_model, shared_data / "video" /
                                                 "lp_d0.mp4").updates), default=0)
     deadline = time.monotonic() + 60
-    while viewer.serial < newest:
-        assert time.monotonic() < deadline, f"updates: {viewer.serial} of {newest} announced"
+    while (held := serial()) < newest:
+        assert time.monotonic() < deadline, f"updates: {held} of {newest} held"
         time.sleep(0.1)
+
+
+def _fetched_serial(err: Path) -> int:
+    """The newest model update a receiver has said it fetched (its status lines in ``err``),
+    0 before any."""
+    found = re.findall(r"model update (\d+) fetched", err.read_text(errors="replace"))
+    return max(map(int, found), default=0)
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +181,7 @@ def gateway(sender: LogSender, person_model: Path, shared_data: Path,
     wait_serving(url, process.popen, process.err)
     viewer = _Viewer(url.replace("/?", "/stream?"))
     _keeps_coming(lambda: viewer.packets, "packets")
-    _holds_updates(viewer, person_model, shared_data)
+    _holds_updates(lambda: viewer.serial, person_model, shared_data)
     settle(process.pid)
     yield process, url, viewer
     summary = json.loads(process.stop().strip().splitlines()[-1])
@@ -180,9 +189,10 @@ def gateway(sender: LogSender, person_model: Path, shared_data: Path,
 
 
 @pytest.fixture(scope="module")
-def view(sender: LogSender, tmp_path_factory: pytest.TempPathFactory
-         ) -> Iterator[tuple[_Process, int, _Stream]]:
-    """``facewire receive --view``, and a stream reader getting its frames."""
+def view(sender: LogSender, person_model: Path, shared_data: Path,
+         tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[_Process, int, _Stream]]:
+    """``facewire receive --view``, and a stream reader getting its frames, measured from
+    once it holds the session's model updates (``_holds_updates``)."""
     folder = tmp_path_factory.mktemp("view")
     port = _port()
     process = _Process(["receive", "--connect", sender.endpoint, "--view", "--view-port",
@@ -191,6 +201,7 @@ def view(sender: LogSender, tmp_path_factory: pytest.TempPathFactory
     wait_serving(f"http://127.0.0.1:{port}/", process.popen, process.err)
     stream = _Stream(port)
     _keeps_coming(lambda: stream.received, "MJPEG parts")
+    _holds_updates(lambda: _fetched_serial(process.err), person_model, shared_data)
     settle(process.pid)
     yield process, port, stream
     process.stop()
@@ -264,7 +275,7 @@ def test_web_at_the_open_files_limit_answers_the_page_and_logs_one_line(
         wait_serving(url, process.popen, process.err)
         viewer = _Viewer(url.replace("/?", "/stream?"))
         _keeps_coming(lambda: viewer.packets, "packets")
-        _holds_updates(viewer, person_model, shared_data)
+        _holds_updates(lambda: viewer.serial, person_model, shared_data)
         settle(process.pid)
         cost = measure(process.pid, idle(port, 200, 3.0), lambda: (get(url)[0] == 200
                                                                    or pytest.fail("no page")))
