@@ -41,8 +41,9 @@ frames against newer model versions and says which in each packet (``serial``). 
 frame is rendered with the version its packet names, the one the sender classified it with
 (``bench.encoding``'s ``Run.versions``), as a receiver that holds the session's updates
 renders it (a replay of the session's log shows the same: ``receiver.replay``);
-``model_updates`` lists each version past the model file's by ``serial`` and the video frame
-of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
+``model_updates`` lists each version past the model file's by ``serial``, what made it
+(``kind``: ``"state"``, a learned state, or ``"patch"``, the healing's texture patch) and the
+video frame of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
 the last version's. The texture's confidence and its healing (``texture_confidence_mean``,
 ``patches``, ``first_patch_s``) are ``bench.healing``'s.
 
@@ -152,8 +153,10 @@ from facewire.bench.speed import NoFaceError
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoError, range_text
 from facewire.models.modelfile import PersonModel, load_model
+from facewire.models.patch import TexturePatch
 from facewire.models.regions import REGION_NAMES
 from facewire.models.rig import Rig
+from facewire.models.update import Update
 from facewire.protocol.control import Camera
 from facewire.protocol.errors import FacewireError
 from facewire.protocol.packet import PACKET_BYTES, Flag
@@ -324,7 +327,7 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
         summary["targets"].update(TARGET_Q)
         summary["met"].update({key: _at_least(agreement[key], target)
                                for key, target in TARGET_Q.items()})
-    summary["model_updates"] = _model_updates(decoded, run.indices)
+    summary["model_updates"] = _model_updates(pipeline.updates, decoded, run.indices)
     summary.update(healing_measures(model, pipeline.updates, decoded["serial"], run.times))
     appearance = _appearance(model, camera, decoded, run.tracked, posed, run.images,
                              stream_rate(src.rate_hz), summary["payload_kbps"], progress,
@@ -345,11 +348,14 @@ def _measure(model_path: str | os.PathLike[str], source: str | os.PathLike[str],
 
 
 
-def _model_updates(decoded: np.ndarray, indices: list[int]) -> list[dict[str, int]]:
-    """Each model version past the file's that the packets name: its ``serial`` and the
-    video frame of the first packet that refers to it (module docstring)."""
+def _model_updates(updates: list[Update], decoded: np.ndarray, indices: list[int]
+                   ) -> list[dict[str, Any]]:
+    """Each model version past the file's that the packets name: its ``serial``, ``kind``
+    and the video frame of the first packet that refers to it (module docstring)."""
+    kinds = {u.serial: "patch" if isinstance(u, TexturePatch) else "state" for u in updates}
     serials = decoded["serial"].astype(np.int64)
-    return [{"serial": int(s), "first_frame": int(indices[int(np.argmax(serials == s))])}
+    return [{"serial": int(s), "kind": kinds[int(s)],
+             "first_frame": int(indices[int(np.argmax(serials == s))])}
             for s in np.unique(serials) if s > 0]
 
 

@@ -35,8 +35,10 @@ messages' fields), and issues an update (a state or a texture patch, ``sender.he
 while the bucket is not in debt: a first burst as deep as the wire's, then no faster, on
 average, than the wire may carry them (the transport paces each chunk within the budget over
 any second). While the healing's last look found tiles to patch, or it has not looked
-since the model last changed (``Healer.wanting``), no capture is made: the texture heals
-first (a hand baked into it is what the viewer sees).
+since the model last changed (``Healer.wanting``), no capture is made unless the last
+update was a patch: the texture heals first (a hand baked into it is what the viewer sees),
+and then patches and states take turns (a healing that keeps finding tiles does not starve
+the learning).
 
 Capture. From the last ``CAPTURE_FRAMES`` clean frames of the run: each frame's layer
 images, one per area of the region, read the way enrollment reads them (``sender.texels``:
@@ -308,8 +310,9 @@ class Learner:
         due = [int(i) for i in np.flatnonzero(novel) if self._run[i] >= HOLD_FRAMES
                and len(self._held[i]) >= CAPTURE_FRAMES
                and time_s - self._learned_at[i] >= COOLDOWN_S]
-        if not due or (self.healer is not None and self.healer.wanting):
-            return None  # nothing due, or the texture heals first
+        patched_last = bool(self.updates) and isinstance(self.updates[-1], TexturePatch)
+        if not due or (self.healer is not None and self.healer.wanting and not patched_last):
+            return None  # nothing due, or the texture heals first (the two take turns)
         r = max(due, key=lambda i: result.score[i] / self.bound[i])  # the most unlike
         if self.prepared is not None and not self.prepared.done():
             return None  # the worker is still finding the texels on the mesh

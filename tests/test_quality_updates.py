@@ -60,7 +60,11 @@ def test_bench_quality_with_learn_scores_the_session_its_updates_made(
     kept = measure_quality(closed, video, slice(0, 40), allow_overlap=True)
     learned = measure_quality(closed, video, slice(0, 40), allow_overlap=True, learn=True)
     assert kept["model_updates"] == []
-    assert [u["serial"] for u in learned["model_updates"]] == [1]
-    assert 17 < learned["model_updates"][0]["first_frame"] < 40  # after the mouth opened
+    updates = learned["model_updates"]
+    assert [u["serial"] for u in updates] == list(range(1, len(updates) + 1))
+    states = [u for u in updates if u["kind"] == "state"]
+    assert len(states) == 1  # the mouth's open state, learned between the healing's patches
+    assert 17 < states[0]["first_frame"] < 40  # after the mouth opened
+    assert learned["patches"] == len(updates) - 1
     assert build_parser().parse_args(["bench", "quality", "--model", "m", "--source", "v",
                                       "--learn"]).learn is True

@@ -66,8 +66,10 @@ def test_classification_is_timed_on_a_model_with_regions(person_model: Path,
     result = measure_speed(person_model, shared_data / "video" / "lp_d0.mp4",
                            frame_range("0:30"), loopback_s=0)
     assert result["regions"] == 7
-    for key in ("sample_ms", "classify_ms", "learn_ms", "learn_ms_per_frame", "shade_ms"):
+    for key in ("sample_ms", "classify_ms", "learn_ms", "shade_ms"):  # medians: a frame's part
         assert isinstance(result[key], float) and 0 < result[key] < result["sender_ms_median"]
+    # a mean, with the healing's hand checks inline (bench runs have no worker): any size
+    assert isinstance(result["learn_ms_per_frame"], float) and result["learn_ms_per_frame"] > 0
     assert result["met"]["classify"] == (result["classify_ms"] <= 1.0)
     assert result["met"]["learn"] == (result["learn_ms_per_frame"] <= 0.5)
     assert "classify: " in format_speed(result) and "learn: " in format_speed(result)
