@@ -677,7 +677,8 @@ def _bench_sync(args: argparse.Namespace) -> int:
     from facewire.report import report
 
     report(*sync(args.model, args.source, losses(args.loss), _frames(args.frames),
-                 progress=_progress), args.json)
+                 progress=_progress, page=args.page, page_seconds=args.page_seconds),
+           args.json)
     return 0
 
 
@@ -1051,6 +1052,10 @@ def _add_bench(sub: Commands) -> None:
     bsy.add_argument("--frames", help="frame range A:B of the video to send (default: all)")
     bsy.add_argument("--loss", default="0,10,30", metavar="L,L,...",
                      help="packet losses to score the speech at, percent (default %(default)s)")
+    bsy.add_argument("--page", action="store_true", help="also play the clip, looped, on the "
+                     "gateway's page in headless Chromium and measure the page's own skew")
+    bsy.add_argument("--page-seconds", type=float, default=10.0, metavar="S",
+                     help="the page's measuring window (default %(default)s)")
     _add_json(bsy)
     bsy.set_defaults(run=_bench_sync)
     bsp = bsub.add_parser("speech", help="the voice's speech quality (PESQ-WB) through its "
