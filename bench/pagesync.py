@@ -60,11 +60,15 @@ def page_sync(model: str | os.PathLike[str], source: str | os.PathLike[str], fra
     served = threading.Event()
     outcome: dict[str, Any] = {}
 
+    def ready(url: str) -> None:
+        urls.append(url)
+        served.set()
+
     def gateway() -> None:
         try:
             outcome["gateway"] = serve_gateway(
                 endpoint, http="127.0.0.1:0", cache_dir=str(folder / "cache"), stop=stop,
-                ready=lambda url: (urls.append(url), served.set()))
+                ready=ready)
         except Exception as error:  # noqa: BLE001 - said in the PageSyncError
             outcome["gateway_error"] = f"{type(error).__name__}: {error}"
             served.set()

@@ -682,6 +682,17 @@ def _bench_sync(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_call(args: argparse.Namespace) -> int:
+    from facewire.bench.callcheck import call_check
+    from facewire.report import report
+
+    summary, lines = call_check(args.model_a, args.source_a, args.model_b, args.source_b,
+                                args.seconds, status=lambda line: print(
+                                    f"bench call: {line}", file=sys.stderr, flush=True))
+    report(summary, lines, args.json)
+    return 0 if summary["passed"] else 1
+
+
 def _bench_speech(args: argparse.Namespace) -> int:
     from facewire.bench.speech import losses, speech_table
     from facewire.report import report
@@ -1058,6 +1069,17 @@ def _add_bench(sub: Commands) -> None:
                      help="the page's measuring window (default %(default)s)")
     _add_json(bsy)
     bsy.set_defaults(run=_bench_sync)
+    bca = bsub.add_parser("call", help="a call on one machine: two 'facewire call' processes, "
+                          "each sending a clip looped, checked for loss, memory (RSS every "
+                          "10 s) and sync over the whole call")
+    bca.add_argument("--model-a", required=True, help="side A's person model (.fwm)")
+    bca.add_argument("--source-a", required=True, help="side A's video (looped)")
+    bca.add_argument("--model-b", required=True, help="side B's person model (.fwm)")
+    bca.add_argument("--source-b", required=True, help="side B's video (looped)")
+    bca.add_argument("--seconds", type=float, default=600.0,
+                     help="the call's length (default %(default)s)")
+    _add_json(bca)
+    bca.set_defaults(run=_bench_call)
     bsp = bsub.add_parser("speech", help="the voice's speech quality (PESQ-WB) through its "
                           "real packets and jitter buffer at packet losses, against the source "
                           "and the codec alone, one line per clip (no face, no model)")
