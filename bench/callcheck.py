@@ -143,6 +143,7 @@ def _direction(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, An
     p5, p95 = got.get("av_skew_ms_p5"), got.get("av_skew_ms_p95")
     return {
         "frames_sent": sent.get("frames"), "packets_sent": sent.get("packets"),
+        "updates_sent": sent.get("updates"), "model_serial": got.get("model_serial"),
         "received": got.get("received"), "lost": got.get("lost"),
         "voice_sent": sent.get("voice_packets"), "voice_received": got.get("voice_received"),
         "voice_missing": missing, "voice_corrupt": got.get("voice_corrupt"),

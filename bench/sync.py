@@ -31,7 +31,9 @@ model), plays both and writes what it showed into a video with its sound
 
 The voice's glass-to-glass is ``voice_glass_to_glass_ms_median`` and ``_p95``: the file's
 read (slot ``j``'s time on the sender's clock, when a microphone would have given its last
-sample) to the frame's playout, through the receiver's jitter buffer. Timings depend on the
+sample) to the frame's playout, through the receiver's jitter buffer and its wait for the
+face (``receiver.voiceplayer``); ``voice_own_ms_median`` and ``_p95`` are the same less that
+wait: the voice's own path. Timings depend on the
 machine's load: ``load_average`` is the 1-minute load when the live run ended.
 """
 
@@ -197,7 +199,9 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         "total_kbps": round(sent["audio_kbps"] + sent["payload_kbps"], 3),
         **{k: got.get(k) for k in ("av_skew_ms_median", "av_skew_ms_p95", "av_skew_ms_p5",
                                   "voice_glass_to_glass_ms_median",
-                                  "voice_glass_to_glass_ms_p95", "voice_played",
+                                  "voice_glass_to_glass_ms_p95", "voice_own_ms_median",
+                                  "voice_own_ms_p95", "voice_extra_ms", "voice_stretched",
+                                  "voice_shrunk", "voice_played",
                                   "voice_concealed", "voice_late", "voice_corrupt",
                                   "voice_target_ms", "glass_to_glass_ms_median")},
         "load_average": load, **on_page, "page_skipped": skipped,
@@ -216,7 +220,8 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         f"playout: sound behind the face by {summary['av_skew_ms_median']} ms median "
         f"({summary['av_skew_ms_p5']} to {summary['av_skew_ms_p95']} ms, 5-95 %); voice "
         f"capture to playout {summary['voice_glass_to_glass_ms_median']} ms median, "
-        f"{summary['voice_glass_to_glass_ms_p95']} ms p95 (load average {load})",
+        f"{summary['voice_glass_to_glass_ms_p95']} ms p95, of which the voice's own path "
+        f"{summary['voice_own_ms_median']} ms median (load average {load})",
         *([f"page: sound behind the face by {on_page['page_av_skew_ms_median']} ms median "
            f"({on_page['page_av_skew_ms_p5']} to {on_page['page_av_skew_ms_p95']} ms, 5-95 %) "
            f"over {on_page['page_skews']} frames in {on_page['page_seconds']} s"]

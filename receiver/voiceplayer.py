@@ -93,6 +93,7 @@ class VoicePlayer:
         self._since_change = 0  # frames heard since the last stretch or shrink
         self.skews: deque[float] = deque(maxlen=SKEWS_KEPT)
         self.latencies: deque[float] = deque(maxlen=SKEWS_KEPT)  # capture to out, s
+        self.own: deque[float] = deque(maxlen=SKEWS_KEPT)  # the same less the wait for the face
         self.corrupt: dict[str, int] = {}
         self.bytes = 0
         self.first: float | None = None  # the first arrival
@@ -150,6 +151,7 @@ class VoicePlayer:
             with self._lock:
                 if capture is not None:
                     self.latencies.append(out - capture)
+                    self.own.append(out - capture - self._buffer.extra * FRAME_S)
                 face = self._face
                 if capture is not None and face is not None and out - face[1] < FACE_STALE_S:
                     self.skews.append((out - capture) - (face[1] - face[0]))
@@ -176,12 +178,15 @@ class VoicePlayer:
         that did not decode), ``voice_target_ms`` (the buffer's depth), ``voice_extra_ms`` (of
         it, the wait for the face: module docstring), ``audio_kbps`` (voice
         packets' bytes over their span), ``av_skew_ms_median``, ``_p95``, ``_p5``,
-        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples)
-        and ``speaker`` (the device, or "none")."""
+        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples),
+        ``voice_own_ms_median`` and ``_p95`` (the same less the wait for the face: the
+        voice's own path, what a call without a face would hear) and ``speaker`` (the device,
+        or "none")."""
         with self._lock:
             stats = dict(self._buffer.stats)
             skews = np.array(self.skews) * 1000
             latencies = np.array(self.latencies) * 1000
+            own = np.array(self.own) * 1000
             span = (self.last - self.first) if self.first is not None and self.last else 0.0
             corrupt = sum(self.corrupt.values())
         def pct(q: float, values: np.ndarray = skews) -> float | None:
@@ -195,7 +200,9 @@ class VoicePlayer:
                 "av_skew_ms_median": pct(50), "av_skew_ms_p95": pct(95),
                 "av_skew_ms_p5": pct(5),
                 "voice_glass_to_glass_ms_median": pct(50, latencies),
-                "voice_glass_to_glass_ms_p95": pct(95, latencies), "speaker": self.device}
+                "voice_glass_to_glass_ms_p95": pct(95, latencies),
+                "voice_own_ms_median": pct(50, own), "voice_own_ms_p95": pct(95, own),
+                "speaker": self.device}
 
 
 def voice_capture(seq: int, origin_s: float, near_s: float) -> float:
