@@ -5,7 +5,7 @@ headless Chromium, and the page's own skew read out.
 a free loopback port), ``receiver.gateway.serve_gateway`` on a thread of its own and the
 gateway's page in headless Chromium (``bench.chromium``; WebGL2 through SwiftShader, sound
 muted but played: ``--autoplay-policy=no-user-gesture-required``). Once the page shows the
-model and has played ``WARM_VOICE`` voice frames, it reads ``window.facewire.voice`` every
+model, has drawn ``WARM_FRAMES`` faces and played ``WARM_VOICE`` voice frames, it reads ``window.facewire.voice`` every
 ``POLL_S`` for ``seconds`` and keeps each skew measured in that window once (voice.js's
 ``skews`` count says how many of ``skew_ms``'s last entries are new). The skew is voice.js's:
 a voice frame's latency (capture to its scheduled start) less that of the first face frame
@@ -36,6 +36,7 @@ from facewire.receiver.gateway import serve_gateway
 from facewire.sender.sender import send
 
 WARM_VOICE = 100  # voice frames played before the window: 2 s
+WARM_FRAMES = 10  # and faces drawn with the model
 WARM_TIMEOUT_S = 180.0  # the model's download and upload to textures, on a loaded machine
 POLL_S = 0.25  # voice.js keeps 50 skews, about 1 s of voice
 COUNTS = ("played", "concealed", "silent", "late")
@@ -96,7 +97,8 @@ def page_sync(model: str | os.PathLike[str], source: str | os.PathLike[str], fra
         while True:
             voice = browser.evaluate(session, "window.facewire.voice")
             shown = browser.evaluate(session, "window.facewire.model.shown")
-            if shown is not None and voice["played"] >= WARM_VOICE:
+            drawn = browser.evaluate(session, "window.facewire.stats")["frames"]
+            if shown is not None and voice["played"] >= WARM_VOICE and drawn >= WARM_FRAMES:
                 break
             if time.monotonic() > deadline or "send_error" in outcome:
                 status = browser.evaluate(session, "window.facewire.status")

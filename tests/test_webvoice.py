@@ -260,12 +260,12 @@ def test_a_page_without_a_secure_context_says_once_that_the_voice_needs_https(
 def test_bench_sync_reads_the_pages_own_skew(generic_model: Path, shared_data: Path,
                                              tmp_path: Path) -> None:
     """``bench.pagesync``: the clip looped to the gateway's page in Chromium, its skews read
-    for 3 s, each once (its size is the machine's: bench sync reports it)."""
+    for 5 s, each once (its size is the machine's: bench sync reports it)."""
     from facewire.bench.pagesync import page_sync
 
-    got = page_sync(generic_model, shared_data / "video" / SPEECH, slice(0, None), 3.0,
+    got = page_sync(generic_model, shared_data / "video" / SPEECH, slice(0, None), 5.0,
                     tmp_path)
-    assert got["page_skews"] > 0 and got["page_frames"] > 0
+    assert got["page_skews"] > 0 and got["page_frames"] > 0, got
     assert got["page_av_skew_ms_p5"] <= got["page_av_skew_ms_median"] \
         <= got["page_av_skew_ms_p95"]
-    assert got["page_voice_played"] > 0 and got["page_seconds"] >= 3.0
+    assert got["page_voice_played"] > 0 and got["page_seconds"] >= 5.0
