@@ -17,7 +17,9 @@ Judged, per direction (A to B: what A sent, what B received):
   last ones be in flight at the hang-up: at most ``EDGE_PACKETS`` are let go);
 - memory flat: each process's resident memory at the end is within ``RSS_GROWTH_MB`` of the
   first sample taken after ``WARM_S`` (models fetched, renderer up), ``rss_mb_first``, ``_last``,
-  ``_max`` and the samples given;
+  ``_max`` and the samples given. Learning (the default) holds each model update learned, at
+  the sender and at the other side's receiver, so memory grows until the clip's appearance is
+  learned: ``learn=False`` leaves what is left;
 - sync held: the receiver's skew over the whole call (``av_skew_ms_p5`` to ``_p95``, its
   ``receiver.voiceplayer`` window holding 10 minutes of frames) inside ITU-R BT.1359's
   -45 to +125 ms.
@@ -66,8 +68,10 @@ def _endpoint_pair() -> tuple[str, str]:
 
 def call_check(model_a: str | os.PathLike[str], source_a: str,
                model_b: str | os.PathLike[str], source_b: str, seconds: float,
-               status: Status = lambda _: None) -> tuple[dict[str, Any], list[str]]:
-    """The module docstring's call and checks; the summary and its report lines.
+               learn: bool = True, status: Status = lambda _: None
+               ) -> tuple[dict[str, Any], list[str]]:
+    """The module docstring's call and checks; the summary and its report lines. Without
+    ``learn`` both sides run with ``--no-learn``.
 
     Raises:
         CallCheckError: a side exited before the hang-up or printed no summary.
@@ -85,7 +89,7 @@ def call_check(model_a: str | os.PathLike[str], source_a: str,
                     procs[name] = subprocess.Popen(
                         [sys.executable, "-m", "facewire.cli", "call", "--model",
                          os.fspath(model), "--source", source, "--bind", bind, "--peer", peer,
-                         "--loop", "--json"],
+                         "--loop", "--json", *([] if learn else ["--no-learn"])],
                         stdout=out, stderr=err, stdin=subprocess.DEVNULL,
                         env={**os.environ, ENV_FOLDER: str(folder / f"cache-{name}")})
             start = time.monotonic()
@@ -116,7 +120,7 @@ def call_check(model_a: str | os.PathLike[str], source_a: str,
                     proc.kill()
                     proc.wait()
         got = {name: _summary(folder, name) for name in procs}
-    return _judge(got["a"], got["b"], samples, seconds)
+    return _judge(got["a"], got["b"], samples, seconds, learn)
 
 
 def _tail(folder: Path, name: str, lines: int = 5) -> str:
@@ -160,7 +164,7 @@ def _direction(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, An
 
 
 def _judge(a: dict[str, Any], b: dict[str, Any], samples: list[dict[str, Any]],
-           seconds: float) -> tuple[dict[str, Any], list[str]]:
+           seconds: float, learn: bool) -> tuple[dict[str, Any], list[str]]:
     directions = {"a_to_b": _direction(a, b), "b_to_a": _direction(b, a)}
     memory: dict[str, Any] = {}
     for name in ("a", "b"):
@@ -172,7 +176,8 @@ def _judge(a: dict[str, Any], b: dict[str, Any], samples: list[dict[str, Any]],
                         "rss_mb_max": max(warm) if warm else None,
                         "flat": bool(warm) and warm[-1] - warm[0] <= RSS_GROWTH_MB}
     loads = [s["load_average"] for s in samples]
-    summary = {"seconds": seconds, **directions, "memory": memory, "samples": samples,
+    summary = {"seconds": seconds, "learn": learn, **directions, "memory": memory,
+               "samples": samples,
                "load_average_min": min(loads, default=None),
                "load_average_max": max(loads, default=None),
                "passed": all(d["nothing_lost"] and d["sync_held"] for d in directions.values())

@@ -5,9 +5,10 @@ headless Chromium, and the page's own skew read out.
 a free loopback port), ``receiver.gateway.serve_gateway`` on a thread of its own and the
 gateway's page in headless Chromium (``bench.chromium``; WebGL2 through SwiftShader, sound
 muted but played: ``--autoplay-policy=no-user-gesture-required``). Once the page shows the
-model, has drawn ``WARM_FRAMES`` faces and played ``WARM_VOICE`` voice frames, it reads ``window.facewire.voice`` every
-``POLL_S`` for ``seconds`` and keeps each skew measured in that window once (voice.js's
-``skews`` count says how many of ``skew_ms``'s last entries are new). The skew is voice.js's:
+model, has drawn ``WARM_FRAMES`` faces and played ``WARM_VOICE`` voice frames, it reads
+``window.facewire.voice`` every ``POLL_S`` for ``seconds`` and keeps each skew measured in
+that window once (voice.js's ``skews`` count says how many of ``skew_ms``'s last entries are
+new). The skew is voice.js's:
 a voice frame's latency (capture to its scheduled start) less that of the first face frame
 drawn at or after it, on the page's clock, so positive when the sound is behind (ITU-R
 BT.1359: noticed beyond 45 ms ahead, 125 ms behind).
