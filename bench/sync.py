@@ -153,7 +153,8 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
     """The module docstring's measures, and their report lines.
 
     Raises:
-        SyncError: the source has no sound track.
+        SyncError: the source has no sound track, or the receiver ended before the stream
+            started.
         SpeechError, SoundError, ModelFileError, CaptureError: as their commands.
         PageSyncError: with ``page``, the page did not play the clip.
     """
@@ -162,18 +163,29 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
     with tempfile.TemporaryDirectory(prefix="facewire-sync-") as scratch:
         out = Path(scratch) / "received.mp4"
         endpoint = free_loopback_endpoint()
-        ready = threading.Event()
+        ready, stop = threading.Event(), threading.Event()
         got: dict[str, Any] = {}
 
         def run() -> None:
-            got.update(receive(endpoint, model, out, idle_timeout_s=IDLE_S, ready=ready,
-                               audio=True, speaker=None))
+            try:
+                got.update(receive(endpoint, model, out, idle_timeout_s=IDLE_S, ready=ready,
+                                   audio=True, speaker=None))
+            except Exception as error:  # noqa: BLE001 - raised below as a SyncError
+                got["error"] = f"{type(error).__name__}: {error}"
+            finally:
+                if not ready.is_set():  # the sender waits for it: let it go, and stop
+                    stop.set()
+                    ready.set()
 
         thread = threading.Thread(target=run, name="bench sync receiver", daemon=True)
         thread.start()
         sent = send(model, str(source), bind=endpoint, frames=frames, learn=False,
-                    start=ready)
+                    start=ready, stop=stop)
         thread.join()
+        if stop.is_set():
+            raise SyncError(f"the receiver ended before it could play the stream "
+                            f"({got.get('error') or got.get('ended')}): a sender slower to "
+                            f"start than its {IDLE_S:g} s idle timeout?")
         load = round(os.getloadavg()[0], 1)
         received_lag, received_r, shown = _video_lag(out, progress) if out.is_file() \
             else (None, None, 0)
