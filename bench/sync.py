@@ -62,7 +62,7 @@ from facewire.sender.sender import send
 from facewire.sender.tracker import LandmarkTracker
 
 MAX_LAG_S = 0.3
-IDLE_S = 20.0
+DRAIN_S = 3.0  # the receiver plays on this long after the sender's last frame
 PAGE_SECONDS = 10.0
 
 
@@ -163,13 +163,13 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
     with tempfile.TemporaryDirectory(prefix="facewire-sync-") as scratch:
         out = Path(scratch) / "received.mp4"
         endpoint = free_loopback_endpoint()
-        ready, stop = threading.Event(), threading.Event()
+        ready, stop, heard = threading.Event(), threading.Event(), threading.Event()
         got: dict[str, Any] = {}
 
         def run() -> None:
             try:
-                got.update(receive(endpoint, model, out, idle_timeout_s=IDLE_S, ready=ready,
-                                   audio=True, speaker=None))
+                got.update(receive(endpoint, model, out, ready=ready, audio=True,
+                                   speaker=None, stop=heard))
             except Exception as error:  # noqa: BLE001 - raised below as a SyncError
                 got["error"] = f"{type(error).__name__}: {error}"
             finally:
@@ -181,11 +181,12 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         thread.start()
         sent = send(model, str(source), bind=endpoint, frames=frames, learn=False,
                     start=ready, stop=stop)
+        heard.wait(DRAIN_S)  # the last packets played out, then the receiver stops
+        heard.set()
         thread.join()
         if stop.is_set():
-            raise SyncError(f"the receiver ended before it could play the stream "
-                            f"({got.get('error') or got.get('ended')}): a sender slower to "
-                            f"start than its {IDLE_S:g} s idle timeout?")
+            raise SyncError(f"the receiver ended before it could play the stream: "
+                            f"{got.get('error') or got.get('ended')}")
         load = round(os.getloadavg()[0], 1)
         received_lag, received_r, shown = _video_lag(out, progress) if out.is_file() \
             else (None, None, 0)
