@@ -13,12 +13,12 @@ from facewire.models.infra.sound import read_sound
 
 def test_a_short_call_is_sampled_and_judged(generic_model: Path, person_model: Path,
                                             shared_data: Path) -> None:
-    """A sends hdtf_edmarkey (with its sound), B lp_d0 (silent), 40 s: both sides' counts,
+    """A sends hdtf_edmarkey (with its sound), B lp_d0 (silent), 60 s: both sides' counts,
     their memory every 10 s and the voice's way from A to B are in the summary (the verdicts
     are the machine's: a loaded one renders too slowly for a call)."""
     video = shared_data / "video"
     summary, lines = call_check(generic_model, str(video / "hdtf_edmarkey.mp4"),
-                                person_model, str(video / "lp_d0.mp4"), 40.0)
+                                person_model, str(video / "lp_d0.mp4"), 60.0)
     assert read_sound(video / "lp_d0.mp4") is None
     assert len(summary["samples"]) >= 3
     assert all(s["rss_mb_a"] > 0 and s["rss_mb_b"] > 0 for s in summary["samples"][1:])
