@@ -192,7 +192,8 @@ def _judge(a: dict[str, Any], b: dict[str, Any], samples: list[dict[str, Any]],
     for key, d in directions.items():
         lines.append(f"{key}: face {d['packets_sent']} sent, {d['received']} received, "
                      f"{d['lost']} slots lost at the playout; voice {d['voice_sent']} sent, "
-                     f"{d['voice_received']} received, {d['voice_corrupt']} corrupt, {d['voice_concealed']} concealed; "
+                     f"{d['voice_received']} received, {d['voice_corrupt']} corrupt, "
+                     f"{d['voice_concealed']} concealed; "
                      f"skew {d['av_skew_ms_p5']} to {d['av_skew_ms_p95']} ms (5-95 %), "
                      f"{d['av_skew_ms_median']} median; voice glass-to-glass "
                      f"{d['voice_glass_to_glass_ms_median']} ms median")
