@@ -33,7 +33,9 @@ played whose skew is known, with ``face_latency`` the median latency of the last
 stretched by one frame (``receiver.jitterbuffer``'s ``stretch``), and one behind by more than
 ``BEHIND_S`` shrunk by one (``shrink``, only a stretch is undone: the voice's own path is never
 cut), at most one change per ``ADJUST_EVERY`` frames, so the sound walks to the face at 20 ms
-per 60 ms played rather than jumping. The window kept, -``AHEAD_S`` to ``BEHIND_S``, sits
+per 60 ms played rather than jumping; but the first time the skew is known (the stream's
+first frames, whose sound would otherwise lead the face while it walks) the whole wait is
+taken at once. The window kept, -``AHEAD_S`` to ``BEHIND_S``, sits
 inside BT.1359's -45 to +125 ms. The buffer waits at most ``jitterbuffer.MAX_EXTRA`` frames
 (1 s) for the face: a face later than that leaves the sound ahead. ``voice_extra_ms`` in the
 summary is the wait at the end.
@@ -91,6 +93,7 @@ class VoicePlayer:
         self._face: tuple[float, float] | None = None  # the last face frame's (capture, out)
         self._face_latencies: deque[float] = deque(maxlen=FACE_FRAMES)
         self._since_change = 0  # frames heard since the last stretch or shrink
+        self._joined = False  # the sound has been brought to the face once
         self.skews: deque[float] = deque(maxlen=SKEWS_KEPT)
         self.latencies: deque[float] = deque(maxlen=SKEWS_KEPT)  # capture to out, s
         self.own: deque[float] = deque(maxlen=SKEWS_KEPT)  # the same less the wait for the face
@@ -162,10 +165,16 @@ class VoicePlayer:
     def _follow(self, latency: float) -> None:
         """Stretch or shrink the sound toward the face's latency (module docstring, "Keeping
         them together"); ``latency``: the frame just heard's. Under the lock."""
+        skew = latency - float(np.median(self._face_latencies))
+        if not self._joined:  # the first skew known: the whole wait at once
+            self._joined = True
+            while skew < -AHEAD_S and self._buffer.stretch():
+                skew += FRAME_S
+            self._since_change = 0
+            return
         self._since_change += 1
         if self._since_change < ADJUST_EVERY:
             return
-        skew = latency - float(np.median(self._face_latencies))
         if skew < -AHEAD_S and self._buffer.stretch() or skew > BEHIND_S and self._buffer.shrink():
             self._since_change = 0
 
