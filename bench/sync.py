@@ -25,6 +25,16 @@ model), plays both and writes what it showed into a video with its sound
 - Speech quality (``bench.speech``): PESQ-WB of the voice path at each loss in ``losses``
   (``pesq_wb``), with the source's and the codec's own scores beside it, and the voice
   packets' rate measured on the live run (``audio_kbps``).
+- With ``page``, the same clip looped to the gateway's page in headless Chromium
+  (``bench.pagesync``): the page's own skew, ``page_av_skew_ms_median``, ``_p95``, ``_p5``,
+  over ``page_seconds``; without Chromium ``page_skipped`` says why.
+
+The voice's glass-to-glass is ``voice_glass_to_glass_ms_median`` and ``_p95``: the file's
+read (slot ``j``'s time on the sender's clock, when a microphone would have given its last
+sample) to the frame's playout, through the receiver's jitter buffer and its wait for the
+face (``receiver.voiceplayer``); ``voice_own_ms_median`` and ``_p95`` are the same less that
+wait: the voice's own path. Timings depend on the
+machine's load: ``load_average`` is the 1-minute load when the live run ended.
 """
 
 from __future__ import annotations
@@ -37,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from facewire.bench.chromium import ChromiumMissing
+from facewire.bench.pagesync import page_sync
 from facewire.bench.render_nme import track_fresh
 from facewire.bench.speech import DEFAULT_LOSSES, speech_quality
 from facewire.models.infra.progress import Progress, no_progress
@@ -50,7 +62,8 @@ from facewire.sender.sender import send
 from facewire.sender.tracker import LandmarkTracker
 
 MAX_LAG_S = 0.3
-IDLE_S = 20.0
+DRAIN_S = 3.0  # the receiver plays on this long after the sender's last frame
+PAGE_SECONDS = 10.0
 
 
 class SyncError(FacewireError, ValueError):
@@ -135,32 +148,56 @@ def _video_lag(path: Path, progress: Progress, frames_range: slice = slice(0, No
 
 def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
          losses: tuple[float, ...] = DEFAULT_LOSSES, frames: slice = slice(0, None),
-         progress: Progress = no_progress) -> tuple[dict[str, Any], list[str]]:
+         progress: Progress = no_progress, page: bool = False,
+         page_seconds: float = PAGE_SECONDS) -> tuple[dict[str, Any], list[str]]:
     """The module docstring's measures, and their report lines.
 
     Raises:
-        SyncError: the source has no sound track.
+        SyncError: the source has no sound track, or the receiver ended before the stream
+            started.
         SpeechError, SoundError, ModelFileError, CaptureError: as their commands.
+        PageSyncError: with ``page``, the page did not play the clip.
     """
     if read_sound(source) is None:
         raise SyncError(f"{os.fspath(source)}: has no sound track: nothing to sync")
     with tempfile.TemporaryDirectory(prefix="facewire-sync-") as scratch:
         out = Path(scratch) / "received.mp4"
         endpoint = free_loopback_endpoint()
-        ready = threading.Event()
+        ready, stop, heard = threading.Event(), threading.Event(), threading.Event()
         got: dict[str, Any] = {}
 
         def run() -> None:
-            got.update(receive(endpoint, model, out, idle_timeout_s=IDLE_S, ready=ready,
-                               audio=True, speaker=None))
+            try:
+                got.update(receive(endpoint, model, out, ready=ready, audio=True,
+                                   speaker=None, stop=heard))
+            except Exception as error:  # noqa: BLE001 - raised below as a SyncError
+                got["error"] = f"{type(error).__name__}: {error}"
+            finally:
+                if not ready.is_set():  # the sender waits for it: let it go, and stop
+                    stop.set()
+                    ready.set()
 
         thread = threading.Thread(target=run, name="bench sync receiver", daemon=True)
         thread.start()
         sent = send(model, str(source), bind=endpoint, frames=frames, learn=False,
-                    start=ready)
+                    start=ready, stop=stop)
+        heard.wait(DRAIN_S)  # the last packets played out, then the receiver stops
+        heard.set()
         thread.join()
+        if stop.is_set():
+            raise SyncError(f"the receiver ended before it could play the stream: "
+                            f"{got.get('error') or got.get('ended')}")
+        load = round(os.getloadavg()[0], 1)
         received_lag, received_r, shown = _video_lag(out, progress) if out.is_file() \
             else (None, None, 0)
+        on_page: dict[str, Any] = {}
+        skipped = None if page else "not asked for"
+        if page:
+            try:
+                on_page = page_sync(model, source, frames, page_seconds, Path(scratch))
+                on_page["page_load_average"] = round(os.getloadavg()[0], 1)
+            except ChromiumMissing as missing:
+                skipped = str(missing)
     source_lag, source_r, _ = _video_lag(Path(source), progress, frames)
     quality, _ = speech_quality(source, losses=losses)
 
@@ -174,9 +211,13 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         "payload_kbps": sent["payload_kbps"],
         "total_kbps": round(sent["audio_kbps"] + sent["payload_kbps"], 3),
         **{k: got.get(k) for k in ("av_skew_ms_median", "av_skew_ms_p95", "av_skew_ms_p5",
-                                  "voice_glass_to_glass_ms_median", "voice_played",
+                                  "voice_glass_to_glass_ms_median",
+                                  "voice_glass_to_glass_ms_p95", "voice_own_ms_median",
+                                  "voice_own_ms_p95", "voice_extra_ms", "voice_stretched",
+                                  "voice_shrunk", "voice_played",
                                   "voice_concealed", "voice_late", "voice_corrupt",
-                                  "glass_to_glass_ms_median")},
+                                  "voice_target_ms", "glass_to_glass_ms_median")},
+        "load_average": load, **on_page, "page_skipped": skipped,
         "lip_lag_source_ms": ms(source_lag), "lip_lag_received_ms": ms(received_lag),
         "lip_corr_source": None if source_r is None else round(source_r, 3),
         "lip_corr_received": None if received_r is None else round(received_r, 3),
@@ -191,7 +232,13 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         f"kbit/s)",
         f"playout: sound behind the face by {summary['av_skew_ms_median']} ms median "
         f"({summary['av_skew_ms_p5']} to {summary['av_skew_ms_p95']} ms, 5-95 %); voice "
-        f"capture to playout {summary['voice_glass_to_glass_ms_median']} ms median",
+        f"capture to playout {summary['voice_glass_to_glass_ms_median']} ms median, "
+        f"{summary['voice_glass_to_glass_ms_p95']} ms p95, of which the voice's own path "
+        f"{summary['voice_own_ms_median']} ms median (load average {load})",
+        *([f"page: sound behind the face by {on_page['page_av_skew_ms_median']} ms median "
+           f"({on_page['page_av_skew_ms_p5']} to {on_page['page_av_skew_ms_p95']} ms, 5-95 %) "
+           f"over {on_page['page_skews']} frames in {on_page['page_seconds']} s"]
+          if on_page else [f"page: skipped: {skipped}"] if page else []),
         f"lip sync: sound after the mouth by {summary['lip_lag_received_ms']} ms received, "
         f"{summary['lip_lag_source_ms']} ms in the source: {summary['lip_lag_ms']} ms added",
         "PESQ-WB: " + ", ".join(f"{loss} % loss {score}" for loss, score in

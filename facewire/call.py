@@ -48,7 +48,8 @@ def call(model: str | os.PathLike[str], source: str, peer: str, bind: str = DEFA
          out: str | os.PathLike[str] | None = None, say: Say = lambda _: None,
          status: Callable[[str], None] | None = None,
          voice_bitrate: int = DEFAULT_BITRATE,
-         cache_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+         cache_dir: str | os.PathLike[str] | None = None, learn: bool = True
+         ) -> dict[str, Any]:
     """Run one side of a call (module docstring) until it ends.
 
     Args:
@@ -70,6 +71,7 @@ def call(model: str | os.PathLike[str], source: str, peer: str, bind: str = DEFA
         status: the receiver's status lines.
         voice_bitrate: this host's voice's Opus rate, bit/s.
         cache_dir: the model cache (``receiver.modelcache``; None: the user's).
+        learn: learn this host's unseen appearance as model updates (``send``'s ``learn``).
 
     Returns:
         ``{"send": send's summary, "receive": receive's summary, "view": URL or None}``.
@@ -84,7 +86,7 @@ def call(model: str | os.PathLike[str], source: str, peer: str, bind: str = DEFA
         try:
             sent.update(send(model, source, bind, curve_dir=curve_dir, stop=stop, loop=loop,
                              insecure=insecure, warn=say, audio=audio, mic=mic,
-                             voice_bitrate=voice_bitrate, start=ready))
+                             voice_bitrate=voice_bitrate, start=ready, learn=learn))
         except Exception as error:  # noqa: BLE001 - the call ends, and says why
             sent["error"] = f"{type(error).__name__}: {error}"
         finally:

@@ -179,7 +179,8 @@ def _call(args: argparse.Namespace) -> int:
                      args.speaker or "", not args.no_audio, args.loop, args.view_port,
                      args.insecure, args.idle_timeout, stop, args.out,
                      say=lambda text: print(f"facewire call: {text}", file=sys.stderr),
-                     status=line, voice_bitrate=round(args.voice_kbps * 1000))
+                     status=line, voice_bitrate=round(args.voice_kbps * 1000),
+                     learn=not args.no_learn)
     finally:
         signal.signal(signal.SIGINT, previous)
     sent, got = s["send"], s["receive"]
@@ -677,8 +678,20 @@ def _bench_sync(args: argparse.Namespace) -> int:
     from facewire.report import report
 
     report(*sync(args.model, args.source, losses(args.loss), _frames(args.frames),
-                 progress=_progress), args.json)
+                 progress=_progress, page=args.page, page_seconds=args.page_seconds),
+           args.json)
     return 0
+
+
+def _bench_call(args: argparse.Namespace) -> int:
+    from facewire.bench.callcheck import call_check
+    from facewire.report import report
+
+    summary, lines = call_check(args.model_a, args.source_a, args.model_b, args.source_b,
+                                args.seconds, learn=not args.no_learn, status=lambda line: print(
+                                    f"bench call: {line}", file=sys.stderr, flush=True))
+    report(summary, lines, args.json)
+    return 0 if summary["passed"] else 1
 
 
 def _bench_speech(args: argparse.Namespace) -> int:
@@ -908,6 +921,8 @@ def _add_send_receive(sub: Commands) -> None:
     c.add_argument("--curve-dir", help="this host's key folder; authorized/ holds the other "
                    "host's public key")
     c.add_argument("--loop", action="store_true", help="play a video file over and over")
+    c.add_argument("--no-learn", action="store_true", help="send no model updates (this "
+                   "host's unseen appearance is not learned)")
     c.add_argument("--view-port", type=int, default=0, help="the live view's port (default: "
                    "any free one)")
     c.add_argument("--out", help="also write the other side, with their voice, to this .mp4")
@@ -1051,8 +1066,25 @@ def _add_bench(sub: Commands) -> None:
     bsy.add_argument("--frames", help="frame range A:B of the video to send (default: all)")
     bsy.add_argument("--loss", default="0,10,30", metavar="L,L,...",
                      help="packet losses to score the speech at, percent (default %(default)s)")
+    bsy.add_argument("--page", action="store_true", help="also play the clip, looped, on the "
+                     "gateway's page in headless Chromium and measure the page's own skew")
+    bsy.add_argument("--page-seconds", type=float, default=10.0, metavar="S",
+                     help="the page's measuring window (default %(default)s)")
     _add_json(bsy)
     bsy.set_defaults(run=_bench_sync)
+    bca = bsub.add_parser("call", help="a call on one machine: two 'facewire call' processes, "
+                          "each sending a clip looped, checked for loss, memory (RSS every "
+                          "10 s) and sync over the whole call")
+    bca.add_argument("--model-a", required=True, help="side A's person model (.fwm)")
+    bca.add_argument("--source-a", required=True, help="side A's video (looped)")
+    bca.add_argument("--model-b", required=True, help="side B's person model (.fwm)")
+    bca.add_argument("--source-b", required=True, help="side B's video (looped)")
+    bca.add_argument("--seconds", type=float, default=600.0,
+                     help="the call's length (default %(default)s)")
+    bca.add_argument("--no-learn", action="store_true", help="both sides send no model "
+                     "updates (memory then holds no learned versions)")
+    _add_json(bca)
+    bca.set_defaults(run=_bench_call)
     bsp = bsub.add_parser("speech", help="the voice's speech quality (PESQ-WB) through its "
                           "real packets and jitter buffer at packet losses, against the source "
                           "and the codec alone, one line per clip (no face, no model)")

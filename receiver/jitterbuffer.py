@@ -29,6 +29,13 @@ What a pull plays, for the frame ``n`` whose turn it is:
   jitter history) and primes again on the next packet (``resets``), so a sender that pauses
   is followed by silence, not by a concealment that fades forever.
 
+Sync. The player (``receiver.voiceplayer``) keeps the sound with the face, whose latency is
+the larger on a receiver that renders: ``stretch()`` makes the next pull a frame of Opus's
+concealment without taking a frame (``stretched``), so that every frame after it plays 20 ms
+later, and raises ``target`` by one frame (``extra``, at most ``MAX_EXTRA``) so that the depth
+won is kept; ``shrink()`` undoes one: it drops the frame whose turn is next (``shrunk``) and
+lowers ``extra`` by one. ``target`` is the jitter's depth plus ``extra``.
+
 A packet for a frame already played is ``late``; a second copy of a buffered frame a
 ``duplicate``; a packet more than ``MAX_AHEAD`` frames ahead of the frame to play (a sender
 that restarted at another number) resets the buffer to it. A packet whose Opus bytes do not
@@ -51,6 +58,7 @@ SLACK = 3
 JITTER_PACKETS = 50
 MAX_CONCEALED = 10
 MAX_AHEAD = 250  # 5 s
+MAX_EXTRA = 50  # 1 s: the most the sound waits for the face
 
 
 class JitterBuffer:
@@ -64,17 +72,44 @@ class JitterBuffer:
         self._next: int | None = None  # the frame to play next; None: priming
         self._first: int | None = None  # the stream's first buffered frame while priming
         self._concealed_run = 0
+        self._hold = 0  # pulls to fill with concealment before the next frame (stretch)
+        self.extra = 0  # frames of depth beyond the jitter's, for sync
         self.pulled: int | None = None  # the extended number of the last pull's frame
         self.stats = dict.fromkeys(("received", "played", "recovered", "concealed", "silent",
-                                    "late", "duplicate", "dropped", "corrupt", "resets"), 0)
+                                    "late", "duplicate", "dropped", "corrupt", "resets",
+                                    "stretched", "shrunk"), 0)
 
     @property
     def target(self) -> int:
-        """The depth the buffer primes to, in frames (module docstring)."""
+        """The depth the buffer primes to and keeps, in frames (module docstring)."""
         if len(self._offsets) < 2:
-            return MIN_DEPTH
+            return MIN_DEPTH + self.extra
         jitter = max(self._offsets) - min(self._offsets)
-        return min(MAX_DEPTH, max(MIN_DEPTH, math.ceil(jitter / FRAME_S) + 1))
+        return min(MAX_DEPTH, max(MIN_DEPTH, math.ceil(jitter / FRAME_S) + 1)) + self.extra
+
+    def stretch(self) -> bool:
+        """Play the sound one frame later from the next pull on (module docstring, "Sync");
+        False when it is at ``MAX_EXTRA`` already."""
+        if self.extra >= MAX_EXTRA:
+            return False
+        self.extra += 1
+        if self._next is not None:  # while priming, the deeper target alone waits the frame
+            self._hold += 1
+        return True
+
+    def shrink(self) -> bool:
+        """Play the sound one frame sooner (module docstring, "Sync"); False without a stretch
+        to undo."""
+        if self.extra == 0:
+            return False
+        self.extra -= 1
+        if self._hold:
+            self._hold -= 1
+        elif self._next is not None:
+            self._packets.pop(self._next, None)
+            self._next += 1
+            self.stats["shrunk"] += 1
+        return True
 
     @property
     def depth(self) -> int:
@@ -115,6 +150,10 @@ class JitterBuffer:
                 self.stats["silent"] += 1
                 return np.zeros(FRAME_SAMPLES, np.int16)
             self._next = self._first
+        if self._hold:
+            self._hold -= 1
+            self.stats["stretched"] += 1
+            return self._decoder.conceal()
         while self.depth > self.target + SLACK:
             self._packets.pop(self._next, None)
             self._next += 1
@@ -157,4 +196,4 @@ class JitterBuffer:
         self._packets.clear()
         self._offsets.clear()
         self._next = self._first = self._newest = None
-        self._concealed_run = 0
+        self._concealed_run = self._hold = 0

@@ -25,6 +25,21 @@ streams' own delays count. Over the session: ``av_skew_ms_median``, ``av_skew_ms
 5th: how far ahead, when negative); ITU-R BT.1359 finds sound noticed from 45 ms ahead of
 the picture or 125 ms behind it.
 
+Keeping them together. A receiver that renders shows the face later after its capture than
+it plays the sound (tracking, rendering and the face's playout against a jitter buffer of a
+few frames), so the player holds the sound back to the face's latency: after each frame
+played whose skew is known, with ``face_latency`` the median latency of the last
+``FACE_FRAMES`` face frames out, a sound ahead of the face by more than ``AHEAD_S`` is
+stretched by one frame (``receiver.jitterbuffer``'s ``stretch``), and one behind by more than
+``BEHIND_S`` shrunk by one (``shrink``, only a stretch is undone: the voice's own path is never
+cut), at most one change per ``ADJUST_EVERY`` frames, so the sound walks to the face at 20 ms
+per 60 ms played rather than jumping; but the first time the skew is known (the stream's
+first frames, whose sound would otherwise lead the face while it walks) the whole wait is
+taken at once. The window kept, -``AHEAD_S`` to ``BEHIND_S``, sits
+inside BT.1359's -45 to +125 ms. The buffer waits at most ``jitterbuffer.MAX_EXTRA`` frames
+(1 s) for the face: a face later than that leaves the sound ahead. ``voice_extra_ms`` in the
+summary is the wait at the end.
+
 Thread safety: ``push`` runs on the packet thread, the pull on the device's or the clock's,
 ``face`` and ``summary`` on the render loop's; one lock guards the buffer and the records.
 """
@@ -47,6 +62,10 @@ from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
 VOICE_RATE_HZ = 1.0 / FRAME_S  # voice frames are slots of 50 Hz on the sender's clock
 FACE_STALE_S = 0.5  # a face frame older than this is no reference for the skew
 SKEWS_KEPT = 30_000  # 10 minutes of voice frames
+FACE_FRAMES = 25  # the face latency followed: the median of the last second's frames
+AHEAD_S = 0.02  # sound ahead of the face by more: stretched
+BEHIND_S = 0.06  # sound behind the face by more: a stretch undone
+ADJUST_EVERY = 3  # frames played between two changes
 
 OnSound = Callable[[np.ndarray, float], None]
 ToLocal = Callable[[int, float], float | None]
@@ -72,14 +91,19 @@ class VoicePlayer:
         self._lock = threading.Lock()
         self._on_sound, self._to_local = on_sound, to_local
         self._face: tuple[float, float] | None = None  # the last face frame's (capture, out)
+        self._face_latencies: deque[float] = deque(maxlen=FACE_FRAMES)
+        self._since_change = 0  # frames heard since the last stretch or shrink
+        self._joined = False  # the sound has been brought to the face once
         self.skews: deque[float] = deque(maxlen=SKEWS_KEPT)
         self.latencies: deque[float] = deque(maxlen=SKEWS_KEPT)  # capture to out, s
+        self.own: deque[float] = deque(maxlen=SKEWS_KEPT)  # the same less the wait for the face
         self.corrupt: dict[str, int] = {}
         self.bytes = 0
         self.first: float | None = None  # the first arrival
         self.last: float | None = None
         self.device = "none"
         self._pulled: int | None = None  # the frame of the last pull (player's thread)
+        self._sounding = False  # the last pull was the stream's sound, not priming's silence
         self._output: Speaker | SoundClock
         if speaker is not None:
             try:
@@ -114,11 +138,13 @@ class VoicePlayer:
         """A face frame captured at ``capture`` was out at ``out`` (this host's clock)."""
         with self._lock:
             self._face = (capture, out)
+            self._face_latencies.append(out - capture)
 
     def _pull(self) -> np.ndarray:
         with self._lock:
             pcm = self._buffer.pull()
             self._pulled = self._buffer.pulled
+            self._sounding = self._buffer.playing is not None  # a frame, or a stretch's
         return pcm
 
     def _heard(self, pcm: np.ndarray, out: float) -> None:
@@ -128,11 +154,29 @@ class VoicePlayer:
             with self._lock:
                 if capture is not None:
                     self.latencies.append(out - capture)
+                    self.own.append(out - capture - self._buffer.extra * FRAME_S)
                 face = self._face
                 if capture is not None and face is not None and out - face[1] < FACE_STALE_S:
                     self.skews.append((out - capture) - (face[1] - face[0]))
-        if self._on_sound is not None and n is not None:
+                    self._follow(out - capture)
+        if self._on_sound is not None and self._sounding:
             self._on_sound(pcm, out)
+
+    def _follow(self, latency: float) -> None:
+        """Stretch or shrink the sound toward the face's latency (module docstring, "Keeping
+        them together"); ``latency``: the frame just heard's. Under the lock."""
+        skew = latency - float(np.median(self._face_latencies))
+        if not self._joined:  # the first skew known: the whole wait at once
+            self._joined = True
+            while skew < -AHEAD_S and self._buffer.stretch():
+                skew += FRAME_S
+            self._since_change = 0
+            return
+        self._since_change += 1
+        if self._since_change < ADJUST_EVERY:
+            return
+        if skew < -AHEAD_S and self._buffer.stretch() or skew > BEHIND_S and self._buffer.shrink():
+            self._since_change = 0
 
     def close(self) -> None:
         """Stop the device or the clock."""
@@ -140,14 +184,18 @@ class VoicePlayer:
 
     def summary(self) -> dict[str, Any]:
         """``voice_*`` counts (``receiver.jitterbuffer``'s, ``voice_corrupt`` with the packets
-        that did not decode), ``voice_target_ms`` (the buffer's depth), ``audio_kbps`` (voice
+        that did not decode), ``voice_target_ms`` (the buffer's depth), ``voice_extra_ms`` (of
+        it, the wait for the face: module docstring), ``audio_kbps`` (voice
         packets' bytes over their span), ``av_skew_ms_median``, ``_p95``, ``_p5``,
-        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples)
-        and ``speaker`` (the device, or "none")."""
+        ``voice_glass_to_glass_ms_median`` and ``_p95`` (capture to out; None without samples),
+        ``voice_own_ms_median`` and ``_p95`` (the same less the wait for the face: the
+        voice's own path, what a call without a face would hear) and ``speaker`` (the device,
+        or "none")."""
         with self._lock:
             stats = dict(self._buffer.stats)
             skews = np.array(self.skews) * 1000
             latencies = np.array(self.latencies) * 1000
+            own = np.array(self.own) * 1000
             span = (self.last - self.first) if self.first is not None and self.last else 0.0
             corrupt = sum(self.corrupt.values())
         def pct(q: float, values: np.ndarray = skews) -> float | None:
@@ -156,11 +204,14 @@ class VoicePlayer:
         return {**{f"voice_{k}": v for k, v in stats.items() if k != "corrupt"},
                 "voice_corrupt": corrupt + stats["corrupt"],
                 "voice_target_ms": round(self._buffer.target * FRAME_S * 1000),
+                "voice_extra_ms": round(self._buffer.extra * FRAME_S * 1000),
                 "audio_kbps": round(self.bytes * 8 / span / 1000, 3) if span > 0 else 0.0,
                 "av_skew_ms_median": pct(50), "av_skew_ms_p95": pct(95),
                 "av_skew_ms_p5": pct(5),
                 "voice_glass_to_glass_ms_median": pct(50, latencies),
-                "voice_glass_to_glass_ms_p95": pct(95, latencies), "speaker": self.device}
+                "voice_glass_to_glass_ms_p95": pct(95, latencies),
+                "voice_own_ms_median": pct(50, own), "voice_own_ms_p95": pct(95, own),
+                "speaker": self.device}
 
 
 def voice_capture(seq: int, origin_s: float, near_s: float) -> float:

@@ -28,11 +28,12 @@ from facewire.protocol.transport import (
     control_endpoint,
     free_loopback_endpoint,
 )
-from facewire.receiver.jitterbuffer import MAX_DEPTH, JitterBuffer
+from facewire.receiver.jitterbuffer import MAX_DEPTH, MAX_EXTRA, JitterBuffer
 from facewire.receiver.output import VideoWriter
 from facewire.receiver.receiver import receive
 from facewire.receiver.replay import replay_log
 from facewire.receiver.speaker import SoundClock, Speaker, SpeakerError
+from facewire.receiver.voiceplayer import AHEAD_S, BEHIND_S, VoicePlayer, voice_capture
 from facewire.sender.pipeline import encode_video
 from facewire.sender.sender import send
 from facewire.sender.voice import FileVoice, MicVoice, VoiceSourceError, VoiceThread
@@ -185,6 +186,70 @@ def test_the_buffer_plays_through_jitter_reordering_loss_and_a_wrap(
     assert 3 <= buffer.target <= MAX_DEPTH
     assert stats["played"] >= int((~lost).sum()) - stats["late"] - stats["dropped"]
     assert _aligned_r(frames, played) > 0.85
+
+
+def test_a_stretch_plays_the_rest_a_frame_later_and_a_shrink_undoes_it(
+        speech: np.ndarray) -> None:
+    """Five stretches at frame 30: five pulls of concealment, then every frame on in order,
+    none dropped (the deeper target keeps the depth won); five shrinks at frame 60 skip five
+    frames; a stretch past ``MAX_EXTRA`` is refused."""
+    packets = _packets(speech[:100])
+    buffer = JitterBuffer()
+    pulled: list[int | None] = []
+    for tick in range(140):
+        if tick < len(packets):
+            buffer.push(voice.VoicePacket(tick, packets[tick]), tick * opus.FRAME_S + 0.005)
+        if pulled and pulled[-1] == 30:
+            assert all(buffer.stretch() for _ in range(5))
+        if pulled and pulled[-1] == 60:
+            assert all(buffer.shrink() for _ in range(5))
+        buffer.pull()
+        pulled.append(buffer.pulled)
+    frames = [n for n in pulled if n is not None]
+    at = pulled.index(30)
+    assert pulled[at + 1:at + 6] == [None] * 5 and pulled[at + 6] == 31
+    assert frames[:61] == list(range(61)) and frames[61] == 66  # 61-65 skipped
+    assert frames[61:95] == list(range(66, 100))  # then concealment past the last
+    stats = buffer.stats
+    assert (stats["stretched"], stats["shrunk"], stats["dropped"], buffer.extra) == (5, 5, 0, 0)
+    assert not buffer.shrink()  # nothing left to undo
+    buffer.extra = MAX_EXTRA
+    assert not buffer.stretch()
+
+
+@pytest.mark.parametrize("face_s", [0.3, 0.1])
+def test_the_player_holds_the_sound_back_to_the_faces_latency(speech: np.ndarray,
+                                                              face_s: float) -> None:
+    """The clip's voice in real packets, 5 ms of transit, pulled every 20 ms on the test's
+    clock beside a face shown ``face_s`` after its capture (a receiver that renders), then
+    0.1 s after: the sound walks to the face's latency and stays within -AHEAD_S..BEHIND_S
+    of it, and back when the face speeds up."""
+    packets = _packets(speech[:400])
+    origin = 1000.0
+    player = VoicePlayer(None, None, lambda _: None,
+                         lambda seq, near: voice_capture(seq, origin, near))
+    player.close()  # the test's clock pulls, not the player's own
+    latency = face_s
+    for tick in range(len(packets) + 60):
+        t = origin + tick * opus.FRAME_S
+        if tick == 200:
+            latency = 0.1  # the face speeds up
+        if 1 <= tick <= len(packets):  # frame j released at origin + (j + 1) 20 ms
+            player.push(voice.encode(voice.VoicePacket(tick - 1, packets[tick - 1])),
+                        t + 0.005)
+        player.face(t - latency, t)
+        player._heard(player._pull(), t)
+        if tick in (190, len(packets) - 10):  # settled: the last second within the window
+            recent = np.array(player.skews)[-50:]
+            assert -AHEAD_S - 1e-9 <= recent.min() and recent.max() <= BEHIND_S + 1e-9, \
+                (tick, recent)
+    got = player.summary()
+    assert got["voice_stretched"] >= round((face_s - 0.1) / opus.FRAME_S)
+    # every frame played but those a shrink skipped, when the face sped up
+    assert got["voice_played"] + got["voice_shrunk"] == len(packets)
+    assert got["voice_dropped"] == got["voice_late"] == 0
+    assert (got["voice_shrunk"] > 0) == (face_s > 0.1)
+    assert got["voice_extra_ms"] <= 100
 
 
 def test_packets_carry_fec_only_at_rates_over_the_voices_budget(speech: np.ndarray) -> None:
@@ -520,7 +585,8 @@ def test_receive_plays_the_voice_into_the_file_and_measures_the_sync(
     assert got["av_skew_ms_median"] is not None  # measured (its size: bench sync)
     sound = read_sound(out)
     assert sound is not None
-    heard = (got["voice_played"] + got["voice_recovered"] + got["voice_concealed"]) * opus.FRAME_S
+    heard = (got["voice_played"] + got["voice_recovered"] + got["voice_concealed"]
+             + got["voice_stretched"]) * opus.FRAME_S
     assert sound.seconds == pytest.approx(heard, abs=0.5)
 
 

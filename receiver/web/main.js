@@ -34,7 +34,9 @@
  *
  * The voice (voice.js): a binary message whose first nibble is the voice's kind goes to the
  * page's voice, which plays it through WebAudio in step with the face (after the user's first
- * click, as browsers require, or at once where the page may play).
+ * click, as browsers require, or at once where the page may play). WebCodecs exists only in a
+ * secure context (https, or localhost): elsewhere the first voice packet puts on the status
+ * line, once, that the voice needs https or localhost, and the face plays on without it.
  *
  * ``window.facewire`` (for tests): ``state`` (the last FrameState played), ``stats`` (stats.js
  * live statistics, refreshed with the panel), ``voice`` (voice.js's counts and skews), ``playout`` (its counts), ``counts`` (messages,
@@ -57,6 +59,8 @@ const RECONNECT_MAX_S = 30.0;
 const UPDATE_RETRY_MIN_S = 1.0; // a refused update is asked again, backing off as receiver/updates.py
 const UPDATE_RETRY_MAX_S = 30.0;
 const PANEL_EVERY_MS = 250;
+// the status line's part when the stream has a voice this page cannot play (voice.js start())
+const VOICE_MISSING = "no sound: the voice needs https or localhost (this browser gives WebCodecs and WebAudio only there)";
 const TIMED_EVERY = 8; // one drawn frame in 8 is timed until drawn (stats.js's frame time)
 const QUIET_S = 1.0; // no packet for longer: said on the status line (receiver/stats.py)
 const MAX_TEXT_CHARS = 1000; // protocol/control.py: what a peer's text is cut to
@@ -136,12 +140,12 @@ class Page {
     this.lastPacket = null;
     this.stats = new PageStats();
     this.voice = new PageVoice(now, this.stats); // voice.js: after a click, or where allowed
-    this.voice.start();
+    this.voiceOn = this.voice.start(); // false: no WebCodecs or WebAudio (not a secure context)
     document.addEventListener("click", () => this.voice.resume());
     this.counts = {messages: 0, packets: 0, bytes: 0, decoded: 0, ignored: 0, junk: 0, clamped: 0,
       corrupt: {size: 0, version: 0, crc: 0, reserved: 0, type: 0},
       statuses: Object.fromEntries(STATUSES.map((status) => [status, 0]))};
-    this.text = {link: "connecting", sender: "", model: "", problem: "", engine: ""};
+    this.text = {link: "connecting", sender: "", model: "", problem: "", engine: "", voice: ""};
     this.live = this.stats.live(now());
     const page = this;
     window.facewire = {
@@ -228,6 +232,10 @@ class Page {
     const bytes = new Uint8Array(data);
     if (isVoice(bytes)) { // the voice: voice.js, beside the face's playout
       this.voice.push(bytes, arrival);
+      if (!this.voiceOn && this.text.voice === "") {
+        this.text.voice = VOICE_MISSING;
+        this.panel();
+      }
       return;
     }
     this.counts.packets += 1;
@@ -433,7 +441,8 @@ class Page {
     this.live = this.stats.live(t);
     const quiet = this.playout !== null && this.lastPacket !== null && t - this.lastPacket > QUIET_S
       ? `no packets for ${(t - this.lastPacket).toFixed(0)} s` : "";
-    const parts = [this.text.link, this.text.sender, quiet, this.text.problem, this.text.engine, this.text.model];
+    const parts = [this.text.link, this.text.sender, quiet, this.text.problem, this.text.engine, this.text.model,
+      this.text.voice];
     $("status").textContent = parts.filter(Boolean).join(" · ");
     const s = this.live;
     const show = (id, value) => { $(id).textContent = value; };
