@@ -508,6 +508,9 @@ class _Session:
         if not self.stream_played:
             self.stream_played = True
             self.stats.counts["streams"] += 1
+        capture = self._capture(state)
+        if capture is not None:  # a sender that moved its clock's origin (receiver.link)
+            self.link.note_lateness(state.arrival_s - capture, time.monotonic())
         for concealed in self.pending:
             self.stats.counts["lost"] += 1
             self._emit(concealed, None, None, None)
@@ -516,7 +519,7 @@ class _Session:
         latency = time.monotonic() - state.arrival_s
         if self.view is not None:
             self.view(image, self._live(state))
-        self._emit(state, image, latency, self._capture(state))
+        self._emit(state, image, latency, capture)
 
     def _recheck(self) -> bool:
         """Ask for the Hello again (``receiver.link``: a restart, a stream resumed, a Hello
