@@ -43,9 +43,9 @@ frame is rendered with the version its packet names, the one the sender classifi
 renders it (a replay of the session's log shows the same: ``receiver.replay``);
 ``model_updates`` lists each version past the model file's by ``serial``, what made it
 (``kind``: ``"state"``, a learned state, or ``"patch"``, the healing's texture patch) and the
-video frame of the first packet that refers to it (``first_frame``), and ``q_regions``' layer counts are
-the last version's. The texture's confidence and its healing (``texture_confidence_mean``,
-``patches``, ``first_patch_s``) are ``bench.healing``'s.
+video frame of the first packet that refers to it (``first_frame``), and ``q_regions``' layer
+counts are the last version's. The texture's confidence and its healing
+(``texture_confidence_mean``, ``patches``, ``first_patch_s``) are ``bench.healing``'s.
 
 What the viewer sees (``bench.render_nme``). The project's tracker runs afresh (a new
 full-frame detection per image, nothing carried from frame to frame) on the real frame, on

@@ -45,7 +45,10 @@ several: a hand's tiles are mostly neighbours); its PNG bytes are counted so. Be
 is issued, the held frames it is made of are
 asked for hands (``sender.enroll.occluders``, MediaPipe's hand tracker: a hand that
 moves with the face and agrees with itself would otherwise be painted in); a frame with a
-hand on the face is dropped and the correction waits for clean ones. A patch is applied at
+hand on the face is dropped and the correction waits for clean ones. The hand tracker is made
+with the healer (MediaPipe's import and start, 0.8 s on this machine, mostly holding the GIL:
+paid before a live stream's first frame, not by a frame mid-stream, whose sender it stalled
+past the slots' ``MAX_LAG_S``). A patch is applied at
 once to the learner's model; the held reads (differences against the old model) are then
 forgotten.
 
@@ -148,7 +151,7 @@ class Healer:
         self._frames = 0
         self._rest_until = 0  # no read before this frame (a hand was found)
         self.fresh = 0  # reads since the last look for a correction
-        self._finder: OccluderFinder | None = None
+        self._finder: OccluderFinder | None = OccluderFinder()
         self._patched: dict[tuple[int, int], int] = {}  # tile -> the read count it was patched at
         self.take(model)
 
@@ -300,8 +303,7 @@ class Healer:
 
     def _hands(self, reads: list[_Read]) -> bool:
         """Whether any of ``reads``' frames has a hand on the face (each asked once)."""
-        if self._finder is None:
-            self._finder = OccluderFinder()
+        assert self._finder is not None, "the healer was closed"
         for r in reads:
             if r.hand is None:
                 r.hand = self._finder.find(r.image, r.points).occluded
@@ -357,7 +359,7 @@ class Healer:
         return tiles
 
     def close(self) -> None:
-        """Free the hand tracker, if made."""
+        """Free the hand tracker (a second call does nothing)."""
         if self._finder is not None:
             self._finder.close()
         self._finder = None
