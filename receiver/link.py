@@ -33,7 +33,9 @@ State machine
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
     frame), or announces a voice without its origin (``voice_origin_s``: asked before the
     voice began), and a packet came, from a sender that answers time requests (an older one
-    does not, and its Hello never has the clock): asked once per Hello taken.
+    does not, and its Hello never has the clock): asked again every ``RECHECK_EVERY_S`` while
+    the Hello taken lacks it (the answer to the first ask can come before the voice begins,
+    as it did on a loaded CI run: asked once, the voice's capture times stayed unknown).
 
 - DUE: the caller asks at once (``RECHECK_TIMEOUT_S``); unanswered, again from
   ``next_check``, every ``RECHECK_EVERY_S``. Meanwhile the receiver renders on, the gateway
@@ -52,6 +54,7 @@ carries no session identity).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -117,7 +120,7 @@ class SenderLink:
         self.hellos = 0
         self._last_arrival: float | None = None
         self._last_seq: int | None = None
-        self._clock_asked = False
+        self._clock_asked_at = -math.inf  # when a Hello without its origins was last asked
         self._lateness_asked = 0.0  # the lateness that last made a recheck due (this origin)
         self._lateness_at = -RECHECK_EVERY_S  # and when (monotonic s)
 
@@ -153,7 +156,7 @@ class SenderLink:
     def take(self, hello: Hello) -> None:
         """The Hello now played (or served): later answers are classified against it."""
         if _origins(hello) != (_origins(self.hello) if self.hello else None):
-            self._clock_asked = False
+            self._clock_asked_at = -math.inf
             self._lateness_asked = 0.0
         self.hello = hello
 
@@ -194,13 +197,14 @@ class SenderLink:
         self._last_arrival = arrival
         if seq is not None:
             self._last_seq = seq
-        clockless = clocked and self.hello is not None and not self._clock_asked and (
-            self.hello.clock_origin_s is None or
-            self.hello.voice_bitrate is not None and self.hello.voice_origin_s is None)
+        clockless = clocked and self.hello is not None and \
+            arrival >= self._clock_asked_at + RECHECK_EVERY_S and (
+                self.hello.clock_origin_s is None or
+                self.hello.voice_bitrate is not None and self.hello.voice_origin_s is None)
         if clockless:
-            self._clock_asked = True
+            self._clock_asked_at = arrival
         if resumed or jumped:
-            self._clock_asked = False
+            self._clock_asked_at = -math.inf
         if resumed or jumped or clockless:
             self.due, self.next_check = True, 0.0
         return resumed or jumped
@@ -219,7 +223,7 @@ class SenderLink:
     def note_restart(self) -> None:
         """The playout resynced: a new stream, perhaps of a restarted sender."""
         self.due, self.next_check = True, 0.0
-        self._clock_asked = False
+        self._clock_asked_at = -math.inf
 
     def check_due(self, now: float) -> bool:
         """Whether to ask for the Hello now."""

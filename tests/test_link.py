@@ -59,3 +59,24 @@ def test_a_sender_far_behind_is_asked_at_most_every_recheck_period(link: SenderL
     link.take(dataclasses.replace(HELLO, clock_origin_s=100.6))
     assert not link.note_lateness(MAX_LAG_S + 0.1, 10.0 + RECHECK_EVERY_S / 2)
     assert link.note_lateness(MAX_LAG_S + 0.1, 10.0 + RECHECK_EVERY_S)
+
+
+def test_a_hello_without_the_voices_origin_is_asked_again_until_it_has_it(
+        link: SenderLink) -> None:
+    """The first ask's answer can come before the voice begins (still no origin): the link
+    asks again every ``RECHECK_EVERY_S`` while packets come, and no more once it has it."""
+    voiceless = dataclasses.replace(HELLO, voice_bitrate=9600, voice_origin_s=None)
+    link.take(voiceless)
+    assert link.note_packet(10.0, 1) is False and link.due
+    link.due = False
+    link.take(voiceless)  # answered before the voice began: the same Hello
+    for k in range(1, 20):
+        link.note_packet(10.0 + k * RECHECK_EVERY_S / 20, 1 + k)
+    assert not link.due
+    link.note_packet(10.0 + RECHECK_EVERY_S, 20)
+    assert link.due
+    link.due = False
+    link.take(dataclasses.replace(voiceless, voice_origin_s=100.04))
+    for k in range(1, 40):  # its origin known: never asked again for it
+        link.note_packet(10.0 + RECHECK_EVERY_S + k * RECHECK_EVERY_S / 10, 20 + k)
+    assert not link.due
