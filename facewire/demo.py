@@ -302,8 +302,12 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         thread = threading.Thread(target=run_receiver, name="facewire demo receiver")
         thread.start()
         try:
+            # no healing: on the embedded performance's clean enrollment it made 8 patches
+            # of the views' noise in 7 s, and applying them stalled this one process (both
+            # hosts' work) until its receiver restarted the stream (docs/DESIGN.md, "Texture
+            # patches")
             sent = send(model_path, str(video), endpoint, record, rate_hz, stop=sender_stop,
-                        frames=frames, start=ready)
+                        frames=frames, start=ready, heal=False)
             recorder.wait_packets(sent["packets"], QUIET_S)
         finally:
             receiver_stop.set()

@@ -197,7 +197,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
          curve_dir: str | os.PathLike[str] | None = None, status: Status | None = None,
          stop: threading.Event | None = None, loop: bool = False,
          frames: slice = slice(0, None), start: threading.Event | None = None,
-         learn: bool = True, updates: UpdateStore | None = None,
+         learn: bool = True, updates: UpdateStore | None = None, heal: bool = True,
          insecure: bool = False,
          warn: Callable[[str], None] | None = None,
          clock: Clock = time.monotonic, audio: bool = True, mic: str | None = None,
@@ -226,6 +226,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         updates: the session's model updates as served to receivers, or None for a store of
             the sender's own; the updates the pipeline learns are published into it, and
             others may be from any thread (``UpdateStore.publish_update``).
+        heal: while learning, heal the base texture too (``sender.heal``: texture patches).
         insecure: listen without CURVE beyond loopback all the same (module docstring).
         warn: called once, before streaming (the model, source and sockets accepted),
             with ``sender.pipeline.identity_warning``'s line when the model cannot hold its
@@ -273,7 +274,7 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         server = stack.enter_context(ControlServer(control_at, curve))
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
-                                  learn=learn, background=True)
+                                  learn=learn, background=True, heal=heal)
         identity = identity_warning(model, model_path)
         if identity is not None and warn is not None:  # once the source and sockets are up
             warn(identity)
