@@ -17,7 +17,9 @@ A read. One frame in ``EVERY`` is read when it is clean (none for ``HAND_REST`` 
 hand was found on the face): a pose fitted and not just lost or
 re-acquired, the head within ``MAX_YAW_DEG`` of frontal, the face box sharp (the learner's
 test, ``sender.clean.sharpness``). A cell takes part when its normal faces the camera with
-cos at least ``FRONTAL_COS`` and it lies outside the regions that move (``MOVING``: the
+cos at least ``FRONTAL_COS``, no other cell of the box lies in front of it
+(``sender.texels``' occlusion test: the neck below the chin reads the chin) and it lies
+outside the regions that move (``MOVING``: the
 eyeballs and eyelids, with the gaze, and the mouth's interior, with the jaw: their states
 are the learning's). What the model draws there, E, is the base texture with the
 regions composited at the frame's Q (``receiver.render``'s blend, at the grid's
@@ -30,10 +32,9 @@ A correction. Per cell seen in at least ``MIN_VIEWS`` held reads: the median dif
 d (per channel) and the views' spread, the median absolute deviation of their luma
 differences. The cell needs healing when the views agree (spread under ``SPREAD_LEVELS``)
 and either disagree with the model (|luma d| smoothed by a Gaussian of ``SMOOTH`` cells
-over ``DEPART_LEVELS``) or the model hardly saw it (confidence under ``LOW_CONFIDENCE``:
-on lp_d0's own model, built from clean frames, 46 % of the cells the healing sees are under
-40 of 255 and 66 % under 90, so a higher bound healed the ordinary differences between
-views, 24 tiles at its first look on the frames the model was built from) and d is over
+over ``DEPART_LEVELS``) or the model hardly saw it (confidence under ``LOW_CONFIDENCE``,
+a texel no view saw or only at a grazing angle; on lp_d0's own model, built from clean
+frames, 4 % of the cells the healing sees are under 90 of 255) and d is over
 ``NOISE_LEVELS``. d is smoothed over the seen cells by the same Gaussian
 (the views' noise would bloat the patch's PNG by a third). The cells that need it, grown
 by ``GROW`` cells and feathered, take their d; a tile of ``TILE`` x ``TILE`` cells is
@@ -234,7 +235,7 @@ class Healer:
             q: (R,) the frame's Q per region (the classifier's).
         """
         colour, seen, _, _ = self.area.read(self.camera, image, rotation, translation,
-                                            residuals)
+                                            residuals, occlusion=True)
         facing = (self.area.normals @ np.asarray(rotation, np.float32).T)[..., 2]
         ok = seen & (facing >= FRONTAL_COS) & ~self.moving
         expected = self.expected(q)

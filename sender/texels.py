@@ -10,10 +10,16 @@ agree). Read from a frame with the pose and residuals the sender sent:
     P' = P + W r    (the rig's morph, ``sender.appearance.SurfacePoints``)
     (x, y) = project(R P' + t)   and the frame read there bilinearly,
 
-with no occlusion test (a closed mouth paints its lips into the hidden mouth interior,
-which is what the sender's camera sees there). A texel is *seen* when its triangle exists,
-its normal, rotated into the camera frame, faces the camera (z > 0.05) and (x, y) lies on
-the image; others keep the base texture.
+with no occlusion test by default (a closed mouth paints its lips into the hidden mouth
+interior, which is what the sender's camera sees there). A texel is *seen* when its
+triangle exists, its normal, rotated into the camera frame, faces the camera (z > 0.05) and
+(x, y) lies on the image; others keep the base texture. With ``occlusion``, a texel is seen
+only when no other texel of the area lies in front of it: the seen texels' distances
+d = -Z are kept per ``DEPTH_BIN`` x ``DEPTH_BIN`` pixel bin as their least, that least
+spread over the 3 x 3 bins around (a texel's own surface leaves no gaps between bins), and a
+texel more than ``DEPTH_TOLERANCE`` behind the least at its bin is hidden (the neck below
+the chin, a cheek behind the nose: the healing's cells, which the enrollment's depth test
+also hides, read the chin there, and patched it into the neck).
 
 Where the texels' surface comes from: enrollment has the model's UV surface from its
 rasteriser (``sender.enroll.texture.uv_surface``, OpenGL) and passes each area's part of
@@ -53,6 +59,8 @@ SHADED = ("forehead", "brow_furrow")  # skin regions whose layers take the base'
 SHADING_SIGMA = 0.15  # the shading field's Gaussian, times the area's shorter side
 SHADING_LIMITS = (0.8, 1.25)  # the shading field's bounds
 FACING = 0.05  # a texel is seen when its normal's camera z is over this
+DEPTH_BIN = 2  # px, the side of the occlusion test's bins
+DEPTH_TOLERANCE = 10.0  # mm behind the nearest texel at a bin that a texel may lie and be seen
 
 
 def welded_normals(mesh: Mesh) -> np.ndarray:
@@ -147,7 +155,7 @@ class AreaTexels:
         self.normals = np.asarray(normals, np.float32)
 
     def read(self, camera: Intrinsics, image: np.ndarray, rotation: np.ndarray,
-             translation: np.ndarray, residuals: np.ndarray
+             translation: np.ndarray, residuals: np.ndarray, occlusion: bool = False
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The area's texels read from a frame (module docstring).
 
@@ -155,18 +163,40 @@ class AreaTexels:
             camera: the intrinsics; image: (H, W, 3) uint8 BGR frame.
             rotation: (3, 3) the sent pose's rotation; translation: (3,) mm.
             residuals: (9, 3) the sent residuals, mm.
+            occlusion: texels behind others of the area are not seen.
 
         Returns:
             (h, w, 3) float32 RGB, (h, w) bool where seen, and the texels' projections
             x, y: (h, w) float32 px each.
         """
         h, w = self.valid.shape
-        x, y = project(self.points.positions(residuals), rotation, translation, camera)
+        positions = self.points.positions(residuals)
+        x, y = project(positions, rotation, translation, camera)
         x, y = x.reshape(h, w), y.reshape(h, w)
         colour = bilinear(image, x, y)[..., ::-1]  # BGR read, RGB out
         facing = (self.normals @ np.asarray(rotation, np.float32).T)[..., 2] > FACING
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
-        return colour, self.valid & facing & on_image, x, y
+        seen = self.valid & facing & on_image
+        if occlusion:
+            rotation = np.asarray(rotation, np.float32)
+            distance = -(positions @ rotation[2] + np.float32(translation[2])).reshape(h, w)
+            seen &= _in_front(x, y, distance, seen, image.shape[:2])
+        return colour, seen, x, y
+
+
+def _in_front(x: np.ndarray, y: np.ndarray, distance: np.ndarray, seen: np.ndarray,
+              shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool: the texels no seen texel lies in front of (module docstring), of
+    (h, w) float32 projections x, y (px), distances (mm) and (h, w) bool seen ones on an
+    image of (H, W) ``shape``."""
+    rows, cols = -(-shape[0] // DEPTH_BIN), -(-shape[1] // DEPTH_BIN)
+    bx = np.clip((x // DEPTH_BIN).astype(np.intp), 0, cols - 1)
+    by = np.clip((y // DEPTH_BIN).astype(np.intp), 0, rows - 1)
+    nearest = np.full(rows * cols, np.inf, np.float32)
+    np.minimum.at(nearest, (by * cols + bx)[seen], distance[seen])
+    spread = cv2.erode(nearest.reshape(rows, cols), np.ones((3, 3), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    return distance <= spread[by, bx] + DEPTH_TOLERANCE
 
 
 def state_layers(name: str, reads: list[tuple[np.ndarray, np.ndarray]],

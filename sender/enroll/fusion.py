@@ -163,6 +163,8 @@ class Fusion:
         judged: (H, W) bool, the texels that have a consensus.
         holds: (H, W) bool, where the consensus holds: most views judged there line up
             with it (``sender.enroll.registration.local_misfit``).
+        fails: (H, W) bool, where it was judged and does not hold (neither where no view
+            was judged: skin without structure).
         registration: how far each view was warped onto the first before the fusion
             (``sender.enroll.align``).
     """
@@ -177,6 +179,7 @@ class Fusion:
     consensus: np.ndarray
     judged: np.ndarray
     holds: np.ndarray
+    fails: np.ndarray
     registration: Registration
 
     def doubled_fraction(self, area: np.ndarray) -> float:
@@ -256,7 +259,7 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
     centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
-    misfit, holds = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
+    misfit, holds, fails = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
                                  features)
     first = len(views) if primary is None else primary
     blend, total, _ = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
@@ -267,7 +270,7 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     judged_grid = np.zeros(covered.shape, bool)
     judged_grid[covered] = judged
     return Fusion(texture, weight, as_seen[0], as_seen[1], agreement, aligned, covered,
-                  consensus, judged_grid, holds, registration)
+                  consensus, judged_grid, holds, fails, registration)
 
 
 def _take_part(luma: np.ndarray, weight_v: np.ndarray, covered: np.ndarray,
@@ -279,7 +282,7 @@ def _take_part(luma: np.ndarray, weight_v: np.ndarray, covered: np.ndarray,
     kept, _, aligned = _judge(luma, weight_v)
     centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
     lined_up = seen & aligned[:, None]
-    misfit, _ = local_misfit(luma, lined_up, centre, judged, covered, features)
+    misfit, _, _ = local_misfit(luma, lined_up, centre, judged, covered, features)
     return seen, _coherent(kept & ~misfit, lined_up, covered, OUTLIER_WINDOW)
 
 

@@ -105,7 +105,7 @@ def local_ncc(y: np.ndarray, m: np.ndarray, shared: np.ndarray
 
 def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
                  consensus: np.ndarray, covered: np.ndarray, features: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each view does not line up with the consensus (module docstring, 2).
 
     Args:
@@ -117,8 +117,10 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
         features: (H, W) bool, the texels judged (the parts of the face); all when None.
 
     Returns:
-        (V, K) bool: the view takes no part at the texel; and (H, W) bool, the windows
-        where the consensus holds (most judged views line up with it).
+        (V, K) bool: the view takes no part at the texel; (H, W) bool, the windows where
+        the consensus holds (most judged views line up with it); and (H, W) bool, the
+        windows judged where it does not (a texel no view was judged at, skin without
+        structure, is in neither).
     """
     m = np.zeros(covered.shape, np.float32)
     m[covered] = np.where(consensus, centre, 0.0)
@@ -147,7 +149,7 @@ def local_misfit(luma: np.ndarray, seen: np.ndarray, centre: np.ndarray,
         bad &= holds
         if bad.any():
             out[i] = cv2.dilate(bad.astype(np.uint8), grow)[covered].astype(bool) & seen[i]
-    return out, holds
+    return out, holds, (count > 0) & ~holds
 
 
 def _around(features: np.ndarray | None, shape: tuple[int, int]) -> tuple[slice, slice]:
