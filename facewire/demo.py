@@ -302,10 +302,10 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         thread = threading.Thread(target=run_receiver, name="facewire demo receiver")
         thread.start()
         try:
-            # no healing: on the embedded performance's clean enrollment it made 8 patches
-            # of the views' noise in 7 s, and applying them stalled this one process (both
-            # hosts' work) until its receiver restarted the stream (docs/DESIGN.md, "Texture
-            # patches")
+            # no healing: the embedded performance (one photo made to move) moves its cap
+            # and folds unlike the mesh, the healing made 8 patches in 7 s chasing them, and
+            # applying them stalled this one process (both hosts' work) until its receiver
+            # restarted the stream (docs/DESIGN.md, "Texture patches")
             sent = send(model_path, str(video), endpoint, record, rate_hz, stop=sender_stop,
                         frames=frames, start=ready, heal=False)
             recorder.wait_packets(sent["packets"], QUIET_S)
