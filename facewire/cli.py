@@ -806,6 +806,13 @@ def _add_json(parser: argparse.ArgumentParser) -> None:
                         help="print a JSON summary as the last line")
 
 
+def _add_loss(parser: argparse.ArgumentParser) -> None:
+    """The ``--loss`` option of the benches that score the speech."""
+    parser.add_argument("--loss", default="0,10,30", metavar="L,L,...",
+                        help="packet losses to score the speech at, percent (default "
+                        "%(default)s)")
+
+
 def _add_model(sub: Commands) -> None:
     """``model build``, ``model info`` and ``model export``."""
     from facewire.sender.enroll.routine import LEAD_S, RECORD_S
@@ -1064,8 +1071,7 @@ def _add_bench(sub: Commands) -> None:
     bsy.add_argument("--model", required=True, help="person model (.fwm) of the clip's person")
     bsy.add_argument("--source", required=True, help="a talking video with its sound track")
     bsy.add_argument("--frames", help="frame range A:B of the video to send (default: all)")
-    bsy.add_argument("--loss", default="0,10,30", metavar="L,L,...",
-                     help="packet losses to score the speech at, percent (default %(default)s)")
+    _add_loss(bsy)
     bsy.add_argument("--page", action="store_true", help="also play the clip, looped, on the "
                      "gateway's page in headless Chromium and measure the page's own skew")
     bsy.add_argument("--page-seconds", type=float, default=10.0, metavar="S",
@@ -1092,8 +1098,7 @@ def _add_bench(sub: Commands) -> None:
                      help="a video or sound file with a sound track (repeatable)")
     bsp.add_argument("--voice-kbps", type=float, default=DEFAULT_BITRATE / 1000,
                      help="Opus's rate, kbit/s, 6 to 24 (default %(default)g)")
-    bsp.add_argument("--loss", default="0,10,30", metavar="L,L,...",
-                     help="packet losses to score the speech at, percent (default %(default)s)")
+    _add_loss(bsp)
     _add_json(bsp)
     bsp.set_defaults(run=_bench_speech)
     bc = bsub.add_parser("clips", help="every single-person shared clip: a model from its first "

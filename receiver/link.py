@@ -34,8 +34,8 @@ State machine
     frame), or announces a voice without its origin (``voice_origin_s``: asked before the
     voice began), and a packet came, from a sender that answers time requests (an older one
     does not, and its Hello never has the clock): asked again every ``RECHECK_EVERY_S`` while
-    the Hello taken lacks it (the answer to the first ask can come before the voice begins,
-    as it did on a loaded CI run: asked once, the voice's capture times stayed unknown).
+    the Hello taken lacks it (the answer to the first ask can come before the voice begins;
+    asked once, the voice's capture times would stay unknown for the session).
 
 - DUE: the caller asks at once (``RECHECK_TIMEOUT_S``); unanswered, again from
   ``next_check``, every ``RECHECK_EVERY_S``. Meanwhile the receiver renders on, the gateway
