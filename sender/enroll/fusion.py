@@ -259,8 +259,8 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
     seen = weight_v > 0
     kept, agreement, aligned = _judge(luma, weight_v)
     centre, judged = _consensus(luma, np.where(kept, weight_v, 0.0))
-    misfit, holds, fails = local_misfit(luma, seen & aligned[:, None], centre, judged, covered,
-                                 features)
+    misfit, holds, fails = local_misfit(luma, seen & aligned[:, None], centre, judged,
+                                        covered, features)
     first = len(views) if primary is None else primary
     blend, total, _ = _colour(colours, weight_v, kept & ~misfit, seen & aligned[:, None],
                               covered, first, misfit)
