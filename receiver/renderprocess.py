@@ -92,6 +92,7 @@ class RenderProcess:
         render_seconds: the child's time for each of the last ``STATS_FRAMES`` frames
             (morph, draw, readback into shared memory), s.
         pid: the child's process id.
+        shm_name: the shared memory segment's name (/dev/shm/NAME on Linux).
 
     Raises:
         RenderError: a bad view, size or depth. EGLUnavailable: no headless OpenGL (from the
@@ -121,6 +122,8 @@ class RenderProcess:
         self._link = _Link(width, height, depth)
         self._release = weakref.finalize(self, self._link.close)
         self.pid = self._link.start(view)
+        assert self._link.shm is not None
+        self.shm_name = self._link.shm.name
         try:
             self._link.conn.send(model)
             self._expect("ok")
