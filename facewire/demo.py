@@ -301,7 +301,7 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
                 outcome["summary"] = receive(
                     endpoint, cache_dir=cache, status=lambda line: say(f"receiver: {line}"),
                     stop=receiver_stop, on_frame=recorder.frame, on_packet=recorder.packet,
-                    ready=cast(threading.Event, ready))  # the same set() across processes
+                    ready=_Ready(ready))
             except BaseException as exc:  # noqa: BLE001 - raised on this thread below
                 outcome["error"] = exc
                 sender_stop.set()
@@ -338,6 +338,19 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         q=np.array(recorder.q, np.float32), residuals=np.array(recorder.residuals, np.float32),
         arrival_s=t - t[0], packet_bytes=np.array(recorder.sizes), sender=sent,
         receiver=outcome["summary"], seconds=time.perf_counter() - start)
+
+
+class _Ready(threading.Event):
+    """The receiver's ``ready`` (a ``threading.Event``), which also sets the sender's
+    ``start``: an event shared with the sender's process."""
+
+    def __init__(self, shared: Any) -> None:
+        super().__init__()
+        self._shared = shared
+
+    def set(self) -> None:
+        super().set()
+        self._shared.set()
 
 
 def _run_sender(results: Connection, model_path: str, video: str, endpoint: str,

@@ -125,7 +125,7 @@ class RenderProcess:
         assert self._link.shm is not None
         self.shm_name = self._link.shm.name
         try:
-            self._link.conn.send(model)
+            self._send(model)
             self._expect("ok")
         except BaseException:
             self.release()
@@ -250,7 +250,7 @@ class RenderProcess:
         if self._link.conn is None:
             raise RenderError("the renderer was released")
 
-    def _send(self, message: tuple[Any, ...]) -> None:
+    def _send(self, message: object) -> None:
         self._check_alive()
         assert self._link.conn is not None  # _check_alive
         try:

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from logsender import encoded_log
+
 from facewire.models.infra.raster import RenderError
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.receiver.playout import FrameState, replay_states
