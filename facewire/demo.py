@@ -39,6 +39,10 @@ The output has one frame per slot from the first packet played to the last (the 
 cannot run at the video's rate sends its packets late, and the receiver conceals the slots it
 gives up (``packets_lost``) as it would live.
 
+Speeds. ``render_fps`` is what the receiver's render process could draw (1000 / its median
+time for a frame); ``output_fps`` is the rate the receiver handed out its frames, from the
+first to the last: the stream's rate when it keeps up, less when it falls behind.
+
 Bit rates. ``payload_kbps`` is the packet size at 30 Hz (the contract's number);
 ``wire_kbps`` adds ZeroMQ's 2 bytes of framing per message (``protocol.transport``).
 ``measured_payload_kbps`` is what arrived per second of the stream, at the rate the sender
@@ -102,6 +106,8 @@ class LinkResult:
         q: (F, 8) float32 the Q values rendered.
         residuals: (F, 9, 2) float32 the tangent residuals rendered, mm.
         arrival_s: (P,) float64 arrival time of each packet received, s from the first.
+        shown_s: (F,) float64 the time each output frame was handed out, s from the first
+            packet's arrival.
         packet_bytes: (P,) int their sizes.
         sender: ``sender.sender.send``'s summary.
         receiver: ``receiver.receiver.receive``'s summary.
@@ -115,6 +121,7 @@ class LinkResult:
     q: np.ndarray
     residuals: np.ndarray
     arrival_s: np.ndarray
+    shown_s: np.ndarray
     packet_bytes: np.ndarray
     sender: dict[str, Any]
     receiver: dict[str, Any]
@@ -158,6 +165,7 @@ class DemoResult:
         link, sent, got = self.link, self.link.sender, self.link.receiver
         span = float(link.arrival_s[-1]) if len(link.arrival_s) > 1 else 0.0
         measured_hz = (len(link.arrival_s) - 1) / span if span > 0 else 0.0
+        shown = float(link.shown_s[-1] - link.shown_s[0]) if len(link.shown_s) > 1 else 0.0
         render_ms = got["render_ms_median"]
         return {
             "video": str(self.video), "bandwidth_plot": str(self.plot),
@@ -174,6 +182,7 @@ class DemoResult:
             "measured_payload_kbps": _kbps(PACKET_BYTES, measured_hz),
             "sender_fps": sent["fps"],
             "render_fps": round(1000 / render_ms, 1) if render_ms else None,
+            "output_fps": round((len(link.shown_s) - 1) / shown, 2) if shown > 0 else None,
             "latency_ms_median": got["latency_ms_median"],
             "latency_ms_p95": got["latency_ms_p95"],
             "model_bytes": self.build.model.file_bytes, "regions": len(self.build.model.regions),
@@ -336,7 +345,8 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         frames=np.array(recorder.frames), seq=np.array(recorder.seq),
         status=tuple(recorder.status), rotation=np.array(recorder.rotation),
         q=np.array(recorder.q, np.float32), residuals=np.array(recorder.residuals, np.float32),
-        arrival_s=t - t[0], packet_bytes=np.array(recorder.sizes), sender=sent,
+        arrival_s=t - t[0], shown_s=np.array(recorder.shown) - t[0],
+        packet_bytes=np.array(recorder.sizes), sender=sent,
         receiver=outcome["summary"], seconds=time.perf_counter() - start)
 
 
@@ -423,6 +433,7 @@ class _Recorder:
         self._ext: int | None = None  # the slot: the sequence number extended past 16 bits
         self._last_seq = 0
         self.arrivals: list[float] = []
+        self.shown: list[float] = []
         self.sizes: list[int] = []
         self.frames: list[int] = []
         self.seq: list[int] = []
@@ -438,6 +449,7 @@ class _Recorder:
     def frame(self, image: np.ndarray, state: FrameState) -> None:
         """Write one output frame ((H, W, 3) uint8 RGB) beside the performer's; the sender
         numbers its slots from 0."""
+        self.shown.append(time.monotonic())
         seq = state.seq
         assert seq is not None  # the receiver outputs the slots it plays
         ext = seq if self._ext is None else self._ext + (seq - self._last_seq) % 65536

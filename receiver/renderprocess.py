@@ -59,7 +59,7 @@ from typing import Any, NoReturn, Self
 import numpy as np
 
 from facewire.models.infra.egl import EGLUnavailable
-from facewire.models.infra.raster import RenderError
+from facewire.models.infra.raster import RenderError, check_output
 from facewire.models.modelfile import PersonModel
 from facewire.protocol import control as ctl
 from facewire.protocol.packet import Flag
@@ -103,10 +103,7 @@ class RenderProcess:
                  hello_camera: ctl.Camera, view: str = "camera", depth: int = DEPTH) -> None:
         if view not in VIEWS:
             raise RenderError(f"view: expected one of {', '.join(VIEWS)}, got {view!r}")
-        if not (isinstance(width, int) and isinstance(height, int) and width > 0
-                and height > 0):
-            raise RenderError(f"width, height: expected positive ints, got {width!r}, "
-                              f"{height!r}")
+        check_output(width, height, (0, 0, 0))
         if not isinstance(depth, int) or depth < 1:
             raise RenderError(f"depth: expected an int >= 1, got {depth!r}")
         if not isinstance(model, PersonModel):
@@ -115,13 +112,13 @@ class RenderProcess:
         self.depth = depth
         self.render_seconds: deque[float] = deque(maxlen=STATS_FRAMES)
         self._camera = hello_camera
-        self._camera_sent = False
+        self._camera_sent = True  # the child starts with it
         self._pending: deque[int | None] = deque()  # replies due: a frame's slot, None: "ok"
         self._next_slot = 0
         self._dead: str | None = None
         self._link = _Link(width, height, depth)
         self._release = weakref.finalize(self, self._link.close)
-        self.pid = self._link.start(view)
+        self.pid = self._link.start(view, hello_camera)
         assert self._link.shm is not None
         self.shm_name = self._link.shm.name
         try:
@@ -305,7 +302,7 @@ class _Link:
         self.conn: Connection | None = None
         self.process: Any = None
 
-    def start(self, view: str) -> int:
+    def start(self, view: str, camera: ctl.Camera) -> int:
         """Start the child; its pid."""
         assert self.shm is not None
         context = multiprocessing.get_context("spawn")
@@ -313,7 +310,7 @@ class _Link:
         self.conn = parent
         self.process = context.Process(
             target=_child, name="facewire render",
-            args=(child, self.shm.name, self.width, self.height, self.depth, view),
+            args=(child, self.shm.name, self.width, self.height, self.depth, view, camera),
             daemon=True)
         try:
             self.process.start()
@@ -350,7 +347,7 @@ class _Link:
 # -- the child ---------------------------------------------------------------------------------
 
 def _child(conn: Connection, shm_name: str, width: int, height: int, depth: int,
-           view: str) -> None:
+           view: str, camera: ctl.Camera) -> None:
     """The child's loop (module docstring): serve requests until "close" or the pipe ends."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     shm = SharedMemory(name=shm_name)
@@ -359,7 +356,7 @@ def _child(conn: Connection, shm_name: str, width: int, height: int, depth: int,
     try:
         try:
             model = conn.recv()
-            scene = StateRenderer(model, width, height, ctl.Camera(1, 1, 0, 0, 1, 1), view)
+            scene = StateRenderer(model, width, height, camera, view)
             conn.send(("ok",))
         except (EOFError, OSError):
             return
