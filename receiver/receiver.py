@@ -67,7 +67,9 @@ start, while the Hello is asked, the model fetched and the renderer set up): wit
 they are played, late; with a view they are dropped (``ignored``), since the picture is to be
 live.
 
-Per slot: ``receiver.scene.StateRenderer`` (morph, sender's view, render), as in replay.
+Per slot: ``receiver.scene.StateRenderer`` (morph, sender's view, render), as in replay, run
+in a process of its own (``receiver.renderprocess.RenderProcess``): the render loop waits for
+each frame without the GIL, so the reader thread and the encoder run while it is drawn.
 
 Output frames (the file, and ``frames`` in the summary)
 ------------------------------------------------------
@@ -146,7 +148,8 @@ from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.output import FrameFolderWriter, OutputError, VideoWriter
 from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.playout import FrameState, Playout
-from facewire.receiver.scene import StateRenderer, rest_q
+from facewire.receiver.renderprocess import RenderProcess
+from facewire.receiver.scene import rest_q
 from facewire.receiver.stats import ReceiveStats
 from facewire.receiver.updates import UpdateFetcher
 from facewire.receiver.voiceplayer import VoicePlayer, voice_capture
@@ -296,7 +299,7 @@ class _Session:
         self.max_frames, self.idle_timeout_s = max_frames, idle_timeout_s
         # what is played: set by _adopt, before anything is played
         self.hello: Hello | None = None
-        self.scene: StateRenderer | None = None
+        self.scene: RenderProcess | None = None
         self.playout: Playout | None = None
         self.writer: VideoWriter | FrameFolderWriter | None = None
         self.pending: list[FrameState] = []  # concealed slots awaiting the stream's next packet
@@ -403,7 +406,7 @@ class _Session:
             self.scene.release()
             self.scene = None
         if self.scene is None:
-            self.scene = StateRenderer(model, *self.size, hello.camera)
+            self.scene = RenderProcess(model, *self.size, hello.camera)
         if self.updates is None or self.updates.base_sha256 != hello.model_sha256:
             self._start_updates(model)
         assert self.updates is not None  # just started
