@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import queue
 import tempfile
 import threading
 import time
@@ -85,6 +86,7 @@ WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10
 DEMO_CRF, DEMO_PRESET = 20, "veryfast"  # demo.mp4: the encoder shares 2 cores with both ends
+RECORD_QUEUE = 64  # frames the recorder may hold behind the receiver (59 MB at 512 x 600)
 _RECEIVER_COUNTS = ("received", "lost", "late", "corrupt", "duplicates", "stray", "discarded",
                     "restarts", "overflow")
 Status = Callable[[str], None]
@@ -426,12 +428,24 @@ class _Performer:
 
 class _Recorder:
     """The demo receiver's callbacks: each packet's arrival (``on_packet``), and each output
-    frame (``on_frame``) written side by side with the performer's frame of its slot."""
+    frame (``on_frame``) written side by side with the performer's frame of its slot.
+
+    ``on_frame`` only notes the frame and queues it (at most ``RECORD_QUEUE`` frames, then it
+    waits): a thread of the recorder's own reads the performer's frame, composes the two and
+    hands them to the encoder, so the receiver's loop is not held up by the demo's recording
+    (the performer's decode, the labels, the scaling: about 10 ms a frame at 512 x 600 on the
+    2-core machine, as much as a draw). A failure there is raised by ``close``.
+    """
 
     def __init__(self, performer: _Performer, out_video: str | os.PathLike[str],
                  rate_hz: float) -> None:
         self._performer, self._out, self._rate_hz = performer, out_video, rate_hz
         self._writer: VideoWriter | None = None
+        self._queue: queue.Queue[tuple[np.ndarray, int] | None] = queue.Queue(RECORD_QUEUE)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._record, name="facewire demo recorder",
+                                        daemon=True)
+        self._thread.start()
         self._ext: int | None = None  # the slot: the sequence number extended past 16 bits
         self._last_seq = 0
         self.arrivals: list[float] = []
@@ -456,21 +470,34 @@ class _Recorder:
         assert seq is not None  # the receiver outputs the slots it plays
         ext = seq if self._ext is None else self._ext + (seq - self._last_seq) % 65536
         self._ext, self._last_seq = ext, seq
-        performer = self._performer.at(ext)
-        left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
-                      "performer (sender's camera)")
-        right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
-        both = side_by_side(left, right, image.shape[0])
-        if self._writer is None:
-            self._writer = VideoWriter(self._out, both.shape[1], both.shape[0], self._rate_hz,
-                                       crf=DEMO_CRF, preset=DEMO_PRESET)
-        self._writer.write(both)
-        self.frames.append(performer.index)
         self.seq.append(seq)
         self.status.append(state.status)
         self.rotation.append(state.rotation)
         self.q.append(state.q.copy())
         self.residuals.append(state.residuals.copy())
+        if self._error is None:  # after a failure the thread only empties the queue
+            self._queue.put((image, ext))
+
+    def _record(self) -> None:
+        """The recorder's thread: each queued frame beside its performer's, encoded."""
+        while (item := self._queue.get()) is not None:
+            if self._error is not None:
+                continue
+            image, ext = item
+            try:
+                performer = self._performer.at(ext)
+                left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
+                              "performer (sender's camera)")
+                right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
+                both = side_by_side(left, right, image.shape[0])
+                if self._writer is None:
+                    self._writer = VideoWriter(self._out, both.shape[1], both.shape[0],
+                                               self._rate_hz, crf=DEMO_CRF,
+                                               preset=DEMO_PRESET)
+                self._writer.write(both)
+                self.frames.append(performer.index)
+            except BaseException as exc:  # noqa: BLE001 - raised by close()
+                self._error = exc
 
     def wait_packets(self, count: int, quiet_s: float) -> None:
         """Return once ``count`` packets were taken, or none for ``quiet_s``."""
@@ -481,8 +508,15 @@ class _Recorder:
                 seen, since = len(self.arrivals), time.monotonic()
 
     def close(self) -> None:
+        """Record what is queued, close the video; the recorder's failure raised here."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
         if self._writer is not None:
             self._writer.close()
+        if self._error is not None:
+            raise DemoError(f"{self._out}: the recording failed: {self._error}") \
+                from self._error
 
 
 def plot_bandwidth(arrival_s: np.ndarray, packet_bytes: np.ndarray,

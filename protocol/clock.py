@@ -35,6 +35,13 @@ sender's clock): ``n = seq + 65536 m``, ``m = round(((near_s - origin_s) rate_hz
 65536)``, right while the capture is within half a wrap (18 minutes at 30 Hz) of ``near_s``.
 Glass-to-glass latency is then ``t_out - (capture_s(n) - offset)`` on the receiver's clock,
 ``t_out`` the time its frame is out (written, shown, handed on).
+
+A sender that releases a frame more than ``MAX_LAG_S`` after its slot's time (a busy
+machine) starts its clock again at that frame: the origin moves later and the Hello announces
+the new one, while the seqs stay consecutive. A receiver that keeps the old origin reads
+every later capture as early by the move, so a packet that arrives more than ``MAX_LAG_S``
+after its capture time by the origin taken is the sign to ask for the Hello again
+(``receiver.link``).
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ from dataclasses import dataclass
 from facewire.protocol.errors import FacewireError
 
 WINDOW = 16
+MAX_LAG_S = 0.5  # a sender starts its slots' clock again at a frame later than this
 NEGATIVE_DELAY_S = 1e-4
 SEQ_WRAP = 1 << 16
 

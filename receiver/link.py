@@ -23,6 +23,12 @@ State machine
   - a packet's seq is not among the ``FAR_SLOTS`` after the last one's (``note_packet`` with
     the seq: a restarted sender, or one that gave up slots after a stall);
   - the playout resynced (``note_restart``);
+  - a packet arrived more than ``protocol.clock.MAX_LAG_S`` after its capture time by the
+    Hello's clock, and later than the last packet that made a recheck due by as much again
+    (``note_lateness``): a sender behind its schedule has moved its clock's origin (seqs
+    consecutive, packets flowing, so no other sign shows it), and every capture time read
+    with the old origin is early by the move; a path whose delay is that long asks once, not
+    at every packet;
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
     frame), or announces a voice without its origin (``voice_origin_s``: asked before the
     voice began), and a packet came, from a sender that answers time requests (an older one
@@ -50,6 +56,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
+from facewire.protocol.clock import MAX_LAG_S
 from facewire.protocol.control import Hello, HelloRequest
 from facewire.protocol.keys import CurveClient
 from facewire.protocol.packet import SEQ_MODULO
@@ -110,6 +117,7 @@ class SenderLink:
         self._last_arrival: float | None = None
         self._last_seq: int | None = None
         self._clock_asked = False
+        self._lateness_asked = 0.0  # the lateness that last made a recheck due (this origin)
 
     def close(self) -> None:
         self.control.close()
@@ -144,6 +152,7 @@ class SenderLink:
         """The Hello now played (or served): later answers are classified against it."""
         if _origins(hello) != (_origins(self.hello) if self.hello else None):
             self._clock_asked = False
+            self._lateness_asked = 0.0
         self.hello = hello
 
     def await_hello(self, check_end: Callable[[], None], timeout_s: Callable[[], float],
@@ -193,6 +202,15 @@ class SenderLink:
         if resumed or jumped or clockless:
             self.due, self.next_check = True, 0.0
         return resumed or jumped
+
+    def note_lateness(self, lateness_s: float) -> bool:
+        """A packet arrived ``lateness_s`` after its capture time (this host's clock, by the
+        Hello taken); True when that makes a recheck due (module docstring)."""
+        if not lateness_s > self._lateness_asked + MAX_LAG_S:
+            return False
+        self._lateness_asked = lateness_s
+        self.due, self.next_check = True, 0.0
+        return True
 
     def note_restart(self) -> None:
         """The playout resynced: a new stream, perhaps of a restarted sender."""

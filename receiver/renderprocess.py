@@ -33,7 +33,8 @@ Frames come back through ``multiprocessing.shared_memory``: a ring of ``depth`` 
 the framebuffer straight into its slot (``FaceRenderer.render(out=)``); ``render`` copies the
 slot out (one memory copy; no frame crosses the pipe), so the caller owns its image. With
 ``submit`` and ``collect`` up to ``depth`` frames are in flight, so the parent prepares
-(and writes out) one frame while the child draws the next.
+(and writes out) one frame while the child draws the next; ``wait(timeout)`` says whether
+the oldest is back, so a caller that has other work collects it as soon as it is.
 
 Failures. A child that dies (killed, crashed in the driver) closes its end of the pipe: the
 waiting call raises ``RenderProcessError`` naming its exit code or signal, at once, and every
@@ -176,6 +177,28 @@ class RenderProcess:
         self._camera_sent = True
         self._pending.append(slot)
         self._next_slot = (slot + 1) % self._link.depth
+
+    def wait(self, timeout: float) -> bool:
+        """Wait at most ``timeout`` s (without the GIL) for the oldest frame in flight; True
+        when it is back, so that ``collect`` returns at once (or raises at once, for a child
+        that died or refused it).
+
+        Raises:
+            RenderError: nothing in flight. RenderProcessError: the child died.
+        """
+        if not self.in_flight:
+            raise RenderError("wait: no frame in flight")
+        self._check_alive()
+        conn = self._link.conn
+        assert conn is not None  # _check_alive
+        deadline = time.monotonic() + max(0.0, timeout)
+        while True:
+            if not conn.poll(max(0.0, deadline - time.monotonic())):
+                return False
+            if self._pending[0] is not None:
+                return True
+            self._pending.popleft()  # a model update's answer first
+            self._expect("ok")
 
     def collect(self) -> np.ndarray:
         """The oldest frame submitted, (height, width, 3) uint8 RGB, copied out of its slot.

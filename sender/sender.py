@@ -83,6 +83,7 @@ import numpy as np
 
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.models.modelfile import ModelFileError, load_model
+from facewire.protocol.clock import MAX_LAG_S
 from facewire.protocol.control import Hello, model_chunks
 from facewire.protocol.keys import server_keys
 from facewire.protocol.log import LogError, LogWriter
@@ -113,7 +114,6 @@ from facewire.sender.voice import (
 DEFAULT_BIND = "tcp://127.0.0.1:5555"
 STATUS_PERIOD_S = 1.0
 CONTROL_POLL_MS = 100
-MAX_LAG_S = 0.5
 
 Status = Callable[[dict[str, Any]], None]
 

@@ -104,6 +104,28 @@ def test_bad_input_is_refused_and_the_child_goes_on(model: PersonModel, states) 
         RenderProcess(model, *SIZE, hello.camera, depth=0)
 
 
+def test_wait_says_when_the_oldest_frame_is_back(model: PersonModel, states) -> None:
+    """``wait`` answers True once the oldest frame in flight is back, taking a model
+    update's answer ahead of it; ``collect`` then gives that frame."""
+    played, hello = states
+    with RenderProcess(model, *SIZE, hello.camera) as child:
+        with pytest.raises(RenderError, match="no frame in flight"):
+            child.wait(0.0)
+        first, second = child.render(played[0]), child.render(played[1])
+        region = model.regions[0]
+        version = dataclasses.replace(model, regions=(
+            dataclasses.replace(region, layers=region.layers.copy()), *model.regions[1:]))
+        child.submit(played[0])
+        child.set_model(version)  # answered between the two frames
+        child.submit(played[1])
+        assert child.wait(60.0)
+        assert np.array_equal(child.collect(), first)
+        assert child.wait(60.0)  # the update's "ok" taken on the way
+        assert child.in_flight == 1
+        assert np.array_equal(child.collect(), second)
+        assert child.model is version
+
+
 def load_model_copy(model: PersonModel) -> PersonModel:
     """The same model with a mesh object of its own (a model of another mesh, to the
     renderer)."""
@@ -122,6 +144,18 @@ def test_a_child_that_dies_is_reported_and_nothing_is_left(model: PersonModel,
     with pytest.raises(RenderProcessError, match="SIGKILL"):  # and every call after
         child.submit(played[1])
     assert not _segment(name).exists()  # freed when the death was seen
+    child.release()
+    child = RenderProcess(model, *SIZE, hello.camera)
+    child.submit(played[0])
+    child.submit(played[1])
+    child.collect()
+    os.kill(child.pid, signal.SIGKILL)
+    with pytest.raises(RenderProcessError, match="SIGKILL"):  # a frame in flight when it died
+        for _ in range(3):  # the frame may have been drawn before: then the next one
+            while not child.wait(0.5):
+                pass
+            child.collect()
+            child.submit(played[2])
     child.release()
     child.release()  # idempotent
 
