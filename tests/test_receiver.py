@@ -381,10 +381,14 @@ def test_an_oversized_sender_camera_is_rendered_at_most_max_size(log, person_mod
                                cy=cam.cy * 2, width=8192, height=1024)
     hello = _hello_for(person_model, dataclasses.replace(log.hello, camera=wide))
     port = _free_port_pair()
-    sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=10)
+    # sent once the receiver plays: PUB drops what is sent before the receiver subscribed,
+    # and on a loaded machine its model load alone outlasts the ten packets
+    go, lines = threading.Event(), []
+    sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=10, go=go)
     try:
         summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model,
-                          frames_dir=tmp_path / "frames", max_frames=2, idle_timeout_s=20)
+                          frames_dir=tmp_path / "frames", max_frames=2, idle_timeout_s=20,
+                          status=_ready(go, lines))
     finally:
         sender.stop()
     assert (summary["width"], summary["height"]) == (MAX_SIZE, MAX_SIZE // 8)
