@@ -25,10 +25,11 @@ State machine
   - the playout resynced (``note_restart``);
   - a packet arrived more than ``protocol.clock.MAX_LAG_S`` after its capture time by the
     Hello's clock, and later than the last packet that made a recheck due by as much again
-    (``note_lateness``): a sender behind its schedule has moved its clock's origin (seqs
-    consecutive, packets flowing, so no other sign shows it), and every capture time read
-    with the old origin is early by the move; a path whose delay is that long asks once, not
-    at every packet;
+    (``note_lateness``), at most once every ``RECHECK_EVERY_S``: a sender behind its
+    schedule has moved its clock's origin (seqs consecutive, packets flowing, so no other
+    sign shows it), and every capture time read with the old origin is early by the move; a
+    path whose delay is that long asks once, not at every packet, and a sender far behind
+    (a move every few frames) is asked every ``RECHECK_EVERY_S``, not at every move;
   - the Hello taken has no clock (``clock_origin_s``: it was asked before the stream's first
     frame), or announces a voice without its origin (``voice_origin_s``: asked before the
     voice began), and a packet came, from a sender that answers time requests (an older one
@@ -118,6 +119,7 @@ class SenderLink:
         self._last_seq: int | None = None
         self._clock_asked = False
         self._lateness_asked = 0.0  # the lateness that last made a recheck due (this origin)
+        self._lateness_at = -RECHECK_EVERY_S  # and when (monotonic s)
 
     def close(self) -> None:
         self.control.close()
@@ -203,12 +205,14 @@ class SenderLink:
             self.due, self.next_check = True, 0.0
         return resumed or jumped
 
-    def note_lateness(self, lateness_s: float) -> bool:
+    def note_lateness(self, lateness_s: float, now: float) -> bool:
         """A packet arrived ``lateness_s`` after its capture time (this host's clock, by the
-        Hello taken); True when that makes a recheck due (module docstring)."""
-        if not lateness_s > self._lateness_asked + MAX_LAG_S:
+        Hello taken), noted at ``now`` (monotonic s); True when that makes a recheck due
+        (module docstring)."""
+        if not (lateness_s > self._lateness_asked + MAX_LAG_S and
+                now >= self._lateness_at + RECHECK_EVERY_S):
             return False
-        self._lateness_asked = lateness_s
+        self._lateness_asked, self._lateness_at = lateness_s, now
         self.due, self.next_check = True, 0.0
         return True
 

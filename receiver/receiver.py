@@ -553,7 +553,7 @@ class _Session:
             self.stats.counts["streams"] += 1
         capture = self._capture(state)
         if capture is not None:
-            self.link.note_lateness(state.arrival_s - capture)
+            self.link.note_lateness(state.arrival_s - capture, time.monotonic())
         outputs = self._outputs()
         for concealed in self.pending:
             self.stats.counts["lost"] += 1
