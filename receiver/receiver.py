@@ -128,10 +128,11 @@ and the summary carries the voice's counts and the sync (``av_skew_ms_*``).
 Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
 counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
 
-Size: this module is over 650 lines because the docstring above states the whole session's
-contract (about 105 lines) beside about 560 lines of code that keep it; model acquisition,
-the model updates and the statistics already live apart (``receiver.acquire``,
-``receiver.updates``, ``receiver.stats``).
+Size: this module is over 750 lines because the docstring above states the whole session's
+contract (about 120 lines) beside about 620 lines of code that keep it; model acquisition,
+the model updates, the statistics and the render process already live apart
+(``receiver.acquire``, ``receiver.updates``, ``receiver.stats``,
+``receiver.renderprocess``).
 """
 
 from __future__ import annotations
