@@ -35,13 +35,16 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
   ``identify_frames``: the frames on which the tracker computed a face descriptor
   (``sender.identity``; none with a model without descriptors), and ``identify_ms`` the
   median track time of those frames.
-- The receiver, on the packets the sender made (``_time_receiver``), BLAS pinned to one
-  thread, after ``RECEIVER_WARMUP`` frames: ``decode_ms`` (``protocol.packet.decode``),
-  ``render_ms`` (``receiver.render.FaceRenderer.render``: the vertex upload, the draw with
-  the base texture and the region volumes, multisample resolve and read back), and
-  ``receiver_ms_median`` (decode, ``Rig.from_tangent`` and ``Rig.morph``, the view camera,
-  render and read back) with ``receiver_fps`` = 1000 / it, at 640 x 480; the same at
-  1280 x 720 as ``receiver_fps_1280x720`` and ``render_ms_1280x720``. Then the first
+- The receiver, on the packets the sender made (``_time_receiver``), as ``receive`` and
+  ``replay`` render: in a process of its own (``receiver.renderprocess.RenderProcess``,
+  two frames in flight), after ``RECEIVER_WARMUP`` frames: ``decode_ms``
+  (``protocol.packet.decode``, in this process), ``render_ms`` (the child's time for one
+  frame: ``Rig.from_tangent`` and ``Rig.morph``, the view camera,
+  ``receiver.render.FaceRenderer.render``'s vertex upload, draw with the base texture and
+  the region volumes, and readback into shared memory), and ``receiver_ms_median`` (the
+  median time between two frames handed back to this process, copied out of shared
+  memory: the receiver's throughput) with ``receiver_fps`` = 1000 / it, at 640 x 480; the
+  same at 1280 x 720 as ``receiver_fps_1280x720`` and ``render_ms_1280x720``. Then the first
   ``ENCODE_FRAMES`` frames rendered at 640 x 480 go to a ``receiver.output.VideoWriter`` as
   ``facewire receive --out`` writes them: ``encode_ms`` is the median time its thread takes
   to encode one (H.264). Live, it runs on its own thread beside the rendering, so it is not
@@ -105,8 +108,8 @@ from facewire.models.rig import N_RESIDUALS, Rig
 from facewire.protocol.packet import decode as decode_packet
 from facewire.protocol.rate import stream_rate
 from facewire.receiver.output import VideoWriter
-from facewire.receiver.render import FaceRenderer
-from facewire.receiver.views import sender_view
+from facewire.receiver.playout import FrameState
+from facewire.receiver.renderprocess import RenderProcess
 from facewire.sender.capture import estimate_intrinsics
 from facewire.sender.pipeline import SenderPipeline
 
@@ -187,9 +190,9 @@ def measure_speed(model_path: str | os.PathLike[str], source: str | os.PathLike[
     tracking, packets, hello = _time_sender(model, source, frames, info, progress)
     rig = Rig(model.mesh)
     with _one_blas_thread():
-        receiver, images = _time_receiver(model, rig, packets, hello.camera,
-                                          RECEIVER_SIZES[0], keep=ENCODE_FRAMES)
-        receiver_hd, _ = _time_receiver(model, rig, packets, hello.camera, RECEIVER_SIZES[1])
+        receiver, images = _time_receiver(model, packets, hello.camera, RECEIVER_SIZES[0],
+                                          keep=ENCODE_FRAMES)
+        receiver_hd, _ = _time_receiver(model, packets, hello.camera, RECEIVER_SIZES[1])
     encode_ms = _time_encode(images, hello.rate_hz)
     n = len(model.mesh.vertices)
     pinned, threads = _time_morph_pinned(rig)
@@ -387,31 +390,41 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
     return timings, packets, pipeline.hello()
 
 
-def _time_receiver(model: Any, rig: Rig, packets: list[bytes], camera: Any,
-                   size: tuple[int, int], keep: int = 0
-                   ) -> tuple[dict[str, Any], list[np.ndarray]]:
-    """The receiver's per-frame work on the sender's packets (module docstring): decode,
-    morph, render and read back at ``size``, medians in ms; and the first ``keep`` frames
-    rendered, (H, W, 3) uint8 RGB."""
+def _time_receiver(model: Any, packets: list[bytes], camera: Any, size: tuple[int, int],
+                   keep: int = 0) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """The receiver's per-frame work on the sender's packets (module docstring): decode here,
+    morph, render and read back in the render process at ``size``, medians in ms; and the
+    first ``keep`` frames rendered, (H, W, 3) uint8 RGB."""
     width, height = size
-    decode, render, total = [], [], []
+    decode, total = [], []
     images: list[np.ndarray] = []
-    with FaceRenderer(model, width, height) as renderer:
+    with RenderProcess(model, width, height, camera) as renderer:
+        last = time.perf_counter()
+
+        def collect() -> None:
+            nonlocal last
+            image = renderer.collect()
+            now = time.perf_counter()
+            if len(renderer.render_seconds) > RECEIVER_WARMUP:
+                total.append((now - last) * 1000)
+            last = now
+            if len(images) < keep:
+                images.append(image)
+
         for k, packet in enumerate(packets):
             t0 = time.perf_counter()
             frame = decode_packet(packet)
             t1 = time.perf_counter()
-            vertices = rig.morph(rig.from_tangent(frame.residuals))
-            view = sender_view(camera, frame.rotation, frame.translation, width, height)
-            t2 = time.perf_counter()
-            image = renderer.render(vertices, frame.q, view, frame.shade)
-            t3 = time.perf_counter()
-            if len(images) < keep:
-                images.append(image)
             if k >= RECEIVER_WARMUP:
                 decode.append((t1 - t0) * 1000)
-                render.append((t3 - t2) * 1000)
-                total.append((t3 - t0) * 1000)
+            if renderer.in_flight == renderer.depth:
+                collect()
+            renderer.submit(FrameState(frame.seq, frame.rotation, frame.translation,
+                                       frame.residuals, frame.q, frame.flags, "received", 1.0,
+                                       shade=frame.shade))
+        while renderer.in_flight:
+            collect()
+        render = [t * 1000 for t in list(renderer.render_seconds)[RECEIVER_WARMUP:]]
     receiver_ms = float(np.median(total)) if total else float("nan")
     return {"decode_ms": _median(decode), "render_ms": _median(render),
             "receiver_ms_median": round(receiver_ms, 4),

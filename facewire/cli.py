@@ -347,7 +347,8 @@ def _demo(args: argparse.Namespace) -> int:
     report(s, [f"video:     {s['video']} (performer | reconstruction, {s['frames']} frames)",
                f"bandwidth: {s['bandwidth_plot']}: {s['payload_kbps']} kbit/s payload, "
                f"{s['wire_kbps']} on the wire at 30 Hz ({s['packet_bytes']}-byte packets)",
-               f"speed:     sender {s['sender_fps']} fps, receiver {s['render_fps']} fps; "
+               f"speed:     sender {s['sender_fps']} fps, receiver {s['output_fps']} fps "
+               f"(rendering {s['render_fps']} fps) of the stream's {s['measured_rate_hz']} Hz; "
                f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95; "
                f"glass-to-glass {s['glass_to_glass_ms_median']} ms median, "
                f"{s['glass_to_glass_ms_p95']} ms p95",

@@ -11,16 +11,19 @@ Steps (``demo``):
    ``demo.fwm`` and its preview ``demo.preview.png``. The built-in script shows each
    movement once in those seconds, so enrollment sees brows up, an open mouth, a blink and
    head turns.
-3. Stream (``loopback``). What ``facewire send`` and ``facewire receive`` run, in this
-   process over ZeroMQ on 127.0.0.1: ``sender.sender.send`` sends the frames after them (in
+3. Stream (``loopback``). What ``facewire send`` and ``facewire receive`` run, over ZeroMQ
+   on 127.0.0.1, in two processes as on two hosts: ``sender.sender.send``, in a process of
+   its own (spawned), sends the frames after them (in
    real time, at the video's rate), bound to a free pair of ports, with ``demo.fwm``, and
    records its packets to ``demo.fwlog`` (``facewire replay`` / ``bench bandwidth`` read
-   it); ``receiver.receiver.receive``, on a thread of its own, is not given the model: it
+   it); ``receiver.receiver.receive``, in this process on a thread of its own (its renderer
+   in a third process, ``receiver.renderprocess``), is not given the model: it
    asks for the Hello, fetches the model from the sender by its sha256 in chunks over the
    control channel into a temporary cache (not the user's), and plays every packet
    (``receiver.playout``, morph, render from the sender's camera). The sender holds its
-   first frame until the receiver is ready to play (one event: the receiver's ``ready``,
-   the sender's ``start``), so the receiver has no backlog to catch up on. When
+   first frame until the receiver is ready to play (one event shared by the processes: the
+   receiver's ``ready``, the sender's ``start``), so the receiver has no backlog to catch up
+   on. When
    the sender has sent its last frame and the receiver has taken every packet (or none came
    for ``QUIET_S``), the receiver is stopped: it plays what it received, and ends.
 4. Outputs in ``out_dir``: ``demo.mp4``, each output frame of the receiver (its
@@ -36,6 +39,10 @@ The output has one frame per slot from the first packet played to the last (the 
 cannot run at the video's rate sends its packets late, and the receiver conceals the slots it
 gives up (``packets_lost``) as it would live.
 
+Speeds. ``render_fps`` is what the receiver's render process could draw (1000 / its median
+time for a frame); ``output_fps`` is the rate the receiver handed out its frames, from the
+first to the last: the stream's rate when it keeps up, less when it falls behind.
+
 Bit rates. ``payload_kbps`` is the packet size at 30 Hz (the contract's number);
 ``wire_kbps`` adds ZeroMQ's 2 bytes of framing per message (``protocol.transport``).
 ``measured_payload_kbps`` is what arrived per second of the stream, at the rate the sender
@@ -44,14 +51,17 @@ actually ran. Latency is the receiver's: a packet's arrival to its frame rendere
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import queue
 import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -71,10 +81,12 @@ from facewire.sender.sender import send
 
 DEFAULT_OUT = "facewire-demo"
 QUIET_S = 2.0  # the sender done, the receiver stops when no packet came for this long
+_POLL_S = 0.5  # while waiting for the sender process: how often its liveness is checked
 WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10
 DEMO_CRF, DEMO_PRESET = 20, "veryfast"  # demo.mp4: the encoder shares 2 cores with both ends
+RECORD_QUEUE = 64  # frames the recorder may hold behind the receiver (59 MB at 512 x 600)
 _RECEIVER_COUNTS = ("received", "lost", "late", "corrupt", "duplicates", "stray", "discarded",
                     "restarts", "overflow")
 Status = Callable[[str], None]
@@ -96,6 +108,8 @@ class LinkResult:
         q: (F, 8) float32 the Q values rendered.
         residuals: (F, 9, 2) float32 the tangent residuals rendered, mm.
         arrival_s: (P,) float64 arrival time of each packet received, s from the first.
+        shown_s: (F,) float64 the time each output frame was handed out, s from the first
+            packet's arrival.
         packet_bytes: (P,) int their sizes.
         sender: ``sender.sender.send``'s summary.
         receiver: ``receiver.receiver.receive``'s summary.
@@ -109,6 +123,7 @@ class LinkResult:
     q: np.ndarray
     residuals: np.ndarray
     arrival_s: np.ndarray
+    shown_s: np.ndarray
     packet_bytes: np.ndarray
     sender: dict[str, Any]
     receiver: dict[str, Any]
@@ -152,6 +167,7 @@ class DemoResult:
         link, sent, got = self.link, self.link.sender, self.link.receiver
         span = float(link.arrival_s[-1]) if len(link.arrival_s) > 1 else 0.0
         measured_hz = (len(link.arrival_s) - 1) / span if span > 0 else 0.0
+        shown = float(link.shown_s[-1] - link.shown_s[0]) if len(link.shown_s) > 1 else 0.0
         render_ms = got["render_ms_median"]
         return {
             "video": str(self.video), "bandwidth_plot": str(self.plot),
@@ -168,6 +184,7 @@ class DemoResult:
             "measured_payload_kbps": _kbps(PACKET_BYTES, measured_hz),
             "sender_fps": sent["fps"],
             "render_fps": round(1000 / render_ms, 1) if render_ms else None,
+            "output_fps": round((len(link.shown_s) - 1) / shown, 2) if shown > 0 else None,
             "latency_ms_median": got["latency_ms_median"],
             "latency_ms_p95": got["latency_ms_p95"],
             "glass_to_glass_ms_median": got["glass_to_glass_ms_median"],
@@ -261,8 +278,9 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
              status: Status | None = None) -> LinkResult:
     """Stream a video with the real ``send`` and ``receive`` over ZeroMQ on 127.0.0.1.
 
-    ``send`` runs on this thread, ``receive`` on its own; the receiver fetches the model from
-    the sender by its sha256 into a temporary cache (module docstring, 3).
+    ``send`` runs in a spawned process, ``receive`` on a thread of this one; the receiver
+    fetches the model from the sender by its sha256 into a temporary cache (module
+    docstring, 3).
 
     Args:
         model_path: the person model (``.fwm``), the sender's.
@@ -277,14 +295,16 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         The stream's record.
 
     Raises:
-        DemoError: the receiver failed, or played nothing.
+        DemoError: the receiver failed, or played nothing; the sender's process died.
         TransportError: no free pair of ports on 127.0.0.1, or it was taken meanwhile.
         ModelFileError, CaptureError, LogError: from ``send``.
     """
     say = status or (lambda _: None)
     endpoint = free_loopback_endpoint()
     recorder = _Recorder(_Performer(video, frames, rate_hz), out_video, rate_hz)
-    sender_stop, receiver_stop, ready = threading.Event(), threading.Event(), threading.Event()
+    processes = multiprocessing.get_context("spawn")
+    sender_stop, ready = processes.Event(), processes.Event()
+    receiver_stop = threading.Event()
     outcome: dict[str, Any] = {}
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="facewire-demo-cache-") as cache:
@@ -294,22 +314,29 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
                 outcome["summary"] = receive(
                     endpoint, cache_dir=cache, status=lambda line: say(f"receiver: {line}"),
                     stop=receiver_stop, on_frame=recorder.frame, on_packet=recorder.packet,
-                    ready=ready)
+                    ready=_Ready(ready))
             except BaseException as exc:  # noqa: BLE001 - raised on this thread below
                 outcome["error"] = exc
                 sender_stop.set()
 
         thread = threading.Thread(target=run_receiver, name="facewire demo receiver")
         thread.start()
+        results, results_in = processes.Pipe(duplex=False)
+        sender = processes.Process(
+            target=_run_sender, name="facewire demo sender",
+            args=(results_in, str(model_path), str(video), endpoint,
+                  None if record is None else str(record), rate_hz, frames, ready,
+                  sender_stop))
         try:
-            # no healing: the embedded performance (one photo made to move) moves its cap
-            # and folds unlike the mesh, the healing made 8 patches in 7 s chasing them, and
-            # applying them stalled this one process (both hosts' work) until its receiver
-            # restarted the stream (docs/DESIGN.md, "Texture patches")
-            sent = send(model_path, str(video), endpoint, record, rate_hz, stop=sender_stop,
-                        frames=frames, start=ready, heal=False)
+            sender.start()
+            results_in.close()
+            sent = _sender_result(sender, results)
             recorder.wait_packets(sent["packets"], QUIET_S)
         finally:
+            sender_stop.set()
+            if sender.pid is not None:
+                sender.join()
+            results.close()
             receiver_stop.set()
             thread.join()
             recorder.close()
@@ -322,8 +349,60 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
         frames=np.array(recorder.frames), seq=np.array(recorder.seq),
         status=tuple(recorder.status), rotation=np.array(recorder.rotation),
         q=np.array(recorder.q, np.float32), residuals=np.array(recorder.residuals, np.float32),
-        arrival_s=t - t[0], packet_bytes=np.array(recorder.sizes), sender=sent,
+        arrival_s=t - t[0], shown_s=np.array(recorder.shown) - t[0],
+        packet_bytes=np.array(recorder.sizes), sender=sent,
         receiver=outcome["summary"], seconds=time.perf_counter() - start)
+
+
+class _Ready(threading.Event):
+    """The receiver's ``ready`` (a ``threading.Event``), which also sets the sender's
+    ``start``: an event shared with the sender's process."""
+
+    def __init__(self, shared: Any) -> None:
+        super().__init__()
+        self._shared = shared
+
+    def set(self) -> None:
+        super().set()
+        self._shared.set()
+
+
+def _run_sender(results: Connection, model_path: str, video: str, endpoint: str,
+                record: str | None, rate_hz: float, frames: slice, start: Any,
+                stop: Any) -> None:
+    """The sender process: ``send``, its summary (or its exception) sent back on
+    ``results``; ``start`` and ``stop`` are the parent's process-shared events."""
+    try:
+        # no healing: the embedded performance (one photo made to move) moves its cap and
+        # folds unlike the mesh, and the healing made 8 patches in 7 s chasing them
+        # (docs/DESIGN.md, "Texture patches")
+        summary = send(model_path, video, endpoint, record, rate_hz, stop=stop,
+                       frames=frames, start=start, heal=False)
+    except BaseException as exc:  # noqa: BLE001 - raised in the parent (_sender_result)
+        try:
+            results.send(("error", exc))
+        except Exception:  # noqa: BLE001 - an exception that does not pickle: its text
+            results.send(("error", DemoError(f"the sender failed: {type(exc).__name__}: "
+                                             f"{exc}")))
+        return
+    results.send(("ok", summary))
+
+
+def _sender_result(process: Any, results: Connection) -> dict[str, Any]:
+    """The sender process's summary, once it has sent its last frame; its exception raised
+    here; ``DemoError`` if it died without a word."""
+    try:
+        while not results.poll(_POLL_S):
+            if not process.is_alive():
+                break
+        kind, value = results.recv()
+    except EOFError:
+        process.join()
+        raise DemoError(f"the sender's process (pid {process.pid}) died (exit code "
+                        f"{process.exitcode}) before it reported") from None
+    if kind == "error":
+        raise value
+    return cast(dict[str, Any], value)
 
 
 class _Performer:
@@ -352,15 +431,28 @@ class _Performer:
 
 class _Recorder:
     """The demo receiver's callbacks: each packet's arrival (``on_packet``), and each output
-    frame (``on_frame``) written side by side with the performer's frame of its slot."""
+    frame (``on_frame``) written side by side with the performer's frame of its slot.
+
+    ``on_frame`` only notes the frame and queues it (at most ``RECORD_QUEUE`` frames, then it
+    waits): a thread of the recorder's own reads the performer's frame, composes the two and
+    hands them to the encoder, so the receiver's loop is not held up by the demo's recording
+    (the performer's decode, the labels, the scaling: about 10 ms a frame at 512 x 600 on the
+    2-core machine, as much as a draw). A failure there is raised by ``close``.
+    """
 
     def __init__(self, performer: _Performer, out_video: str | os.PathLike[str],
                  rate_hz: float) -> None:
         self._performer, self._out, self._rate_hz = performer, out_video, rate_hz
         self._writer: VideoWriter | None = None
+        self._queue: queue.Queue[tuple[np.ndarray, int] | None] = queue.Queue(RECORD_QUEUE)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._record, name="facewire demo recorder",
+                                        daemon=True)
+        self._thread.start()
         self._ext: int | None = None  # the slot: the sequence number extended past 16 bits
         self._last_seq = 0
         self.arrivals: list[float] = []
+        self.shown: list[float] = []
         self.sizes: list[int] = []
         self.frames: list[int] = []
         self.seq: list[int] = []
@@ -376,25 +468,39 @@ class _Recorder:
     def frame(self, image: np.ndarray, state: FrameState) -> None:
         """Write one output frame ((H, W, 3) uint8 RGB) beside the performer's; the sender
         numbers its slots from 0."""
+        self.shown.append(time.monotonic())
         seq = state.seq
         assert seq is not None  # the receiver outputs the slots it plays
         ext = seq if self._ext is None else self._ext + (seq - self._last_seq) % 65536
         self._ext, self._last_seq = ext, seq
-        performer = self._performer.at(ext)
-        left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
-                      "performer (sender's camera)")
-        right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
-        both = side_by_side(left, right, image.shape[0])
-        if self._writer is None:
-            self._writer = VideoWriter(self._out, both.shape[1], both.shape[0], self._rate_hz,
-                                       crf=DEMO_CRF, preset=DEMO_PRESET)
-        self._writer.write(both)
-        self.frames.append(performer.index)
         self.seq.append(seq)
         self.status.append(state.status)
         self.rotation.append(state.rotation)
         self.q.append(state.q.copy())
         self.residuals.append(state.residuals.copy())
+        if self._error is None:  # after a failure the thread only empties the queue
+            self._queue.put((image, ext))
+
+    def _record(self) -> None:
+        """The recorder's thread: each queued frame beside its performer's, encoded."""
+        while (item := self._queue.get()) is not None:
+            if self._error is not None:
+                continue
+            image, ext = item
+            try:
+                performer = self._performer.at(ext)
+                left = _label(np.ascontiguousarray(performer.image[..., ::-1]),
+                              "performer (sender's camera)")
+                right = _label(image, f"reconstruction ({PACKET_BYTES} bytes/frame)")
+                both = side_by_side(left, right, image.shape[0])
+                if self._writer is None:
+                    self._writer = VideoWriter(self._out, both.shape[1], both.shape[0],
+                                               self._rate_hz, crf=DEMO_CRF,
+                                               preset=DEMO_PRESET)
+                self._writer.write(both)
+                self.frames.append(performer.index)
+            except BaseException as exc:  # noqa: BLE001 - raised by close()
+                self._error = exc
 
     def wait_packets(self, count: int, quiet_s: float) -> None:
         """Return once ``count`` packets were taken, or none for ``quiet_s``."""
@@ -405,8 +511,15 @@ class _Recorder:
                 seen, since = len(self.arrivals), time.monotonic()
 
     def close(self) -> None:
+        """Record what is queued, close the video; the recorder's failure raised here."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
         if self._writer is not None:
             self._writer.close()
+        if self._error is not None:
+            raise DemoError(f"{self._out}: the recording failed: {self._error}") \
+                from self._error
 
 
 def plot_bandwidth(arrival_s: np.ndarray, packet_bytes: np.ndarray,

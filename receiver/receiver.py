@@ -67,7 +67,20 @@ start, while the Hello is asked, the model fetched and the renderer set up): wit
 they are played, late; with a view they are dropped (``ignored``), since the picture is to be
 live.
 
-Per slot: ``receiver.scene.StateRenderer`` (morph, sender's view, render), as in replay.
+Per slot: ``receiver.scene.StateRenderer`` (morph, sender's view, render), as in replay, run
+in a process of its own (``receiver.renderprocess.RenderProcess``): the render loop waits for
+each frame without the GIL, so the reader thread and the encoder run while it is drawn.
+
+Two frames in flight. A slot popped is submitted to the render process and the loop goes on:
+it takes packets, and submits the next slot if it is ready, while the child draws. A frame
+is out (shown, written, handed to ``on_frame``) as soon as it is back if the loop has nothing
+else to do (it waits on the render pipe, at most until the next deadline), or, when a second
+frame is in flight and a third is ready, once the third is submitted: so a loop that is
+behind (a backlog of slots) spends its own time on frame n (the copy out, the view, the file,
+``on_frame``) while frames n + 1 and n + 2 are drawn, and keeps the stream's rate when the
+draw and its own work each take less than a period, not only their sum. Frames go out in
+slot order; a frame is never held back for the next slot's packet. Before the renderer or
+the playout changes (a new Hello), and at the end, the frames in flight go out first.
 
 Output frames (the file, and ``frames`` in the summary)
 ------------------------------------------------------
@@ -115,10 +128,11 @@ and the summary carries the voice's counts and the sync (``av_skew_ms_*``).
 Statistics (the summary, the live statistics): ``receiver.stats``. The callbacks see what it
 counts: ``on_packet`` each packet entering the playout, ``on_frame`` each output frame.
 
-Size: this module is over 650 lines because the docstring above states the whole session's
-contract (about 105 lines) beside about 560 lines of code that keep it; model acquisition,
-the model updates and the statistics already live apart (``receiver.acquire``,
-``receiver.updates``, ``receiver.stats``).
+Size: this module is over 750 lines because the docstring above states the whole session's
+contract (about 120 lines) beside about 620 lines of code that keep it; model acquisition,
+the model updates, the statistics and the render process already live apart
+(``receiver.acquire``, ``receiver.updates``, ``receiver.stats``,
+``receiver.renderprocess``).
 """
 
 from __future__ import annotations
@@ -128,7 +142,9 @@ import math
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -146,7 +162,8 @@ from facewire.receiver.modelcache import ModelCache
 from facewire.receiver.output import FrameFolderWriter, OutputError, VideoWriter
 from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.playout import FrameState, Playout
-from facewire.receiver.scene import StateRenderer, rest_q
+from facewire.receiver.renderprocess import RenderProcess
+from facewire.receiver.scene import rest_q
 from facewire.receiver.stats import ReceiveStats
 from facewire.receiver.updates import UpdateFetcher
 from facewire.receiver.voiceplayer import VoicePlayer, voice_capture
@@ -276,6 +293,26 @@ class _End(Exception):
         self.reason = reason
 
 
+@dataclass(frozen=True)
+class _Job:
+    """A frame on its way out (module docstring, "Two frames in flight").
+
+    Attributes:
+        state: the slot played.
+        show: handed to the live view.
+        out: an output frame (``_Session._emit``).
+        drawn: submitted to the render process (else out without an image: a concealed slot
+            when output frames go nowhere).
+        capture: its capture time on this host's clock (a played packet's), or None.
+    """
+
+    state: FrameState
+    show: bool
+    out: bool
+    drawn: bool
+    capture: float | None = None
+
+
 class _Session:
     """One ``receive`` call: its sockets, model, renderer, playout, output and counts."""
 
@@ -296,10 +333,11 @@ class _Session:
         self.max_frames, self.idle_timeout_s = max_frames, idle_timeout_s
         # what is played: set by _adopt, before anything is played
         self.hello: Hello | None = None
-        self.scene: StateRenderer | None = None
+        self.scene: RenderProcess | None = None
         self.playout: Playout | None = None
         self.writer: VideoWriter | FrameFolderWriter | None = None
         self.pending: list[FrameState] = []  # concealed slots awaiting the stream's next packet
+        self.flight: deque[_Job] = deque()  # frames on their way out, in output order
         self.played = 0  # packets played by the current playout
         self.restarts_seen = 0  # the current playout's restarts already handled
         self.stream_played = False  # a stream is open: its next packet writes the pending
@@ -399,11 +437,12 @@ class _Session:
             cam = hello.camera
             scale = min(1.0, MAX_SIZE / max(cam.width, cam.height))
             self.size = (max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
+        self._flush()  # the frames in flight out with the renderer and playout they had
         if self.scene is not None and self.scene.model is not model:
             self.scene.release()
             self.scene = None
         if self.scene is None:
-            self.scene = StateRenderer(model, *self.size, hello.camera)
+            self.scene = RenderProcess(model, *self.size, hello.camera)
         if self.updates is None or self.updates.base_sha256 != hello.model_sha256:
             self._start_updates(model)
         assert self.updates is not None  # just started
@@ -441,7 +480,11 @@ class _Session:
                     self._tick(live=True)
                 else:
                     wait = _POLL_S if due is None else min(due - now, _POLL_S)
-                    self.reader.arrived.wait(wait)
+                    if self.scene is not None and self.scene.in_flight:
+                        if self.scene.wait(wait):  # a frame drawn: out at once
+                            self._finish(*self._collect())
+                    else:
+                        self.reader.arrived.wait(wait)
                 line = self.stats.status_line(time.monotonic(), self.playout, self.connect,
                                               self.reader.last_arrival, self.playing_since,
                                               self.version, self.updates)
@@ -462,8 +505,9 @@ class _Session:
         for _ in range((self.reader.queued() + self.playout.ahead + 64) * per_packet):
             self._feed()
             if self.reader.queued() == 0 and self.playout.drained:
-                return
+                break
             self._tick(live=False)
+        self._flush()
 
     def _feed(self) -> None:
         """Move the queued packets into the playout, in arrival order (without a view only
@@ -497,7 +541,7 @@ class _Session:
         self._follow(state.serial)
         if state.arrival_s is None:  # concealed: shown now, written if the stream goes on
             if self.view is not None:
-                self.view(self.scene.render(state), self._live(state))
+                self._draw(_Job(state, show=True, out=False, drawn=True))
             if self.stream_played:
                 self.pending.append(state)
                 if len(self.pending) > MAX_GAP_S * self.hello.rate_hz:
@@ -511,15 +555,62 @@ class _Session:
         capture = self._capture(state)
         if capture is not None:  # a sender that moved its clock's origin (receiver.link)
             self.link.note_lateness(state.arrival_s - capture, time.monotonic())
+        outputs = self._outputs()
         for concealed in self.pending:
             self.stats.counts["lost"] += 1
-            self._emit(concealed, None, None, None)
+            self._draw(_Job(concealed, show=False, out=True, drawn=outputs))
         self.pending.clear()
-        image = self.scene.render(state)
-        latency = time.monotonic() - state.arrival_s
-        if self.view is not None:
-            self.view(image, self._live(state))
-        self._emit(state, image, latency, capture)
+        self._draw(_Job(state, show=self.view is not None, out=True, drawn=True,
+                        capture=capture))
+
+    def _outputs(self) -> bool:
+        """Whether output frames go anywhere (a file, a folder, ``on_frame``): else a
+        concealed slot is counted, not drawn."""
+        return self.out is not None or self.frames_dir is not None or self.on_frame is not None
+
+    # -- frames in flight (module docstring, "Two frames in flight") ---------------------------
+
+    def _draw(self, job: _Job) -> None:
+        """Send a frame on its way out, behind those in flight: drawn by the render process
+        (when the ring is full, the oldest is collected first and sent out after this one is
+        submitted, so the child draws while this thread writes), else out in its turn."""
+        assert self.scene is not None  # _adopt came first
+        done = None
+        if job.drawn and self.scene.in_flight == self.scene.depth:
+            done = self._collect()
+        if job.drawn:
+            self.scene.submit(job.state)
+        self.flight.append(job)
+        if done is not None:
+            self._finish(*done)
+        while self.flight and not self.flight[0].drawn:
+            self._finish(self.flight.popleft(), None)
+
+    def _collect(self) -> tuple[_Job, np.ndarray | None]:
+        """The oldest frame drawn (waiting for it), the frames not drawn before it out first.
+        """
+        assert self.scene is not None  # _adopt came first
+        while not self.flight[0].drawn:
+            self._finish(self.flight.popleft(), None)
+        return self.flight.popleft(), self.scene.collect()
+
+    def _flush(self) -> None:
+        """Every frame in flight out, in order (before the renderer or the playout changes,
+        and at the end)."""
+        while self.flight:
+            if self.flight[0].drawn:
+                self._finish(*self._collect())
+            else:
+                self._finish(self.flight.popleft(), None)
+
+    def _finish(self, job: _Job, image: np.ndarray | None) -> None:
+        """A frame out: to the live view, and as an output frame."""
+        arrival = job.state.arrival_s
+        latency = None if arrival is None else time.monotonic() - arrival
+        if job.show and self.view is not None and image is not None:
+            self.view(image, self._live(job.state))
+        if job.out:
+            self._emit(job.state, image, latency, job.capture)
 
     def _recheck(self) -> bool:
         """Ask for the Hello again (``receiver.link``: a restart, a stream resumed, a Hello
@@ -603,12 +694,11 @@ class _Session:
 
     def _emit(self, state: FrameState, image: np.ndarray | None,
               latency: float | None, capture: float | None) -> None:
-        """One output frame: written if there is a file and handed to ``on_frame`` (rendered
-        now if ``image`` is None), counted, and the end of the session at ``max_frames``."""
-        assert self.hello is not None and self.scene is not None and self.size is not None
-        if self.out is not None or self.frames_dir is not None or self.on_frame is not None:
-            if image is None:
-                image = self.scene.render(state)
+        """One output frame: written if there is a file and handed to ``on_frame`` (``image``
+        None: it goes nowhere, only counted), counted, and the end of the session at
+        ``max_frames``."""
+        assert self.hello is not None and self.size is not None
+        if image is not None:  # drawn when output frames go somewhere (_outputs)
             if self.writer is None and self.out is not None:
                 width, height = self.size
                 self.writer = VideoWriter(self.out, width, height, self.hello.rate_hz,

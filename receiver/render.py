@@ -327,7 +327,7 @@ class FaceRenderer(ContextOwner):
 
     @in_context
     def render(self, vertices: np.ndarray, q: np.ndarray, camera: Camera,
-               shade: np.ndarray | None = None) -> np.ndarray:
+               shade: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Draw one frame.
 
         Args:
@@ -337,9 +337,11 @@ class FaceRenderer(ContextOwner):
             camera: a ``models.infra.raster.Camera`` whose image size is this renderer's.
             shade: (3,) the light's log-gain field (``models.shading``); None: zeros, the
                 texture's own light.
+            out: (height, width, 3) uint8 array to write the image into (e.g. a slot of
+                ``receiver.renderprocess``'s shared memory), or None for a new array.
 
         Returns:
-            (height, width, 3) uint8 RGB image, top row first.
+            (height, width, 3) uint8 RGB image, top row first (``out`` when given).
 
         Raises:
             RenderError: wrong shapes or dtypes, non-finite values, a camera of another size,
@@ -365,6 +367,10 @@ class FaceRenderer(ContextOwner):
         if not isinstance(shade, np.ndarray) or shade.shape != (3,) \
                 or not np.isfinite(shade).all():
             raise RenderError(f"shade: expected 3 finite values, got {_describe(shade)}")
+        if out is not None and (not isinstance(out, np.ndarray) or out.dtype != np.uint8
+                                or out.shape != (self.height, self.width, 3)):
+            raise RenderError(f"out: expected a uint8 array of shape ({self.height}, "
+                              f"{self.width}, 3), got {_describe(out)}")
         if not isinstance(camera, Camera):
             raise RenderError(f"camera: expected a models.infra.raster.Camera, got "
                               f"{type(camera).__name__}")
@@ -392,7 +398,7 @@ class FaceRenderer(ContextOwner):
             for uniform, i in group.layers:
                 uniform.value = layers[i]
             group.vao.render(vertices=group.count, first=group.first)
-        return self._frame.read()
+        return self._frame.read(out)
 
 
 

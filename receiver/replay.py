@@ -10,6 +10,11 @@ last becomes one output frame:
     image     = receiver.scene.StateRenderer.render(state)   morphed mesh, base texture and
                                                               region volumes, from the view
 
+The rendering runs in a process of its own (``receiver.renderprocess.RenderProcess``), two
+frames in flight: the playout, the side-by-side composition and the encoder work on one frame
+while the next is drawn. ``render_fps`` is the output frames per second of the child's
+drawing time (morph, draw, readback).
+
 Views (``VIEWS``): ``camera`` is the sender's camera with the received pose and the Hello's
 intrinsics (the output lines up with the sender's frame; its size is the Hello's unless
 given), ``front`` and ``three-quarter`` are virtual cameras framing the head, which turns by
@@ -49,6 +54,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +71,8 @@ from facewire.protocol.voice import decode as decode_voice
 from facewire.protocol.voice import unwrap
 from facewire.receiver.output import FrameFolderWriter, VideoWriter, side_by_side
 from facewire.receiver.playout import FrameState, Playout, replay_states
-from facewire.receiver.scene import VIEWS, StateRenderer, rest_q
+from facewire.receiver.renderprocess import RenderProcess
+from facewire.receiver.scene import VIEWS, rest_q
 
 VIRTUAL_SIZE = (640, 480)
 
@@ -137,22 +144,32 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
         if out.suffix == ".mp4" else FrameFolderWriter(out)
     if sound is not None and isinstance(writer, VideoWriter):
         writer.write_sound(*sound)
-    written = clamped = 0
-    render_seconds = 0.0
-    with StateRenderer(model, width, height, hello.camera, view) as renderer, writer:
-        for k, state in enumerate(progress(states, "rendering", None)):
-            shown = versions.model(state)
-            if shown is not renderer.model:
-                renderer.set_model(shown)
-                playout.rest_q = rest_q(shown)  # a lost face eases to this version's rest
-            clamped += versions.held < state.serial
-            tick = time.perf_counter()
-            image = renderer.render(state)
-            render_seconds += time.perf_counter() - tick
+    clamped = written = 0
+    drawn: deque[int] = deque()  # the output index of each frame in flight
+    with RenderProcess(model, width, height, hello.camera, view) as renderer, writer:
+
+        def write_oldest() -> None:
+            nonlocal written
+            image = renderer.collect()
+            k = drawn.popleft()
             if frames is not None:
                 image = side_by_side(frames.at(t0 + k / hello.rate_hz), image, height)
             writer.write(image)
             written += 1
+
+        for k, state in enumerate(progress(states, "rendering", None)):
+            shown = versions.model(state)
+            if shown is not renderer.model:
+                renderer.set_model(shown)  # frames in flight keep the version they had
+                playout.rest_q = rest_q(shown)  # a lost face eases to this version's rest
+            clamped += versions.held < state.serial
+            if renderer.in_flight == renderer.depth:
+                write_oldest()
+            renderer.submit(state)
+            drawn.append(k)
+        while drawn:
+            write_oldest()
+        timed, render_seconds = len(renderer.render_seconds), sum(renderer.render_seconds)
     elapsed = time.perf_counter() - start
     return {"out": str(out), "view": view, "width": width, "height": height,
             "frames": written, **playout.stats, "lost_records": log.lost,
@@ -161,7 +178,7 @@ def replay_log(log_path: str | os.PathLike[str], model_path: str | os.PathLike[s
             "clamped_frames": clamped, "voice_frames": len(log.voice),
             "sound_s": 0.0 if sound is None else round(len(sound[0]) / SAMPLE_RATE, 3),
             "seconds": round(elapsed, 2),
-            "render_fps": round(written / render_seconds, 1) if render_seconds else None}
+            "render_fps": round(timed / render_seconds, 1) if render_seconds else None}
 
 
 def log_sound(log: PacketLog, t0: float) -> tuple[np.ndarray, float] | None:

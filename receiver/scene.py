@@ -70,8 +70,9 @@ class StateRenderer:
         self.render_seconds: deque[float] = deque(maxlen=STATS_FRAMES)
         self._renderer = FaceRenderer(model, width, height)
 
-    def render(self, state: FrameState) -> np.ndarray:
-        """(height, width, 3) uint8 RGB: the face in ``state``."""
+    def render(self, state: FrameState, out: np.ndarray | None = None) -> np.ndarray:
+        """(height, width, 3) uint8 RGB: the face in ``state`` (written into ``out`` when
+        given: ``FaceRenderer.render``)."""
         tick = time.perf_counter()
         vertices = self.rig.morph(self.rig.from_tangent(state.residuals))
         if self.view == "camera":
@@ -80,7 +81,7 @@ class StateRenderer:
         else:
             camera = virtual_view(self.view, self.model.mesh, state.rotation, self.width,
                                   self.height)
-        image = self._renderer.render(vertices, state.q, camera, state.shade)
+        image = self._renderer.render(vertices, state.q, camera, state.shade, out)
         self.render_seconds.append(time.perf_counter() - tick)
         return image
 

@@ -118,10 +118,11 @@ def test_the_demo_runs_the_real_send_and_receive_with_the_model_fetched_by_hash(
     assert got["ended"] == "stop" and got["hellos"] >= 1 and got["streams"] == 1
     assert got["received"] == got["frames"] == sent["packets"] == len(result.link.frames)
     assert (got["width"], got["height"]) == (512, 600)
-    # Played on arrival, with no backlog from the model fetch. The demo's receiver shares the
-    # sender's process and GIL and renders at 22-38 fps against the stream's 30, so its
-    # latency climbs through the stream: medians of 1.0-1.9 s measured on the 2-core machine
-    # (issue 27 gives the receiver a process of its own). The bound is clear of that noise.
+    # Played on arrival, with no backlog from the model fetch. The sender, the receiver and
+    # its renderer run in three processes; on the shared 2-core machine, loaded by other
+    # work, the receiver can still fall behind the stream for a while and its latency climb
+    # (medians of 1.0-1.9 s measured when the three shared one process and its GIL). The
+    # bound is clear of that noise: it catches a receiver that never plays, not a slow one.
     assert 0 < s["latency_ms_median"] < 4000
     # One output frame per slot, numbered from the sender's first, in order.
     assert list(result.link.seq) == list(range(len(result.link.frames)))

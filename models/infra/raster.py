@@ -227,12 +227,16 @@ class OffscreenTarget:
         self._target.use()
         self._target.clear(*background, 1.0, depth=1.0)
 
-    def read(self) -> np.ndarray:
-        """(height, width, 3) uint8 RGB of what was drawn, top row first."""
+    def read(self, out: np.ndarray | None = None) -> np.ndarray:
+        """(height, width, 3) uint8 RGB of what was drawn, top row first: a new array, or
+        ``out`` (an array of that shape and dtype, e.g. in shared memory) filled."""
         if self._target is not self._resolved:
             self._ctx.copy_framebuffer(self._resolved, self._target)
         self._resolved.read_into(self._pixels, components=3, alignment=1)
-        return self._pixels[::-1].copy()
+        if out is None:
+            return self._pixels[::-1].copy()
+        np.copyto(out, self._pixels[::-1])
+        return out
 
 
 def check_output(width: int, height: int, background: tuple[int, int, int]) -> None:
