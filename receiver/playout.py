@@ -65,20 +65,24 @@ costs nothing. Only a missing slot waits, until ``due()``: the latest time its p
 expected, after which it is concealed and the slots behind it play. With ``n`` the slot's
 extended number, ``P = 1 / rate_hz`` and ``o_i = a_i - e_i P`` the offset of each of the last
 ``JITTER_PACKETS`` packets of the stream (arrival ``a_i``, extended number ``e_i``; late ones
-included, duplicates not)::
+included, duplicates not), and ``o'`` the last ``BASE_PACKETS`` of them::
 
-    due(n) = min(o) + n P + margin,   margin = min(P + max(o) - min(o) + GUARD_S, depth P)
+    due(n) = min(o') + n P + margin,   margin = min(P + max(o) - min(o) + GUARD_S, depth P)
 
 and ``margin = depth P`` until the stream has ``MIN_JITTER_PACKETS`` arrivals (its first
 second tells little of its jitter: a sender warming up sends unevenly, and one stall of a busy
 machine can exceed the spread of the few packets before it).
 
-``min(o)`` is the fastest transit seen lately, so a sender clock that drifts is followed within
-``JITTER_PACKETS`` packets; ``max(o) - min(o)`` is the jitter (reordering included) of the
-same packets. The margin is one slot period more than the jitter, so a packet overtaken by
-its successor (which itself may come as late as the jitter) is not given up before it
-arrives, and at most the depth, as on the tick clock. A lost packet thus delays the slots
-behind it by about one period and the jitter, and a packet on time is never delayed.
+``min(o')`` is the fastest transit of the last ``BASE_PACKETS`` packets, so a sender that
+runs slower than its rate is followed: its packets come later by a share of a period each (at
+24 fps for 30 Hz, 8 ms a packet), so ``min(o')`` trails by at most ``BASE_PACKETS - 1`` such
+shares (58 ms), within the margin, where the minimum over all ``JITTER_PACKETS`` would trail by
+half a second and conceal every slot. ``max(o) - min(o)`` is the jitter (reordering and drift
+included) of the longer window. The margin is one slot period more than the jitter, so a
+packet overtaken by its successor (which itself may come as late as the jitter) is not given
+up before it arrives, and at most the depth, as on the tick clock. A lost packet thus delays
+the slots behind it by about one period and the jitter (and at most the base's trail more),
+and a packet on time is never delayed.
 
 Skip (``stats["skipped"]``; only with ``skip``, the default): when the newest buffered
 packet is ``2 depth`` or more slots ahead of the playout point ``n``, the latency has grown
@@ -133,6 +137,7 @@ per slot from the first sequence number to the last, concealed where packets are
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from collections.abc import Iterator, Sequence
@@ -161,6 +166,7 @@ JUMP_S = 2.0
 JITTER_PACKETS = 64
 MIN_JITTER_PACKETS = 30  # a second at 30 Hz
 GUARD_S = 0.005
+BASE_PACKETS = 8  # the deadline's base: the last quarter second at 30 Hz
 MAX_DEPTH = 1024
 MAX_REPLAY_SLOTS = 1 << 24  # about 6 days at 30 Hz
 STATUSES = ("received", "held", "easing", "neutral", "face_lost")
@@ -366,11 +372,12 @@ class Playout:
 
     def due(self) -> float | None:
         """The time, on the arrival clock, after which the next slot is concealed if its
-        packet has not come: ``min(o) + n / rate_hz + margin_s``; None when nothing plays
+        packet has not come: ``min(o') + n / rate_hz + margin_s``; None when nothing plays
         yet (before the first packet, or while ``ready`` counts down)."""
         if not self._playing or not self._offsets:
             return None
-        return min(self._offsets) + self._next / self.rate_hz + self.margin_s
+        base = min(itertools.islice(reversed(self._offsets), BASE_PACKETS))  # min(o')
+        return base + self._next / self.rate_hz + self.margin_s
 
     @property
     def drained(self) -> bool:

@@ -561,6 +561,29 @@ def test_playing_on_arrival_waits_for_a_missing_slot_until_its_adaptive_deadline
     assert playout.stats["concealed"] == 1
 
 
+@pytest.mark.parametrize("sender_hz", [24.0, 27.0, 30.0])
+def test_a_sender_slower_than_its_rate_is_followed_not_concealed(sender_hz: float) -> None:
+    """A busy machine's sender numbers 30 Hz slots but sends at ``sender_hz``: each packet
+    later than the last by a share of a period. Popped on arrival, and at each deadline
+    passed before the next arrival, every slot plays its packet; none is concealed or late
+    (with the deadline's base over all 64 offsets, 24 and 27 Hz concealed slots)."""
+    rng = np.random.default_rng(10)
+    playout = Playout(RATE, depth=DEPTH)
+    played = []
+    for s in range(300):
+        arrival = s / sender_hz
+        while (due := playout.due()) is not None and due <= arrival:
+            playout.pop()  # the deadline passed before this packet came: concealed
+        playout.push(encode(make_frame(s, rng)), arrival)
+        while playout.ready:
+            state = playout.pop()
+            if state.seq is not None:
+                played.append(state.seq)
+    assert played == list(range(300))
+    assert playout.stats["concealed"] == 0 and playout.stats["late"] == 0
+    assert playout.stats["restarts"] == 0
+
+
 def test_the_margin_follows_the_jitter_up_to_the_depth() -> None:
     rng = np.random.default_rng(8)
     playout = Playout(RATE, depth=DEPTH)

@@ -11,7 +11,8 @@
  * missing slot (pose held; expression weight held for HOLD_S from the last face-present slot,
  * then eased as ``1 - (3 p^2 - 2 p^3)``, ``p = t / EASE_S``, to zero residuals and the rest Q).
  * ``ready`` says the next pop plays a packet already in; ``due()`` the arrival-clock time after
- * which a missing slot is concealed: ``min(o) + n / rate + margin``.
+ * which a missing slot is concealed: ``min(o') + n / rate + margin``, o' the offsets of the
+ * last BASE_PACKETS packets (playout.py).
  *
  * A FrameState is a plain object with the Python names: seq (number | null), rotation
  * (Float64Array(9), 3x3 row-major, model -> camera), translation (Float64Array(3), mm),
@@ -29,6 +30,7 @@ export const JUMP_S = 2.0;
 export const JITTER_PACKETS = 64;
 export const MIN_JITTER_PACKETS = 30; // a second at 30 Hz (playout.py)
 export const GUARD_S = 0.005;
+export const BASE_PACKETS = 8; // the deadline's base: the last quarter second at 30 Hz
 export const MAX_DEPTH = 1024;
 export const MIN_RATE_HZ = 1.0; // protocol/rate.py
 export const MAX_RATE_HZ = 1000.0;
@@ -184,7 +186,8 @@ export class Playout {
    * come; null when nothing plays yet. */
   due() {
     if (!this._playing || this._offsets.length === 0) return null;
-    return Math.min(...this._offsets) + this._next / this.rateHz + this.marginS;
+    const base = Math.min(...this._offsets.slice(-BASE_PACKETS)); // min(o')
+    return base + this._next / this.rateHz + this.marginS;
   }
 
   /** True when no buffered packet waits to be played. */
