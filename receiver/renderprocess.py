@@ -5,7 +5,9 @@ receiver's process stalls its packet reader, playout and encoder for that long.
 ``RenderProcess`` keeps ``receiver.scene.StateRenderer``'s interface (``render(state)``,
 ``set_model``, ``hello_camera``, ``model``, ``render_seconds``, ``release``) and runs the
 ``StateRenderer`` in a child process (``multiprocessing``, spawn: a fresh interpreter, no
-inherited OpenGL context, sockets or threads). The child owns the EGL context and the model's
+inherited OpenGL context, sockets or threads; so a script that calls ``receive`` or
+``replay_log`` guards its entry point with ``if __name__ == "__main__":``, as every spawned
+``multiprocessing`` program must). The child owns the EGL context and the model's
 GPU state; the parent's calling thread waits on a pipe while a frame is drawn, which releases
 the GIL to its other threads.
 
@@ -18,10 +20,11 @@ order:
   (3,) shade; ``camera`` the Hello's ``protocol.control.Camera`` when it changed, else
   None), about 500 bytes; answered ``("frame", slot, seconds)`` once the image is in ring
   slot ``slot``, ``seconds`` the child's morph, draw and readback time;
-- ``("regions", {index: Region}, n)``: a new version of the model (``models.update``: the
-  same mesh and texture) whose regions at those indices changed: only they cross the pipe;
-  ``("model", model)`` a model with another texture (a new ``StateRenderer`` in the child);
-  answered ``("ok",)``;
+- ``("regions", {index: Region}, n, texture)``: a new version of the model (``models.update``
+  or a texture patch, ``models.patch``: the same mesh) whose regions at those indices
+  changed: only they cross the pipe, and the texture ((H, W, 3) uint8) only when it changed,
+  else None; the child's ``StateRenderer.set_model`` uploads what changed (a patch's
+  rectangle); answered ``("ok",)``;
 - ``("close",)``: the child releases its context and exits.
 
 Any request the child cannot carry out (bad input, a model it cannot take) is answered
@@ -220,8 +223,8 @@ class RenderProcess:
 
     def set_model(self, model: PersonModel) -> None:
         """Render with another version of the model (``StateRenderer.set_model``): only the
-        regions that changed are sent to the child; a model with another texture is sent
-        whole. Frames in flight are drawn with the old version; the child's answer is then
+        regions that changed are sent to the child, and the texture when it changed (a patch).
+        Frames in flight are drawn with the old version; the child's answer is then
         awaited at the next ``collect``, else at once.
 
         Raises:
@@ -234,13 +237,10 @@ class RenderProcess:
             raise RenderError("model: a version of another mesh; make a new RenderProcess")
         if model is self.model:
             return
-        if model.texture is self.model.texture:
-            old = self.model.regions
-            changed = {i: r for i, r in enumerate(model.regions)
-                       if i >= len(old) or r is not old[i]}
-            self._send(("regions", changed, len(model.regions)))
-        else:
-            self._send(("model", model))
+        old = self.model.regions
+        changed = {i: r for i, r in enumerate(model.regions) if i >= len(old) or r is not old[i]}
+        texture = None if model.texture is self.model.texture else model.texture
+        self._send(("regions", changed, len(model.regions), texture))
         self._pending.append(None)
         self.model = model
         if not self.in_flight:
@@ -420,14 +420,10 @@ def _serve(scene: StateRenderer, ring: np.ndarray, message: tuple[Any, ...]
         scene.render(state, ring[slot])
         return ("frame", slot, time.perf_counter() - tick), scene
     if kind == "regions":
-        _, changed, n = message
+        _, changed, n, texture = message
         regions = tuple(changed[i] if i in changed else scene.model.regions[i]
                         for i in range(n))
-        scene.set_model(dataclasses.replace(scene.model, regions=regions))
+        texture = scene.model.texture if texture is None else texture
+        scene.set_model(dataclasses.replace(scene.model, regions=regions, texture=texture))
         return ("ok",), scene
-    if kind == "model":
-        replaced = StateRenderer(message[1], scene.width, scene.height, scene.hello_camera,
-                                 scene.view)
-        scene.release()
-        return ("ok",), replaced
     raise RenderError(f"unknown request {kind!r}")

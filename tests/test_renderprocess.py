@@ -74,7 +74,20 @@ def test_the_child_draws_what_this_process_draws(model: PersonModel, states) -> 
             mine = here.render(s)
             assert np.abs(child.render(s).astype(int) - mine).max() <= 1
         assert not np.array_equal(mine, expected[2])  # the update shows
-        assert len(child.render_seconds) == 2 * len(played) + len(lifted)
+        # a texture patch (models.patch: the same mesh, a rectangle of the texture changed):
+        # the texture crosses, and the child uploads the rectangle, as the renderer here does
+        texture = version.texture.copy()
+        texture[: texture.shape[0] // 2] = 255 - texture[: texture.shape[0] // 2]
+        patched = dataclasses.replace(version, texture=texture)
+        unpatched = mine
+        here.set_model(patched)
+        child.set_model(patched)
+        assert child.model is patched
+        for s in lifted:
+            mine = here.render(s)
+            assert np.abs(child.render(s).astype(int) - mine).max() <= 1
+        assert np.abs(mine.astype(int) - unpatched).max() > 100  # the patch shows
+        assert len(child.render_seconds) == 2 * len(played) + 2 * len(lifted)
     assert not _segment(name).exists()
 
 
