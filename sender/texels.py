@@ -174,12 +174,12 @@ class AreaTexels:
         x, y = project(positions, rotation, translation, camera)
         x, y = x.reshape(h, w), y.reshape(h, w)
         colour = bilinear(image, x, y)[..., ::-1]  # BGR read, RGB out
-        facing = (self.normals @ np.asarray(rotation, np.float32).T)[..., 2] > FACING
+        r = np.asarray(rotation, np.float32)
+        facing = (self.normals @ r.T)[..., 2] > FACING
         on_image = (x >= 0) & (y >= 0) & (x <= image.shape[1] - 1) & (y <= image.shape[0] - 1)
         seen = self.valid & facing & on_image
         if occlusion:
-            rotation = np.asarray(rotation, np.float32)
-            distance = -(positions @ rotation[2] + np.float32(translation[2])).reshape(h, w)
+            distance = -(positions @ r[2] + np.float32(translation[2])).reshape(h, w)
             seen &= _in_front(x, y, distance, seen, image.shape[:2])
         return colour, seen, x, y
 
