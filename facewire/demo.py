@@ -13,19 +13,18 @@ Steps (``demo``):
    head turns.
 3. Stream (``loopback``). What ``facewire send`` and ``facewire receive`` run, over ZeroMQ
    on 127.0.0.1, in two processes as on two hosts: ``sender.sender.send``, in a process of
-   its own (spawned), sends the frames after them (in
-   real time, at the video's rate), bound to a free pair of ports, with ``demo.fwm``, and
-   records its packets to ``demo.fwlog`` (``facewire replay`` / ``bench bandwidth`` read
-   it); ``receiver.receiver.receive``, in this process on a thread of its own (its renderer
-   in a third process, ``receiver.renderprocess``), is not given the model: it
-   asks for the Hello, fetches the model from the sender by its sha256 in chunks over the
-   control channel into a temporary cache (not the user's), and plays every packet
-   (``receiver.playout``, morph, render from the sender's camera). The sender holds its
-   first frame until the receiver is ready to play (one event shared by the processes: the
-   receiver's ``ready``, the sender's ``start``), so the receiver has no backlog to catch up
-   on. When
-   the sender has sent its last frame and the receiver has taken every packet (or none came
-   for ``QUIET_S``), the receiver is stopped: it plays what it received, and ends.
+   its own (spawned), sends the frames after them (in real time, at the video's rate),
+   bound to a free pair of ports, with ``demo.fwm``, and records its packets to
+   ``demo.fwlog`` (``facewire replay`` / ``bench bandwidth`` read it);
+   ``receiver.receiver.receive``, in this process on a thread of its own (its renderer in a
+   third process, ``receiver.renderprocess``), is not given the model: it asks for the
+   Hello, fetches the model from the sender by its sha256 in chunks over the control channel
+   into a temporary cache (not the user's), and plays every packet (``receiver.playout``,
+   morph, render from the sender's camera). The sender holds its first frame until the
+   receiver is ready to play (one event shared by the processes: the receiver's ``ready``,
+   the sender's ``start``), so the receiver has no backlog to catch up on. When the sender
+   has sent its last frame and the receiver has taken every packet (or none came for
+   ``QUIET_S``), the receiver is stopped: it plays what it received, and ends.
 4. Outputs in ``out_dir``: ``demo.mp4``, each output frame of the receiver (its
    ``on_frame``) as performer | reconstruction (``receiver.output.side_by_side``,
    labelled), the performer's frame being the one the sender sent for that slot;
