@@ -65,6 +65,7 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from facewire.models.infra.childpipe import receive_from
 from facewire.models.infra.progress import Progress, no_progress
 from facewire.models.infra.video import VideoFrame, read_frames, video_info
 from facewire.performer import ENROLL_S, PerformanceResult, perform
@@ -80,7 +81,6 @@ from facewire.sender.sender import send
 
 DEFAULT_OUT = "facewire-demo"
 QUIET_S = 2.0  # the sender done, the receiver stops when no packet came for this long
-_POLL_S = 0.5  # while waiting for the sender process: how often its liveness is checked
 WINDOW_S = 1.0  # the bandwidth plot's trailing window
 LABEL_SCALE = 0.5
 MIN_STREAM_FRAMES = 10
@@ -391,10 +391,7 @@ def _sender_result(process: Any, results: Connection) -> dict[str, Any]:
     """The sender process's summary, once it has sent its last frame; its exception raised
     here; ``DemoError`` if it died without a word."""
     try:
-        while not results.poll(_POLL_S):
-            if not process.is_alive():
-                break
-        kind, value = results.recv()
+        kind, value = receive_from(process, results)
     except EOFError:
         process.join()
         raise DemoError(f"the sender's process (pid {process.pid}) died (exit code "

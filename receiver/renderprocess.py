@@ -62,6 +62,7 @@ from typing import Any, NoReturn, Self
 
 import numpy as np
 
+from facewire.models.infra.childpipe import receive_from
 from facewire.models.infra.egl import EGLUnavailable
 from facewire.models.infra.raster import RenderError, check_output
 from facewire.models.modelfile import PersonModel
@@ -72,7 +73,6 @@ from facewire.receiver.scene import STATS_FRAMES, VIEWS, StateRenderer
 
 DEPTH = 2  # ring slots: frames in flight
 CLOSE_S = 5.0  # release: how long the child may take to close before it is killed
-_POLL_S = 0.5  # while waiting for a reply: how often the child's liveness is checked
 _ERRORS: dict[str, type[Exception]] = {"EGLUnavailable": EGLUnavailable}
 
 
@@ -284,10 +284,7 @@ class RenderProcess:
         conn, process = self._link.conn, self._link.process
         assert conn is not None and process is not None  # _check_alive
         try:
-            while not conn.poll(_POLL_S):
-                if not process.is_alive():
-                    self._died()
-            reply = conn.recv()
+            reply = receive_from(process, conn)
         except (EOFError, ConnectionResetError, BrokenPipeError):
             self._died()
         if reply[0] == "error":
