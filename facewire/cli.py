@@ -137,7 +137,7 @@ def _receive(args: argparse.Namespace) -> int:
                 s = receive(args.connect, args.model, args.out, args.frames, view,
                             args.curve_dir, size=_size(args.size), status=line, stop=stop,
                             idle_timeout_s=args.idle_timeout, audio=not args.no_audio,
-                            speaker=args.speaker or "")
+                            speaker=args.speaker or "", keep_up=args.keep_up)
         finally:
             signal.signal(signal.SIGINT, previous)
     if s["model_sha256"] is None:
@@ -146,7 +146,8 @@ def _receive(args: argparse.Namespace) -> int:
     report(s, [f"received {s['received']} packets ({s['kbps']} kbit/s): {s['lost']} lost, "
                f"{s['late']} late, {s['corrupt']} corrupt, {s['duplicates']} duplicates; "
                f"{s['restarts']} resyncs (sender restarts, or falling behind)",
-               f"rendered {s['frames']} frames at {s['fps']} fps ({s['width']}x{s['height']}); "
+               f"rendered {s['frames']} frames at {s['fps']} fps ({s['width']}x{s['height']}"
+               f"{'; ' + str(s['repeated']) + ' repeated' if s['repeated'] else ''}); "
                f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95; "
                f"glass-to-glass {s['glass_to_glass_ms_median']} ms median, "
                f"{s['glass_to_glass_ms_p95']} ms p95",
@@ -348,7 +349,8 @@ def _demo(args: argparse.Namespace) -> int:
                f"bandwidth: {s['bandwidth_plot']}: {s['payload_kbps']} kbit/s payload, "
                f"{s['wire_kbps']} on the wire at 30 Hz ({s['packet_bytes']}-byte packets)",
                f"speed:     sender {s['sender_fps']} fps, receiver {s['output_fps']} fps "
-               f"(rendering {s['render_fps']} fps) of the stream's {s['measured_rate_hz']} Hz; "
+               f"(rendering {s['render_fps']} fps, {s['packets_repeated']} frames repeated) "
+               f"of the stream's {s['measured_rate_hz']} Hz; "
                f"latency {s['latency_ms_median']} ms median, {s['latency_ms_p95']} ms p95; "
                f"glass-to-glass {s['glass_to_glass_ms_median']} ms median, "
                f"{s['glass_to_glass_ms_p95']} ms p95",
@@ -907,6 +909,10 @@ def _add_send_receive(sub: Commands) -> None:
     r.add_argument("--view-port", type=int, default=8765, help="the live view's port "
                    "(default 8765; 0: any free port)")
     r.add_argument("--size", help="rendering size WxH (default: the sender camera's)")
+    r.add_argument("--keep-up", action="store_true", help="with --out or --frames: when the "
+                   "renderer falls behind the stream, repeat the last frame for a slot already "
+                   "overtaken instead of drawing every slot late (a live recording; default: "
+                   "every slot drawn, however late)")
     r.add_argument("--idle-timeout", type=float, help="stop after this many seconds without "
                    "packets (default: run until Ctrl-C)")
     r.add_argument("--curve-dir", help="CURVE key folder (see 'facewire keys generate'): "

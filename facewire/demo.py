@@ -20,7 +20,10 @@ Steps (``demo``):
    third process, ``receiver.renderprocess``), is not given the model: it asks for the
    Hello, fetches the model from the sender by its sha256 in chunks over the control channel
    into a temporary cache (not the user's), and plays every packet (``receiver.playout``,
-   morph, render from the sender's camera). The sender holds its first frame until the
+   morph, render from the sender's camera) as a live picture: with ``keep_up``, so that a
+   draw slower than the stream (the two ends, the recording and its encoder share 2
+   cores) repeats the last frame out for a slot already overtaken (``packets_repeated``)
+   instead of falling further behind. The sender holds its first frame until the
    receiver is ready to play (one event shared by the processes: the receiver's ``ready``,
    the sender's ``start``), so the receiver has no backlog to catch up on. When the sender
    has sent its last frame and the receiver has taken every packet (or none came for
@@ -87,7 +90,7 @@ MIN_STREAM_FRAMES = 10
 DEMO_CRF, DEMO_PRESET = 20, "veryfast"  # demo.mp4: the encoder shares 2 cores with both ends
 RECORD_QUEUE = 64  # frames the recorder may hold behind the receiver (59 MB at 512 x 600)
 _RECEIVER_COUNTS = ("received", "lost", "late", "corrupt", "duplicates", "stray", "discarded",
-                    "restarts", "overflow")
+                    "restarts", "overflow", "repeated")
 Status = Callable[[str], None]
 
 
@@ -313,7 +316,7 @@ def loopback(model_path: str | os.PathLike[str], video: str | os.PathLike[str], 
                 outcome["summary"] = receive(
                     endpoint, cache_dir=cache, status=lambda line: say(f"receiver: {line}"),
                     stop=receiver_stop, on_frame=recorder.frame, on_packet=recorder.packet,
-                    ready=_Ready(ready))
+                    ready=_Ready(ready), keep_up=True)
             except BaseException as exc:  # noqa: BLE001 - raised on this thread below
                 outcome["error"] = exc
                 sender_stop.set()

@@ -56,11 +56,18 @@ the deadline passes. A renderer slower than the stream:
 - with a live ``view``, every packet that has arrived is pushed, and the playout's skip rule
   gives up the slots in excess (``skipped``, ``discarded``), so the picture stays at most a
   few slots late;
-- without one (a file, or nothing), every slot is rendered: the playout's skip rule is off,
+- without one (a file, or nothing), every slot is output: the playout's skip rule is off,
   packets stay in the reader's queue while the playout holds half its window ahead (so a
-  packet is never far enough ahead to look like a restarted stream), the latency grows as
-  far as it must (bounded by the queue) and the loop catches up when the stream pauses or
-  ends.
+  packet is never far enough ahead to look like a restarted stream), and
+  - by default every slot is rendered: the latency grows as far as it must (bounded by the
+    queue) and the loop catches up when the stream pauses or ends (a recording: every
+    frame drawn);
+  - with ``keep_up`` (a live picture that is written, as the demo's receiver), a slot is not
+    drawn when the render process has ``depth`` frames in flight and the next slot's packet
+    is already in: its output frame repeats the frame out before it (``repeated``), so the
+    file keeps one frame per slot and the stream's timeline, and the latency stays within a
+    few draws (the frames in flight and the one in hand) however far the renderer falls
+    behind.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view
@@ -191,7 +198,7 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             idle_timeout_s: float | None = None, on_frame: OnFrame | None = None,
             on_packet: OnPacket | None = None,
             ready: threading.Event | None = None, audio: bool = True,
-            speaker: str | None = None) -> dict[str, Any]:
+            speaker: str | None = None, keep_up: bool = False) -> dict[str, Any]:
     """Receive a sender's stream and render it until stopped (module docstring).
 
     Args:
@@ -221,6 +228,8 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
         audio: play the voice (module docstring, "Voice"); False: voice packets are ignored.
         speaker: the output device (index or name; "" the default output), or None to play
             into the file (and the sync measure) only.
+        keep_up: a renderer slower than the stream repeats the last frame out instead of
+            drawing a slot already overtaken (module docstring); False: every slot drawn.
 
     Returns:
         The summary (``receiver.stats``, and ``connect``, ``out``, ``width``, ``height`` and
@@ -239,7 +248,7 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
     curve = client_keys(curve_dir) if curve_dir is not None else None
     session = _Session(connect, curve, local, ModelCache(cache_dir), out, frames_dir,
                        view or None, size, status, stop, max_frames, idle_timeout_s,
-                       on_frame, on_packet, ready, audio, speaker)
+                       on_frame, on_packet, ready, audio, speaker, keep_up)
     return session.run()
 
 
@@ -301,9 +310,10 @@ class _Job:
         state: the slot played.
         show: handed to the live view.
         out: an output frame (``_Session._emit``).
-        drawn: submitted to the render process (else out without an image: a concealed slot
-            when output frames go nowhere).
+        drawn: submitted to the render process (else out with the last frame's image if
+            ``repeat``, else without one: a concealed slot when output frames go nowhere).
         capture: its capture time on this host's clock (a played packet's), or None.
+        repeat: not drawn, out as the frame out before it (``keep_up``, behind).
     """
 
     state: FrameState
@@ -311,6 +321,7 @@ class _Job:
     out: bool
     drawn: bool
     capture: float | None = None
+    repeat: bool = False
 
 
 class _Session:
@@ -323,8 +334,9 @@ class _Session:
                  stop: threading.Event | None, max_frames: int | None,
                  idle_timeout_s: float | None, on_frame: OnFrame | None,
                  on_packet: OnPacket | None, ready: threading.Event | None,
-                 audio: bool = True, speaker: str | None = None) -> None:
+                 audio: bool = True, speaker: str | None = None, keep_up: bool = False) -> None:
         self.connect = connect
+        self.keep_up = keep_up
         self.curve, self.local, self.cache = curve, local, cache
         self.out, self.frames_dir, self.view, self.size = out, frames_dir, view, size
         self.on_frame, self.on_packet, self.ready = on_frame, on_packet, ready
@@ -338,6 +350,7 @@ class _Session:
         self.writer: VideoWriter | FrameFolderWriter | None = None
         self.pending: list[FrameState] = []  # concealed slots awaiting the stream's next packet
         self.flight: deque[_Job] = deque()  # frames on their way out, in output order
+        self.last_image: np.ndarray | None = None  # the last frame out with an image
         self.played = 0  # packets played by the current playout
         self.restarts_seen = 0  # the current playout's restarts already handled
         self.stream_played = False  # a stream is open: its next packet writes the pending
@@ -555,13 +568,22 @@ class _Session:
         capture = self._capture(state)
         if capture is not None:  # a sender that moved its clock's origin (receiver.link)
             self.link.note_lateness(state.arrival_s - capture, time.monotonic())
-        outputs = self._outputs()
+        outputs, behind = self._outputs(), self._behind()
         for concealed in self.pending:
             self.stats.counts["lost"] += 1
-            self._draw(_Job(concealed, show=False, out=True, drawn=outputs))
+            self._draw(_Job(concealed, show=False, out=True, drawn=outputs and not behind,
+                            repeat=outputs and behind))
         self.pending.clear()
-        self._draw(_Job(state, show=self.view is not None, out=True, drawn=True,
-                        capture=capture))
+        self._draw(_Job(state, show=self.view is not None and not behind, out=True,
+                        drawn=not behind, capture=capture, repeat=behind))
+
+    def _behind(self) -> bool:
+        """With ``keep_up``: whether the slot just popped is overtaken (module docstring):
+        the render process full (so a frame drawn goes out before this one) and the next
+        slot's packet in."""
+        assert self.scene is not None and self.playout is not None  # _adopt came first
+        return self.keep_up and self.scene.in_flight == self.scene.depth \
+            and self.playout.ready
 
     def _outputs(self) -> bool:
         """Whether output frames go anywhere (a file, a folder, ``on_frame``): else a
@@ -607,6 +629,11 @@ class _Session:
         """A frame out: to the live view, and as an output frame."""
         arrival = job.state.arrival_s
         latency = None if arrival is None else time.monotonic() - arrival
+        if job.repeat:
+            image = self.last_image
+            self.stats.counts["repeated"] += 1
+        elif image is not None:
+            self.last_image = image
         if job.show and self.view is not None and image is not None:
             self.view(image, self._live(job.state))
         if job.out:

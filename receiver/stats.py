@@ -8,6 +8,7 @@ playouts' counts, ``receiver.playout``), ``ignored``, ``overflow``, ``streams`` 
 frames), ``hellos`` (Hellos answered), ``control_timeouts``, ``control_errors``, ``fps``
 (``(frames - 1) / (t_last - t_first)`` over the output frames' times), ``kbps`` (packet bytes
 after the first, ``8 bytes / 1000 / (a_last - a_first)`` over the packets' arrival times),
+``repeated`` (output frames that repeat the frame before, not drawn: ``keep_up``),
 ``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
 rendered: the frame's own time, plus the wait behind a missing slot or a frame still
 rendering, and any backlog of a loop that fell behind), ``glass_to_glass_ms_median`` and
@@ -60,14 +61,15 @@ class ReceiveStats:
     ``time.monotonic()`` seconds.
 
     Attributes:
-        counts: ``frames``, ``lost``, ``ignored``, ``streams`` and ``hellos`` of the session.
+        counts: ``frames``, ``lost``, ``ignored``, ``streams``, ``hellos``, ``clamped`` and
+            ``repeated`` of the session.
         totals: the ``PLAYOUT_KEYS`` counts of the playouts already retired.
         last_packet: the last packet's arrival, or None.
     """
 
     def __init__(self) -> None:
         self.counts = dict.fromkeys(("frames", "lost", "ignored", "streams", "hellos",
-                                     "clamped"), 0)
+                                     "clamped", "repeated"), 0)
         self.totals = dict.fromkeys(PLAYOUT_KEYS, 0)
         self.update_totals = dict.fromkeys(UPDATE_KEYS, 0)
         self.version = (0, 0)  # (the version rendered, the newest a packet needed)
@@ -240,6 +242,7 @@ class ReceiveStats:
             "discarded": counts["discarded"], "skipped": counts["skipped"],
             "restarts": counts["restarts"], "ignored": self.counts["ignored"],
             "overflow": overflow, "streams": self.counts["streams"],
+            "repeated": self.counts["repeated"],
             "hellos": self.counts["hellos"], "control_timeouts": control_timeouts,
             "control_errors": control_errors,
             "fps": round((frames - 1) / span, 1) if span > 0 else None,

@@ -199,6 +199,43 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     assert 0 < summary["latency_ms_median"] < 400  # played on arrival (bench speed times it)
 
 
+def _receive_fast(log, person_model: Path, keep_up: bool) -> tuple[dict, list[bytes]]:
+    """120 packets at 1000 Hz, far faster than any draw, received into ``on_frame`` at
+    320x240; the summary and each output frame's sha256."""
+    port = _free_port_pair()
+    go, lines = threading.Event(), []
+    hello = dataclasses.replace(log.hello, rate_hz=1000.0)
+    sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=120, go=go)
+    digests: list[bytes] = []
+    try:
+        summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model, size=(320, 240),
+                          status=_ready(go, lines), idle_timeout_s=1.0, audio=False,
+                          on_frame=lambda image, _: digests.append(
+                              hashlib.sha256(image).digest()), keep_up=keep_up)
+    finally:
+        sender.stop()
+    assert sender.sent == 120
+    return summary, digests
+
+
+def test_keep_up_repeats_the_overtaken_slots_and_bounds_the_latency(
+        log, person_model: Path) -> None:
+    """A renderer slower than the stream: by default every slot is drawn and the latency
+    grows with the backlog; with ``keep_up`` every slot is still one output frame, but a slot
+    already overtaken repeats the frame out before it (not drawn), so the latency stays
+    within a few draws."""
+    every, every_frames = _receive_fast(log, person_model, keep_up=False)
+    kept, kept_frames = _receive_fast(log, person_model, keep_up=True)
+    for summary, frames in ((every, every_frames), (kept, kept_frames)):
+        # at 1 ms a slot, a stall of the machine can make a packet late: its slot concealed
+        assert summary["frames"] == len(frames) >= 108 and summary["skipped"] == 0
+    assert every["repeated"] == 0
+    assert kept["repeated"] >= kept["frames"] // 2  # a draw takes well over a 1-ms slot
+    same = sum(a == b for a, b in zip(kept_frames, kept_frames[1:]))
+    assert same >= kept["repeated"]  # each repeat is its predecessor's image
+    assert kept["latency_ms_p95"] < every["latency_ms_p95"] / 3
+
+
 def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retried(
         log, person_model: Path, tmp_path: Path) -> None:
     """Every 7th packet is lost on the way: its slot is concealed and still one frame (frames
