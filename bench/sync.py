@@ -4,7 +4,9 @@ One run, on loopback, through the real parts: ``sender.sender.send`` streams the
 frames and its own sound track (the voice: ``sender.voice``) on a free port, and
 ``receiver.receiver.receive``, on a thread of its own, fetches nothing (it is given the
 model), plays both and writes what it showed into a video with its sound
-(``--out``-style: ``receiver.receiver``, "Voice"). Measured:
+(``--out``-style: ``receiver.receiver``, "Voice"), as a live picture: with ``keep_up``, a
+draw slower than the stream repeats the last frame for a slot already overtaken instead of
+falling behind (what a viewer sees; ``frames_repeated``). Measured:
 
 - Playout skew (the receiver's own, ``receiver.voiceplayer``): for each voice frame played,
   its latency less the latency of the face frame out at that moment, so positive when the
@@ -169,7 +171,7 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
         def run() -> None:
             try:
                 got.update(receive(endpoint, model, out, ready=ready, audio=True,
-                                   speaker=None, stop=heard))
+                                   speaker=None, stop=heard, keep_up=True))
             except Exception as error:  # noqa: BLE001 - raised below as a SyncError
                 got["error"] = f"{type(error).__name__}: {error}"
             finally:
@@ -207,6 +209,7 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
     summary = {
         "source": os.fspath(source), "model": os.fspath(model),
         "frames_sent": sent["frames"], "frames_shown": shown,
+        "frames_repeated": got.get("repeated"),
         "voice_packets": sent["voice_packets"], "audio_kbps": sent["audio_kbps"],
         "payload_kbps": sent["payload_kbps"],
         "total_kbps": round(sent["audio_kbps"] + sent["payload_kbps"], 3),

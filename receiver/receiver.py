@@ -64,10 +64,11 @@ the deadline passes. A renderer slower than the stream:
     frame drawn);
   - with ``keep_up`` (a live picture that is written, as the demo's receiver), a slot is not
     drawn when the render process has ``depth`` frames in flight and the next slot's packet
-    is already in: its output frame repeats the frame out before it (``repeated``), so the
-    file keeps one frame per slot and the stream's timeline, and the latency stays within a
-    few draws (the frames in flight and the one in hand) however far the renderer falls
-    behind.
+    is already in: its output frame repeats the frame out before it (``repeated``), with
+    that frame's arrival and capture times (its latency is what the viewer sees, and the
+    voice keeps to it), so the file keeps one frame per slot and the stream's timeline, and
+    the latency stays within a few draws (the frames in flight and the one in hand) however
+    far the renderer falls behind.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view
@@ -310,8 +311,9 @@ class _Job:
         state: the slot played.
         show: handed to the live view.
         out: an output frame (``_Session._emit``).
-        drawn: submitted to the render process (else out with the last frame's image if
-            ``repeat``, else without one: a concealed slot when output frames go nowhere).
+        drawn: submitted to the render process (else out with the last frame's image and
+            times if ``repeat``, else without an image: a concealed slot when output frames
+            go nowhere).
         capture: its capture time on this host's clock (a played packet's), or None.
         repeat: not drawn, out as the frame out before it (``keep_up``, behind).
     """
@@ -350,7 +352,8 @@ class _Session:
         self.writer: VideoWriter | FrameFolderWriter | None = None
         self.pending: list[FrameState] = []  # concealed slots awaiting the stream's next packet
         self.flight: deque[_Job] = deque()  # frames on their way out, in output order
-        self.last_image: np.ndarray | None = None  # the last frame out with an image
+        # the last frame out with an image: it, its packet's arrival and its capture time
+        self.last_out: tuple[np.ndarray | None, float | None, float | None] = (None, None, None)
         self.played = 0  # packets played by the current playout
         self.restarts_seen = 0  # the current playout's restarts already handled
         self.stream_played = False  # a stream is open: its next packet writes the pending
@@ -626,18 +629,21 @@ class _Session:
                 self._finish(self.flight.popleft(), None)
 
     def _finish(self, job: _Job, image: np.ndarray | None) -> None:
-        """A frame out: to the live view, and as an output frame."""
-        arrival = job.state.arrival_s
-        latency = None if arrival is None else time.monotonic() - arrival
+        """A frame out: to the live view, and as an output frame. A repeat is out with the
+        image it repeats and that image's arrival and capture times: the latency and the
+        glass-to-glass latency (and the voice's sync) are those of what is shown."""
         if job.repeat:
-            image = self.last_image
+            image, arrival, capture = self.last_out
             self.stats.counts["repeated"] += 1
-        elif image is not None:
-            self.last_image = image
+        else:
+            arrival, capture = job.state.arrival_s, job.capture
+            if image is not None:
+                self.last_out = (image, arrival, capture)
+        latency = None if arrival is None else time.monotonic() - arrival
         if job.show and self.view is not None and image is not None:
             self.view(image, self._live(job.state))
         if job.out:
-            self._emit(job.state, image, latency, job.capture)
+            self._emit(job.state, image, latency, capture)
 
     def _recheck(self) -> bool:
         """Ask for the Hello again (``receiver.link``: a restart, a stream resumed, a Hello

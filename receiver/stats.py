@@ -8,7 +8,8 @@ playouts' counts, ``receiver.playout``), ``ignored``, ``overflow``, ``streams`` 
 frames), ``hellos`` (Hellos answered), ``control_timeouts``, ``control_errors``, ``fps``
 (``(frames - 1) / (t_last - t_first)`` over the output frames' times), ``kbps`` (packet bytes
 after the first, ``8 bytes / 1000 / (a_last - a_first)`` over the packets' arrival times),
-``repeated`` (output frames that repeat the frame before, not drawn: ``keep_up``),
+``repeated`` (output frames that repeat the frame before, not drawn: ``keep_up``; their
+latencies are the repeated frame's),
 ``latency_ms_median`` and ``latency_ms_p95`` (a played packet's arrival to its frame
 rendered: the frame's own time, plus the wait behind a missing slot or a frame still
 rendering, and any backlog of a loop that fell behind), ``glass_to_glass_ms_median`` and
