@@ -106,9 +106,10 @@ class LinkResult:
         frames: (F,) int performer frame index of each output frame (the one its slot sent).
         seq: (F,) int the slots' sequence numbers.
         status: per slot, the playout status ("received", "held", ...).
-        rotation: (F, 3, 3) float64 the head rotations rendered (model -> camera).
-        q: (F, 8) float32 the Q values rendered.
-        residuals: (F, 9, 2) float32 the tangent residuals rendered, mm.
+        rotation: (F, 3, 3) float64 the slots' head rotations (model -> camera): rendered,
+            or, on a repeated frame (``receiver["repeated"]``), the frame's before it shown.
+        q: (F, 8) float32 the slots' Q values (likewise).
+        residuals: (F, 9, 2) float32 the slots' tangent residuals, mm (likewise).
         arrival_s: (P,) float64 arrival time of each packet received, s from the first.
         shown_s: (F,) float64 the time each output frame was handed out, s from the first
             packet's arrival.
