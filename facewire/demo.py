@@ -106,10 +106,10 @@ class LinkResult:
         frames: (F,) int performer frame index of each output frame (the one its slot sent).
         seq: (F,) int the slots' sequence numbers.
         status: per slot, the playout status ("received", "held", ...).
-        rotation: (F, 3, 3) float64 the slots' head rotations (model -> camera): rendered,
-            or, on a repeated frame (``receiver["repeated"]``), the frame's before it shown.
-        q: (F, 8) float32 the slots' Q values (likewise).
-        residuals: (F, 9, 2) float32 the slots' tangent residuals, mm (likewise).
+        rotation: (F, 3, 3) float64 the slots' head rotations (model -> camera), as played;
+            a repeated frame (``receiver["repeated"]``) shows the picture before it instead.
+        q: (F, 8) float32 the slots' Q values, as played.
+        residuals: (F, 9, 2) float32 the slots' tangent residuals, as played, mm.
         arrival_s: (P,) float64 arrival time of each packet received, s from the first.
         shown_s: (F,) float64 the time each output frame was handed out, s from the first
             packet's arrival.
