@@ -32,9 +32,11 @@ over the video's frames, BLAS pinned to one thread; each frame's stages come fro
   lift, heuristics, sample, classify, learn, shade, pack); ``sender_fps`` = 1000 /
   ``sender_ms_median``. ``sender_ms_mean``: the mean of the same sums, which the rare
   costly frames (detections, the tracker's identity checks) move and the median does not;
-  ``identify_frames``: the frames on which the tracker computed a face descriptor
+  ``identify_frames``: the frames on which the tracker asked for an identity check
   (``sender.identity``; none with a model without descriptors), and ``identify_ms`` the
-  median track time of those frames.
+  median track time of those frames. The pipeline computes the checks' descriptors in a
+  process of its own, as ``send`` does (``SenderPipeline(identify_apart=True)``): the frame
+  path cuts the face's chip and goes on, and the tracker takes the answer frames later.
 - The receiver, on the packets the sender made (``_time_receiver``), as ``receive`` and
   ``replay`` render: in a process of its own (``receiver.renderprocess.RenderProcess``,
   two frames in flight), after ``RECEIVER_WARMUP`` frames: ``decode_ms``
@@ -260,7 +262,7 @@ def format_speed(result: dict[str, Any]) -> str:
     lines += [f"sender: {r['sender_ms_median']:.3f} ms median per frame = "
               f"{r['sender_fps']:.1f} fps; {_verdict(r['met']['sender'])} >= "
               f"{TARGET_SENDER_FPS:g} fps",
-              f"        {r['sender_ms_mean']:.3f} ms mean per frame; face descriptors on "
+              f"        {r['sender_ms_mean']:.3f} ms mean per frame; identity checks asked on "
               f"{r['identify_frames']} frames"
               + ("" if r["identify_ms"] is None else
                  f" ({r['identify_ms']:.1f} ms median track time there)"),
@@ -330,7 +332,7 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
     packets it made and its Hello."""
     total = frames_in_range(frames, info.frames)
     pipeline = SenderPipeline(model, estimate_intrinsics(info.width, info.height),
-                              rate_hz=stream_rate(info.rate_hz))
+                              rate_hz=stream_rate(info.rate_hz), identify_apart=True)
     tracked: list[float] = []
     detect: list[float] = []
     identify: list[float] = []
@@ -341,7 +343,7 @@ def _time_sender(model: Any, source: Path, frames: slice, info: Any, progress: P
     updates = 0
     packets: list[bytes] = []
     shape: tuple[int, ...] = ()
-    with _one_blas_thread():
+    with _one_blas_thread(), contextlib.closing(pipeline):
         for frame in progress(read_frames(source, frames), "sender", total):
             n += 1
             shape = frame.image.shape

@@ -7,9 +7,11 @@ Per frame (``SenderPipeline.process``), each stage timed (``SenderOutput.timings
    follows: the model's person when the model stores their face descriptors
    (``PersonModel.descriptors``, ``sender.identity.Person``): that person only, whoever
    else is in the picture, larger or not; while they are out of it, no face (the packets
-   say the face is absent) until they are back (``sender.tracker``, "Identity"). A model
-   without descriptors (built before they were stored): the largest face, as the tracker
-   does without a person; ``identity_warning`` is the line the commands print about it.
+   say the face is absent) until they are back (``sender.tracker``, "Identity"; a live
+   sender, ``identify_apart``, has the checks' descriptors computed in a process of its
+   own and takes the answers frames later). A model without descriptors (built before
+   they were stored): the largest face, as the tracker does without a person;
+   ``identity_warning`` is the line the commands print about it.
 2. ``pose``: ``sender.lift.pose_and_lift`` (the weighted robust fit of
    ``sender.pose.PoseSolver`` to the model's landmarks under the current expression,
    alternated with the lift; started from the previous frame's raw pose and expression) and
@@ -135,7 +137,8 @@ class SenderOutput:
         timings: seconds per stage: ``track``, ``pose``, ``lift``, ``heuristics``, ``sample``,
             ``classify``, ``learn``, ``shade``, ``pack``.
         detected: the tracker ran its full-frame detector on this frame.
-        identified: the tracker computed a face descriptor on this frame (``sender.identity``).
+        identified: the tracker asked for an identity check on this frame
+            (``sender.identity``; its descriptor computed here, or apart).
         clamped: values clamped by the quantisers on this frame.
         grazing: non-rigid points whose lift was capped at a grazing angle.
         update: the model update learned on this frame (``sender.learn``), or None; the
@@ -176,6 +179,10 @@ class SenderPipeline:
         background: capture learned states on a worker thread (a live stream: the frames
             go on meanwhile), not on the frame that makes them due.
         heal: while learning, heal the base texture too (``sender.heal``: texture patches).
+        identify_apart: compute the identity checks' descriptors in a process of their own
+            (a live stream: the frames go on meanwhile, and the tracker takes the answers
+            frames later; ``sender.identity``), not on the frame that asks; ``close`` ends
+            that process.
 
     Attributes:
         model: the model as learned so far (version ``serial``).
@@ -183,7 +190,8 @@ class SenderPipeline:
     """
 
     def __init__(self, model: PersonModel, camera: Intrinsics, rate_hz: float = NOMINAL_HZ,
-                 learn: bool = True, background: bool = False, heal: bool = True) -> None:
+                 learn: bool = True, background: bool = False, heal: bool = True,
+                 identify_apart: bool = False) -> None:
         if not isinstance(model, PersonModel):
             raise ValueError(f"model: expected a PersonModel, got {type(model).__name__}")
         if not isinstance(camera, Intrinsics):
@@ -199,7 +207,8 @@ class SenderPipeline:
         landmarks = model.mesh.vertices[model.mesh.landmarks].astype(np.float64)
         self.solver = PoseSolver(landmarks, camera)
         self.lifter = Lifter(self.rig, camera)
-        self.person = None if model.descriptors is None else Person(model.descriptors)
+        self.person = None if model.descriptors is None \
+            else Person(model.descriptors, apart=identify_apart)
         self.tracker = LandmarkTracker(person=self.person)
         self.pose_filter = PoseFilter()
         self.residual_filter = ResidualFilter()
@@ -214,6 +223,11 @@ class SenderPipeline:
             if learn and self.classifiers is not None and can_learn(model) else None
         self.shading = ShadingEstimator(model, self.rig, camera)
         self.reset()
+
+    def close(self) -> None:
+        """End the identity process, if the pipeline has one."""
+        if self.person is not None:
+            self.person.close()
 
     @property
     def updates(self) -> list[Update]:

@@ -16,7 +16,10 @@ Threads. Capture, processing and output do not stall each other:
   against the version it applies to), is handed to the control thread
   (``UpdateStore.publish_update``) and logged, after the frame's packet, which still names
   the version before it;
-- the control thread answers receivers' requests (below).
+- the control thread answers receivers' requests (below);
+- with a model that stores its person's descriptors, the identity process
+  (``sender.identity``, ``identify_apart``) computes the tracker's identity checks, so a
+  check (about 100 ms of CPU) never holds up a frame.
 
 The stream's rate is the smaller of the target rate and the source's: a 25 Hz file sent at
 ``--rate 30`` goes out at 25 Hz, and the Hello says so. A camera limits itself to the rate
@@ -274,7 +277,9 @@ def send(model_path: str | os.PathLike[str], source: str, bind: str = DEFAULT_BI
         server = stack.enter_context(ControlServer(control_at, curve))
         peers = stack.enter_context(PeerCounter(publisher))
         pipeline = SenderPipeline(model, sender_camera(src.width, src.height), rate,
-                                  learn=learn, background=True, heal=heal)
+                                  learn=learn, background=True, heal=heal,
+                                  identify_apart=True)
+        stack.callback(pipeline.close)
         identity = identity_warning(model, model_path)
         if identity is not None and warn is not None:  # once the source and sockets are up
             warn(identity)

@@ -63,6 +63,23 @@ The person's return is found by step 1, which runs on every frame without a trac
 without identity): the delay is at most ``stranger_every`` frames when the person comes
 back where a stranger's box was, else none.
 
+Answers that come later. A check is asked (``Person.submit``) and its distance read
+(``Person.poll``) on the same frame when the person computes descriptors in this thread
+(files: the outcome above, the same on every run). A person made ``apart``
+(``sender.identity``: a live stream) answers frames later, the frames going on meanwhile;
+until then:
+
+- acquiring, a face whose check is out is pending: no face is said for it, its box
+  follows the detections (IoU >= ``STRANGER_IOU``, as a stranger's) and no second check is
+  asked for it; the answer, when in, makes it the person's (the track starts on that
+  frame's detection, ``acquired``) or a stranger. A pending face the detector no longer
+  finds is forgotten with its answer;
+- tracking, the periodic check lets the track go on while it is out (a slow slide is
+  rare; a stranger would drive the stream until the answer, frames later); a reseated
+  track's check is stronger: no face is said until the answer says the person (that frame
+  is ``acquired``: the pose is fitted afresh), so a face that crossed in front never drives
+  the stream.
+
 Cost on 640x480 (openface_default.wmv, one core of the shared 2-core test machine, medians
 of runs that differ by +-20 %): tracked frame 1.6-2.3 ms, of which the predictor alone is
 1.3-1.8 ms; the neighbourhood check +1.4 ms; full-frame detection 20.5 ms
@@ -166,8 +183,8 @@ class TrackResult:
             one followed from the previous frame: the first face, a face found again after
             the tracked one was lost (possibly another person, without identity), or a
             switch to a larger face.
-        identified: a face descriptor was computed on this frame (module docstring,
-            "Identity").
+        identified: an identity check was asked on this frame: a face descriptor computed
+            here, or its chip handed to the identity process (module docstring, "Identity").
     """
 
     points: np.ndarray | None
@@ -346,10 +363,15 @@ class LandmarkTracker:
         self._frame = 0  # frames seen since the reset
         # (box, the frame it was identified on, frames to wait before identifying it again)
         self._strangers: list[tuple[Box, int, int]] = []
+        # faces whose check is out while acquiring: (box, the check's ticket)
+        self._pending: list[tuple[Box, int]] = []
+        self._answers: dict[int, float] = {}  # checks answered and not yet used, by ticket
 
     def _drop(self) -> None:
         """Forget the tracked face."""
         self._since_identify = 0
+        self._check: int | None = None  # the ticket of the tracked face's check, if out
+        self._unsure = False  # the track was reseated and its check is out: no face said
         self._box: Box | None = None  # the box of the last frame's points
         self._next: Box | None = None  # the box derived from them: where to look next
         self._patch: np.ndarray | None = None  # the face patch in ``_next`` on the last frame
@@ -394,17 +416,7 @@ class LandmarkTracker:
                 box, reseated = found, True
                 points = self._follow(gray, box)
         if self.person is not None:
-            self._since_identify += 1
-            if not (reseated or self._since_identify >= self._identify_every):
-                return TrackResult(points=points, box=box, detected=False, verified=verified)
-            distance = self._identify(colour, points)
-            if distance >= self.person.threshold:
-                self._strangers.append((box, self._frame, self._wait(distance)))
-                found_again = self._acquire(gray, colour, verified=verified)
-                return TrackResult(found_again.points, found_again.box, True, verified,
-                                   found_again.acquired, identified=True)
-            return TrackResult(points=points, box=box, detected=False, verified=verified,
-                               identified=True)
+            return self._hold(gray, colour, points, box, verified, reseated)
         detected = self._since_search >= self._search_every
         larger = None
         if detected:
@@ -454,14 +466,14 @@ class LandmarkTracker:
         self._drop()
         faces = self._detect(gray, min(1.0, self._detect_width / gray.shape[1]))
         if not faces:
-            self._strangers = []
+            self._strangers, self._pending, self._answers = [], [], {}
             return TrackResult(points=None, box=None, detected=True, verified=verified)
         if self.person is None:
             box = max(faces, key=_side)
-            points = self._follow(gray, box)
-            return TrackResult(points=points, box=box, detected=True, verified=verified,
-                               acquired=True)
+            return TrackResult(points=self._follow(gray, box), box=box, detected=True,
+                               verified=verified, acquired=True)
         strangers: list[tuple[Box, int, int]] = []  # those seen on this frame, boxes moved
+        pending: list[tuple[Box, int]] = []  # likewise
         identified = False
         for box in sorted(faces, key=_side, reverse=True):
             known = max(self._strangers, key=lambda s: box_iou(s[0], box), default=None)
@@ -469,25 +481,82 @@ class LandmarkTracker:
                     and self._frame - known[1] < known[2]:
                 strangers.append((box, known[1], known[2]))
                 continue
-            points = self._follow(gray, box)
-            identified = True
-            distance = self._identify(colour, points)
-            if distance < self.person.threshold:
-                self._strangers = strangers
+            asked = max(self._pending, key=lambda p: box_iou(p[0], box), default=None)
+            points: np.ndarray | None = None
+            if asked is not None and box_iou(asked[0], box) >= STRANGER_IOU:
+                ticket = asked[1]
+            else:
+                points = self._follow(gray, box)
+                ticket = self._ask(colour, points)
+                identified = True
+            distance = self._answer(ticket)
+            if distance is None:
+                pending.append((box, ticket))
+            elif distance < self.person.threshold:
+                if points is None:
+                    points = self._follow(gray, box)
+                self._strangers, self._pending = strangers, []
+                self._let_go()
                 return TrackResult(points=points, box=box, detected=True, verified=verified,
-                                   acquired=True, identified=True)
+                                   acquired=True, identified=identified)
+            else:
+                strangers.append((box, self._frame, self._wait(distance)))
             self._drop()
-            strangers.append((box, self._frame, self._wait(distance)))
-        self._strangers = strangers
+        self._strangers, self._pending = strangers, pending
+        self._let_go()
         return TrackResult(points=None, box=None, detected=True, verified=verified,
                            identified=identified)
 
-    def _identify(self, colour: np.ndarray, points: np.ndarray) -> float:
-        """The distance of the face of these points from the person (a descriptor: tens of
-        ms); the person's when under ``person.threshold``."""
+    def _hold(self, gray: np.ndarray, colour: np.ndarray, points: np.ndarray, box: Box,
+              verified: bool, reseated: bool) -> TrackResult:
+        """The tracked face's identity on this frame: checked when reseated or due, the
+        track dropped (and acquisition run) when the answer is a stranger, no face said
+        while a reseated track's check is out."""
+        assert self.person is not None
+        self._since_identify += 1
+        identified = reseated or (self._check is None
+                                  and self._since_identify >= self._identify_every)
+        if identified:
+            self._check = self._ask(colour, points)
+        confirmed = False
+        if self._check is not None:
+            distance = self._answer(self._check)
+            if distance is not None and distance >= self.person.threshold:
+                self._strangers.append((box, self._frame, self._wait(distance)))
+                found_again = self._acquire(gray, colour, verified=verified)
+                return TrackResult(found_again.points, found_again.box, True, verified,
+                                   found_again.acquired, identified=True)
+            if distance is not None:
+                self._check = None
+                confirmed, self._unsure = self._unsure, False
+            elif reseated:
+                self._unsure = True
+            self._let_go()
+        if self._unsure:
+            return TrackResult(points=None, box=None, detected=False, verified=verified,
+                               identified=identified)
+        return TrackResult(points=points, box=box, detected=False, verified=verified,
+                           acquired=confirmed, identified=identified)
+
+    def _ask(self, colour: np.ndarray, points: np.ndarray) -> int:
+        """Check the face of these points against the person (a descriptor: about 100 ms of
+        CPU, here or in the identity process); the check's ticket."""
         assert self.person is not None
         self._since_identify = 0
-        return self.person.distance(colour, points)
+        return self.person.submit(colour, points)
+
+    def _answer(self, ticket: int) -> float | None:
+        """The distance a check found (the person's when under ``person.threshold``), or
+        None while it is out."""
+        assert self.person is not None
+        self._answers.update(self.person.poll())
+        return self._answers.pop(ticket, None)
+
+    def _let_go(self) -> None:
+        """Forget the answers to checks no longer wanted (faces gone, a track's earlier
+        check replaced)."""
+        wanted = {t for _, t in self._pending} | {self._check}
+        self._answers = {t: d for t, d in self._answers.items() if t in wanted}
 
     def _wait(self, distance: float) -> int:
         """Frames before a stranger at this distance is identified again."""
