@@ -5,8 +5,9 @@ frames and its own sound track (the voice: ``sender.voice``) on a free port, and
 ``receiver.receiver.receive``, on a thread of its own, fetches nothing (it is given the
 model), plays both and writes what it showed into a video with its sound
 (``--out``-style: ``receiver.receiver``, "Voice"), as a live picture: with ``keep_up``, a
-draw slower than the stream repeats the last frame for a slot already overtaken instead of
-falling behind (what a viewer sees; ``frames_repeated``). Measured:
+draw or an encoder slower than the stream repeats the last frame for a slot already
+overtaken instead of falling behind (what a viewer sees; ``frames_repeated``; in the file
+the frame before lasts the slot, so ``frames_shown`` counts the file's slots). Measured:
 
 - Playout skew (the receiver's own, ``receiver.voiceplayer``): for each voice frame played,
   its latency less the latency of the face frame out at that moment, so positive when the
@@ -134,18 +135,33 @@ def lag_s(opening: np.ndarray, level: np.ndarray, rate_hz: float
     return (lags[i] + shift) / rate_hz, r[i]
 
 
-def _video_lag(path: Path, progress: Progress, frames_range: slice = slice(0, None)
-               ) -> tuple[float | None, float | None, int]:
+def _video_lag(path: Path, progress: Progress, frames_range: slice = slice(0, None),
+               rate_hz: float | None = None) -> tuple[float | None, float | None, int]:
     """A video's lag of its sound behind its mouth and its correlation (``lag_s``), and its
-    frame count."""
+    frame count on the grid of ``rate_hz`` (default: the median frame interval's): a file
+    whose frames last several slots (a live receiver's holds, ``receiver.output``) has each
+    frame's mouth on every slot it lasts."""
     frames = list(read_frames(path, frames_range))
     sound = read_sound(path)
     if sound is None or len(frames) < 2:
         return None, None, len(frames)
-    rate = 1.0 / float(np.median(np.diff([f.time for f in frames])))
     times = np.array([f.time for f in frames])
-    opening = mouth_openings([f.image for f in frames], progress)
-    return (*lag_s(opening, levels(sound, times, 1.0 / rate), rate), len(frames))
+    rate = rate_hz or 1.0 / float(np.median(np.diff(times)))
+    shown = shown_per_slot(times, rate)
+    opening = mouth_openings([f.image for f in frames], progress)[shown]
+    grid = times[0] + np.arange(len(shown)) / rate
+    return (*lag_s(opening, levels(sound, grid, 1.0 / rate), rate), len(shown))
+
+
+def shown_per_slot(times: np.ndarray, rate_hz: float) -> np.ndarray:
+    """(S,) int: for each slot of ``1 / rate_hz`` from the first frame to the last, the index
+    of the frame on screen then (the last one at or before it).
+
+    Args:
+        times: (F,) increasing presentation times, s, F >= 1.
+    """
+    slots = np.round((times - times[0]) * rate_hz).astype(int)
+    return np.searchsorted(slots, np.arange(slots[-1] + 1), side="right") - 1
 
 
 def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
@@ -190,8 +206,8 @@ def sync(model: str | os.PathLike[str], source: str | os.PathLike[str],
             raise SyncError(f"the receiver ended before it could play the stream: "
                             f"{got.get('error') or got.get('ended')}")
         load = round(os.getloadavg()[0], 1)
-        received_lag, received_r, shown = _video_lag(out, progress) if out.is_file() \
-            else (None, None, 0)
+        received_lag, received_r, shown = _video_lag(out, progress, rate_hz=sent["rate_hz"]) \
+            if out.is_file() else (None, None, 0)
         on_page: dict[str, Any] = {}
         skipped = None if page else "not asked for"
         if page:

@@ -908,7 +908,8 @@ def _add_send_receive(sub: Commands) -> None:
                      "the picture and the statistics) on 127.0.0.1")
     r.add_argument("--view-port", type=int, default=8765, help="the live view's port "
                    "(default 8765; 0: any free port)")
-    r.add_argument("--size", help="rendering size WxH (default: the sender camera's)")
+    r.add_argument("--size", help="rendering size WxH (default: the sender camera's; with "
+                   "--view or --keep-up at most 960 on its longer side)")
     r.add_argument("--keep-up", action="store_true", help="with --out or --frames: when the "
                    "renderer falls behind the stream, repeat the last frame for a slot already "
                    "overtaken instead of drawing every slot late (a live recording; default: "

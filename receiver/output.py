@@ -1,14 +1,18 @@
 """Where rendered frames go: an H.264 ``.mp4`` file, a folder of PNG images, side by side.
 
 Both writers take frames as (H, W, 3) uint8 RGB arrays (the renderer's order) through the
-same interface: ``write(rgb)``, ``close()``, and ``with`` (which closes).
+same interface: ``write(rgb)``, ``hold()``, ``close()``, and ``with`` (which closes). Frame
+``i`` of the file is the ``i``-th call of ``write`` or ``hold``; ``hold`` makes it the frame
+before it again (a live picture that repeats a frame: ``receiver.receiver``'s ``keep_up``).
 
 Threading. Encoding runs on one background thread per writer, fed by a bounded queue of
 ``QUEUE_FRAMES`` = 8 frames, so the render loop pays only for a copy of the frame (0.9 MB at
 640x480; the caller may reuse its buffer at once). When the queue is full, ``write`` blocks
 until the encoder has taken a frame: frames are never dropped, and the file holds every
 frame written, in order (at 640x480, preset fast, the encoder keeps up with about 100
-frames/s on the 2-core test machine; ``write`` took 0.3 ms median at 30 Hz). If the
+frames/s on the 2-core test machine; ``write`` took 0.3 ms median at 30 Hz; at 1080x1920,
+17). ``backlog`` is how many frames are queued and not yet encoded: a live caller that must
+not block holds instead of writing while it is high. If the
 thread fails (disk full, folder removed), it keeps taking frames off the queue and
 discarding them, so ``write`` never hangs; the next ``write`` and ``close`` raise
 ``OutputError`` naming the file, with the thread's exception as its cause. ``close``
@@ -20,7 +24,11 @@ unclosed ``.mp4`` has no index and does not play). Writing after ``close`` raise
 (4:2:0, BT.601 limited range, as FFmpeg converts RGB by default), constant quality
 ``crf`` 18 (visually near lossless) at preset ``fast``, x264's frame threading (PyAV would
 otherwise pick slice threads, which cost x264 compression). A frame's presentation time is
-its index over ``rate_hz``. With ``sound=True`` the file also gets a sound track: 48 kHz
+its index over ``rate_hz``. A ``hold`` is not encoded: the frame before stays on screen
+until the next frame's presentation time (an MP4 sample lasts until the next one), so
+holding costs the encoder nothing and the file keeps its timeline with fewer frames in it
+(variable frame rate); a file that ends on holds gets its last frame again at the last
+index, so that it lasts to its end. With ``sound=True`` the file also gets a sound track: 48 kHz
 mono Opus at ``SOUND_BITRATE`` (FFmpeg's libopus; MP4 holds Opus, RFC 7845's mapping), fed
 by ``write_sound(pcm, start_s)`` in the frames' order on the same queue: the first call
 places its samples at ``start_s`` seconds of the file's timeline (the video's frame 0 at 0),
@@ -33,7 +41,8 @@ frames written: ``close`` raises and no file is left.
 ``FrameFolderWriter``: ``frame_000000.png``, ``frame_000001.png``, ... (8-bit RGB PNG,
 lossless, zlib level 1) in a folder that is created if missing; a path that exists and is
 not a folder, or a folder already holding ``frame_*.png`` files (two runs would mix), is
-refused. Every frame must have the first frame's size.
+refused. A ``hold`` writes the frame before again, under its own number. Every frame must
+have the first frame's size.
 
 ``side_by_side``: two images scaled to a common height (by default the larger of the two;
 area averaging when shrinking, bilinear when enlarging; each width scaled in proportion and
@@ -50,7 +59,7 @@ import time
 from collections import deque
 from fractions import Fraction
 from pathlib import Path
-from typing import Self
+from typing import NamedTuple, Self
 
 import av
 import cv2
@@ -69,6 +78,16 @@ FRAME_PATTERN = "frame_{:06d}.png"
 _STOP = None
 
 
+class _Frame(NamedTuple):
+    at: int  # its index in the file
+    rgb: np.ndarray
+
+
+class _Sound(NamedTuple):
+    start_s: float | None
+    pcm: np.ndarray
+
+
 class OutputError(FacewireError, OSError):
     """A frame file or folder cannot be written; the message names it."""
 
@@ -77,16 +96,18 @@ class _QueuedWriter:
     """The writers' common part: validation, the bounded queue and the encoding thread.
 
     Subclasses implement ``_consume(index, rgb)`` (encode one frame) and ``_finish()``
-    (flush and close the file); both run on the writer's thread only. ``consume_seconds``
-    holds the wall time of the last ``TIMED_FRAMES`` frames' ``_consume`` (``bench speed``).
+    (flush and close the file); both run on the writer's thread only; ``_held`` (``hold``)
+    queues the frame before again, unless a subclass does better. ``consume_seconds`` holds the wall
+    time of the last ``TIMED_FRAMES`` frames' ``_consume`` (``bench speed``).
     """
 
     def __init__(self, target: Path, size: tuple[int, int] | None) -> None:
         self.target = target
         self._size = size  # (height, width); None until the first frame (folder writer)
-        self._count = 0
-        self._queue: queue.Queue[np.ndarray | tuple[float | None, np.ndarray] | None] = \
-            queue.Queue(maxsize=QUEUE_FRAMES)
+        self._count = 0  # frames written or held: the next frame's index
+        self._queued = self._taken = 0  # frames put on the queue, and encoded (or discarded)
+        self._last: np.ndarray | None = None  # the last frame queued
+        self._queue: queue.Queue[_Frame | _Sound | None] = queue.Queue(maxsize=QUEUE_FRAMES)
         self._error: BaseException | None = None
         self._closed = False
         self.consume_seconds: deque[float] = deque(maxlen=TIMED_FRAMES)
@@ -96,8 +117,13 @@ class _QueuedWriter:
 
     @property
     def frames(self) -> int:
-        """How many frames ``write`` has accepted."""
+        """How many frames the file has: ``write``'s and ``hold``'s."""
         return self._count
+
+    @property
+    def backlog(self) -> int:
+        """How many frames are queued and not yet encoded, at most ``QUEUE_FRAMES`` + 1."""
+        return self._queued - self._taken
 
     def write(self, rgb: np.ndarray) -> None:
         """Queue one frame for encoding (a copy is taken); blocks while the queue is full.
@@ -121,8 +147,33 @@ class _QueuedWriter:
         if rgb.shape[:2] != self._size:
             raise ValueError(f"{self.target}: frame {self._count}: expected "
                              f"{self._size[1]}x{self._size[0]}, got {rgb.shape[1]}x{rgb.shape[0]}")
-        self._queue.put(np.array(rgb, copy=True))
+        self._last = np.array(rgb, copy=True)
+        self._put(_Frame(self._count, self._last))
         self._count += 1
+
+    def hold(self) -> None:
+        """The next frame is the frame before again (module docstring); no frame yet: no
+        effect.
+
+        Raises:
+            ValueError: the writer is closed.
+            OutputError: the encoding thread has failed (names the file).
+        """
+        if self._closed:
+            raise ValueError(f"{self.target}: hold after close")
+        self._raise_thread_error()
+        if self._last is None:
+            return
+        self._held(self._last)
+        self._count += 1
+
+    def _held(self, last: np.ndarray) -> None:
+        """Frame ``frames`` is ``last`` again: queued again, unless a subclass does better."""
+        self._put(_Frame(self._count, last))
+
+    def _put(self, frame: _Frame) -> None:
+        self._queued += 1
+        self._queue.put(frame)
 
     def close(self) -> None:
         """Flush what is queued, finish the file and join the thread (again: no effect).
@@ -156,26 +207,25 @@ class _QueuedWriter:
             raise OutputError(text) from error
 
     def _run(self) -> None:
-        index = 0
         while True:
-            rgb = self._queue.get()
-            if rgb is _STOP:
+            item = self._queue.get()
+            if item is _STOP:
                 break
-            if isinstance(rgb, tuple):  # sound (VideoWriter.write_sound)
+            if isinstance(item, _Sound):  # VideoWriter.write_sound
                 if self._error is None:
                     try:
-                        self._consume_sound(*rgb)
+                        self._consume_sound(*item)
                     except Exception as exc:  # noqa: BLE001 - reaches write/close
                         self._error = exc
                 continue
             if self._error is None:
                 tick = time.perf_counter()
                 try:
-                    self._consume(index, rgb)
+                    self._consume(*item)
                 except Exception as exc:  # noqa: BLE001 - any failure reaches write/close
                     self._error = exc
                 self.consume_seconds.append(time.perf_counter() - tick)
-            index += 1
+            self._taken += 1
         try:
             self._finish(failed=self._error is not None)
         except Exception as exc:  # noqa: BLE001 - reported by close()
@@ -245,9 +295,20 @@ class VideoWriter(_QueuedWriter):
         except OSError as exc:
             raise OutputError(f"{path}: cannot create: {exc.strerror or exc}") from None
         self._time_base = 1 / rate
+        self._held_at: int | None = None  # the last hold's index
         self._sound_at: int | None = None  # the next sound sample's place, in samples
         self._sound_rest = np.zeros(0, np.int16)
         super().__init__(path, (height, width))
+
+    def _held(self, last: np.ndarray) -> None:
+        self._held_at = self._count  # not encoded: the frame before lasts (module docstring)
+
+    def close(self) -> None:
+        """As ``_QueuedWriter.close``; a file that ends on holds gets its last frame again at
+        the last index (module docstring)."""
+        if not self._closed and self._last is not None and self._held_at == self._count - 1:
+            self._put(_Frame(self._held_at, self._last))
+        super().close()
 
     def write_sound(self, pcm: np.ndarray, start_s: float | None = None) -> None:
         """Queue sound for the file's sound track (module docstring).
@@ -269,7 +330,7 @@ class VideoWriter(_QueuedWriter):
             raise ValueError(f"{self.target}: sound: expected (N,) int16")
         if start_s is not None and not (math.isfinite(start_s) and start_s >= 0):
             raise ValueError(f"{self.target}: sound start: expected >= 0 s, got {start_s}")
-        self._queue.put((start_s, pcm.copy()))
+        self._queue.put(_Sound(start_s, pcm.copy()))
 
     def _consume_sound(self, start_s: float | None, pcm: np.ndarray) -> None:
         assert self._sound is not None  # write_sound checked

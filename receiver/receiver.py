@@ -64,11 +64,14 @@ the deadline passes. A renderer slower than the stream:
     frame drawn);
   - with ``keep_up`` (a live picture that is written, as the demo's receiver), a slot is not
     drawn when the render process has ``depth`` frames in flight and the next slot's packet
-    is already in: its output frame repeats the frame out before it (``repeated``), with
+    is already in, or when the video file's encoder is behind (``WRITER_BEHIND`` frames
+    waiting for it: a large picture, 1080x1920 from a phone, encodes at about 17 frames/s here):
+    its output frame repeats the frame out before it (``repeated``), with
     that frame's arrival and capture times (its latency is what the viewer sees, and the
-    voice keeps to it), so the file keeps one frame per slot and the stream's timeline, and
-    the latency stays within a few draws (the frames in flight and the one in hand) however
-    far the renderer falls behind.
+    voice keeps to it), and in the file it is a hold (``receiver.output``: not encoded, the
+    frame before lasts a slot longer), so the file keeps the stream's timeline, and the
+    latency stays within a few draws (the frames in flight and the one in hand) however far
+    the renderer or the encoder falls behind.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view
@@ -105,8 +108,10 @@ loop ends on ``stop`` or on the idle timeout, the packets already received are p
 (ticks without waiting, a bounded number of them), so every packet received is in the output:
 on a link without loss, ``frames == received``. ``max_frames`` ends at once, after that many
 frames. The output size is ``size``, or the first Hello's camera size (scaled down to at
-most ``MAX_SIZE`` on its longer side: a Hello may announce up to 16384); a later Hello with
-another camera is rendered at that size (its intrinsics scaled, ``sender_view``).
+most ``MAX_SIZE`` on its longer side: a Hello may announce up to 16384; for a live picture,
+a ``view`` or ``keep_up``, to at most ``LIVE_SIZE``: a phone's 1080x1920 took 78 ms a draw
+on the 2-core test machine beside its sender, over a 25 Hz slot, and 540x960 34 ms); a later
+Hello with another camera is rendered at that size (its intrinsics scaled, ``sender_view``).
 
 Sender restart
 --------------
@@ -167,7 +172,7 @@ from facewire.receiver.acquire import ModelAcquirer, ReceiveError
 from facewire.receiver.clocksync import ClockSync
 from facewire.receiver.link import RECHECK_EVERY_S, RECHECK_TIMEOUT_S, Change, SenderLink
 from facewire.receiver.modelcache import ModelCache
-from facewire.receiver.output import FrameFolderWriter, OutputError, VideoWriter
+from facewire.receiver.output import QUEUE_FRAMES, FrameFolderWriter, OutputError, VideoWriter
 from facewire.receiver.packetreader import PacketReader
 from facewire.receiver.playout import FrameState, Playout
 from facewire.receiver.renderprocess import RenderProcess
@@ -180,6 +185,8 @@ REOPEN_S = 8.0
 MAX_GAP_S = 10.0
 QUEUE_PACKETS = 4096
 MAX_SIZE = 4096
+LIVE_SIZE = 960  # the longer side of a live picture by default (module docstring)
+WRITER_BEHIND = QUEUE_FRAMES // 2  # frames waiting for the file's encoder: it is behind
 _POLL_MS = 50
 _POLL_S = _POLL_MS / 1000
 
@@ -211,7 +218,8 @@ def receive(connect: str, model_path: str | os.PathLike[str] | None = None,
             (``receiver.stats.LIVE_KEYS``), e.g. ``LiveView.publish``; plays live.
         curve_dir: a CURVE key folder (``protocol.keys.client_keys``).
         cache_dir: the model cache folder (``receiver.modelcache.default_folder`` if None).
-        size: (width, height) of the output; the sender camera's size by default.
+        size: (width, height) of the output; the sender camera's size by default (module
+            docstring: at most ``MAX_SIZE``, ``LIVE_SIZE`` for a live picture).
         status: called with one line of text when the state changes, and every
             ``receiver.stats.STATUS_EVERY_S`` while playing.
         stop: set it (from another thread) to end the session cleanly, after playing the
@@ -449,9 +457,9 @@ class _Session:
     def _adopt(self, hello: Hello, model: PersonModel) -> None:
         """Play this Hello with this model: a renderer if the model is new, a new playout
         and clock; the packets queued meanwhile are played or ignored (module docstring)."""
-        if self.size is None:  # the sender's camera, at most MAX_SIZE on its longer side
-            cam = hello.camera
-            scale = min(1.0, MAX_SIZE / max(cam.width, cam.height))
+        if self.size is None:  # the sender's camera, at most MAX_SIZE (live: LIVE_SIZE)
+            cam, live = hello.camera, self.keep_up or self.view is not None
+            scale = min(1.0, (LIVE_SIZE if live else MAX_SIZE) / max(cam.width, cam.height))
             self.size = (max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
         self._flush()  # the frames in flight out with the renderer and playout they had
         if self.scene is not None and self.scene.model is not model:
@@ -583,10 +591,11 @@ class _Session:
     def _behind(self) -> bool:
         """With ``keep_up``: whether the slot just popped is overtaken (module docstring):
         the render process full (so a frame drawn goes out before this one) and the next
-        slot's packet in."""
+        slot's packet in, or the video file's encoder behind."""
         assert self.scene is not None and self.playout is not None  # _adopt came first
-        return self.keep_up and self.scene.in_flight == self.scene.depth \
-            and self.playout.ready
+        return self.keep_up and (
+            self.scene.in_flight == self.scene.depth and self.playout.ready
+            or self.writer is not None and self.writer.backlog >= WRITER_BEHIND)
 
     def _outputs(self) -> bool:
         """Whether output frames go anywhere (a file, a folder, ``on_frame``): else a
@@ -643,7 +652,7 @@ class _Session:
         if job.show and self.view is not None and image is not None:
             self.view(image, self._live(job.state))
         if job.out:
-            self._emit(job.state, image, latency, capture)
+            self._emit(job.state, image, latency, capture, job.repeat)
 
     def _recheck(self) -> bool:
         """Ask for the Hello again (``receiver.link``: a restart, a stream resumed, a Hello
@@ -726,10 +735,10 @@ class _Session:
                          state.arrival_s + best.offset_s) - best.offset_s
 
     def _emit(self, state: FrameState, image: np.ndarray | None,
-              latency: float | None, capture: float | None) -> None:
-        """One output frame: written if there is a file and handed to ``on_frame`` (``image``
-        None: it goes nowhere, only counted), counted, and the end of the session at
-        ``max_frames``."""
+              latency: float | None, capture: float | None, repeat: bool = False) -> None:
+        """One output frame: written if there is a file (a ``repeat`` held: the frame before
+        lasts, ``receiver.output``) and handed to ``on_frame`` (``image`` None: it goes
+        nowhere, only counted), counted, and the end of the session at ``max_frames``."""
         assert self.hello is not None and self.size is not None
         if image is not None:  # drawn when output frames go somewhere (_outputs)
             if self.writer is None and self.out is not None:
@@ -738,7 +747,9 @@ class _Session:
                                           sound=self.voice is not None)
             elif self.writer is None and self.frames_dir is not None:
                 self.writer = FrameFolderWriter(self.frames_dir)
-            if self.writer is not None:
+            if self.writer is not None and repeat:
+                self.writer.hold()
+            elif self.writer is not None:
                 self.writer.write(image)
             if self.on_frame is not None:
                 self.on_frame(image, state)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import av
 import cv2
 import numpy as np
 import pytest
@@ -69,6 +70,35 @@ def test_mp4_pads_odd_sizes(tmp_path: Path) -> None:
     edge = decoded[3].astype(int)
     assert np.abs(edge[:, 33] - edge[:, 32]).mean() < 4  # the pad repeats the last column
     assert np.abs(edge[25] - edge[24]).mean() < 4
+
+
+def test_a_hold_is_not_encoded_and_keeps_the_timeline(tmp_path: Path) -> None:
+    """Frames written and held: the file has only the written frames, each at its own index
+    over the rate, lasting until the next; one that ends on holds lasts to its end."""
+    plan = "wwhhwhwwhh"  # write or hold, slot by slot
+    path = tmp_path / "held.mp4"
+    with VideoWriter(path, W, H, RATE) as writer:
+        writer.hold()  # nothing to hold yet: no effect
+        for k, step in enumerate(plan):
+            writer.write(pattern(k)) if step == "w" else writer.hold()
+    assert writer.frames == len(plan) and writer.backlog == 0  # all encoded at close
+    decoded = list(read_frames(path))
+    written = [k for k, step in enumerate(plan) if step == "w"]
+    assert [round(f.time * RATE) for f in decoded] == written + [len(plan) - 1]
+    for k, got in zip(written, decoded):
+        assert psnr(pattern(k), got.image[:, :, ::-1]) > 30
+    assert psnr(pattern(written[-1]), decoded[-1].image[:, :, ::-1]) > 30  # the last again
+    with av.open(str(path)) as container:  # the last frame lasts its slot
+        assert container.duration / av.time_base == pytest.approx(len(plan) / RATE, abs=1e-3)
+
+
+def test_a_held_png_frame_is_the_frame_before_under_its_own_number(tmp_path: Path) -> None:
+    with FrameFolderWriter(tmp_path) as writer:
+        writer.write(pattern(0))
+        writer.hold()
+        writer.write(pattern(2))
+    images = [cv2.imread(str(tmp_path / FRAME_PATTERN.format(k)))[:, :, ::-1] for k in range(3)]
+    assert np.array_equal(images[1], pattern(0)) and np.array_equal(images[2], pattern(2))
 
 
 def test_png_folder_round_trip_is_exact(tmp_path: Path) -> None:

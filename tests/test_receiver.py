@@ -26,6 +26,7 @@ from logsender import free_port_pair as _free_port_pair
 from logsender import hello_for as _hello_for
 from logsender import ready as _ready
 
+from facewire.models.infra.video import read_frames
 from facewire.models.modelfile import ModelFileError
 from facewire.protocol.keys import generate_keys, server_keys
 from facewire.protocol.log import read_log
@@ -33,7 +34,7 @@ from facewire.protocol.packet import PACKET_BYTES
 from facewire.protocol.transport import TransportError
 from facewire.receiver.modelcache import ModelCache, ModelCacheError, default_folder, verify_model
 from facewire.receiver.playout import FrameState
-from facewire.receiver.receiver import MAX_SIZE, ReceiveError, receive
+from facewire.receiver.receiver import LIVE_SIZE, MAX_SIZE, ReceiveError, receive
 from facewire.receiver.stats import LIVE_KEYS
 from facewire.sender.pipeline import encode_video
 
@@ -199,18 +200,19 @@ def test_the_video_has_one_frame_per_packet_received(log, person_model: Path,
     assert 0 < summary["latency_ms_median"] < 400  # played on arrival (bench speed times it)
 
 
-def _receive_fast(log, person_model: Path, keep_up: bool) -> tuple[dict, list[bytes]]:
-    """120 packets at 1000 Hz, far faster than any draw, received into ``on_frame`` at
-    320x240; the summary and each output frame's sha256."""
+def _receive_fast(log, person_model: Path, keep_up: bool, out: Path | None = None
+                  ) -> tuple[dict, list[bytes]]:
+    """120 packets at 1000 Hz, far faster than any draw, received into ``on_frame`` (and
+    ``out``) at 320x240; the summary and each output frame's sha256."""
     port = _free_port_pair()
     go, lines = threading.Event(), []
     hello = dataclasses.replace(log.hello, rate_hz=1000.0)
     sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=120, go=go)
     digests: list[bytes] = []
     try:
-        summary = receive(f"tcp://127.0.0.1:{port}", model_path=person_model, size=(320, 240),
-                          status=_ready(go, lines), idle_timeout_s=1.0, audio=False,
-                          on_frame=lambda image, _: digests.append(
+        summary = receive(f"tcp://127.0.0.1:{port}", person_model, out,
+                          size=(320, 240), status=_ready(go, lines), idle_timeout_s=1.0,
+                          audio=False, on_frame=lambda image, _: digests.append(
                               hashlib.sha256(image).digest()), keep_up=keep_up)
     finally:
         sender.stop()
@@ -234,6 +236,21 @@ def test_keep_up_repeats_the_overtaken_slots_and_bounds_the_latency(
     same = sum(a == b for a, b in zip(kept_frames, kept_frames[1:]))
     assert same >= kept["repeated"]  # each repeat is its predecessor's image
     assert kept["latency_ms_p95"] < every["latency_ms_p95"] / 3
+
+
+def test_keep_up_holds_in_the_file_what_it_repeats(log, person_model: Path,
+                                                   tmp_path: Path) -> None:
+    """With ``keep_up`` and a video file, a repeated slot is a hold (the frame before lasts,
+    not encoded: receiver.output), so an encoder slower than the stream cannot hold the loop
+    back: the file has the stream's timeline, one slot per output frame, and only the frames
+    drawn in it."""
+    out = tmp_path / "kept.mp4"
+    summary, _ = _receive_fast(log, person_model, keep_up=True, out=out)
+    decoded = list(read_frames(out))
+    drawn = summary["frames"] - summary["repeated"]
+    assert summary["repeated"] >= summary["frames"] // 2
+    assert len(decoded) in (drawn, drawn + 1)  # + 1: the last frame again, after holds
+    assert round(decoded[-1].time * 1000) == summary["frames"] - 1  # 1000 Hz: 1 ms a slot
 
 
 def test_lost_packets_become_concealed_frames_and_bad_control_replies_are_retried(
@@ -407,6 +424,34 @@ def test_bad_arguments_are_refused_before_connecting(tmp_path: Path) -> None:
         receive("tcp://127.0.0.1:5555", ready=True)
     with pytest.raises(TransportError):
         receive("udp://nowhere", idle_timeout_s=1)
+
+
+def test_a_live_picture_of_a_phone_camera_is_rendered_at_most_live_size(
+        log, person_model: Path, tmp_path: Path) -> None:
+    """A phone's 1080x1920 camera: with ``keep_up`` (a live picture) and no --size, the
+    output is scaled to LIVE_SIZE on its longer side (540x960), which this machine draws at
+    the stream's rate; a recording keeps the camera's size."""
+    cam = log.hello.camera
+    sx, sy = 1080 / cam.width, 1920 / cam.height
+    phone = dataclasses.replace(cam, fx=cam.fx * sx, fy=cam.fy * sy, cx=cam.cx * sx,
+                                cy=cam.cy * sy, width=1080, height=1920)
+    hello = _hello_for(person_model, dataclasses.replace(log.hello, camera=phone))
+    sizes = {}
+    for keep_up in (True, False):
+        port = _free_port_pair()
+        go, lines = threading.Event(), []
+        sender = LogSender(port, hello, person_model.read_bytes(), log.packets, count=10,
+                           go=go)
+        try:
+            sizes[keep_up] = receive(
+                f"tcp://127.0.0.1:{port}", model_path=person_model, max_frames=2,
+                frames_dir=tmp_path / f"frames_{keep_up}", idle_timeout_s=20, audio=False,
+                status=_ready(go, lines), keep_up=keep_up)
+        finally:
+            sender.stop()
+    assert LIVE_SIZE == 960
+    assert (sizes[True]["width"], sizes[True]["height"]) == (540, 960)
+    assert (sizes[False]["width"], sizes[False]["height"]) == (1080, 1920)
 
 
 def test_an_oversized_sender_camera_is_rendered_at_most_max_size(log, person_model: Path,

@@ -16,6 +16,7 @@ from conftest import free_endpoint, start
 from facewire.bench.bandwidth import bandwidth
 from facewire.bench.inspect import inspect_log
 from facewire.bench.speech import SpeechError, speech_quality, speech_table
+from facewire.bench.sync import shown_per_slot
 from facewire.models.infra.sound import SoundError, read_sound
 from facewire.protocol import opus, voice
 from facewire.protocol.control import Camera, Hello, HelloRequest
@@ -61,6 +62,14 @@ def _envelope(frames: np.ndarray) -> np.ndarray:
 def _packets(frames: np.ndarray, bitrate: int = opus.DEFAULT_BITRATE) -> list[bytes]:
     encoder = opus.Encoder(bitrate)
     return [encoder.encode(frame) for frame in frames]
+
+
+def test_a_held_frame_is_on_screen_for_every_slot_it_lasts() -> None:
+    """bench sync reads a live receiver's file (frames held over slots, receiver.output) on
+    the stream's grid: each slot has the last frame at or before it."""
+    times = np.array([0.0, 0.04, 0.16, 0.2, 0.36]) + 1.0  # 25 Hz slots 0, 1, 4, 5, 9
+    assert shown_per_slot(times, 25.0).tolist() == [0, 1, 1, 1, 2, 3, 3, 3, 3, 4]
+    assert shown_per_slot(times[:1], 25.0).tolist() == [0]
 
 
 def test_the_sound_track_is_read_on_the_files_timeline(shared_data: Path) -> None:
