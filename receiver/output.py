@@ -28,8 +28,8 @@ its index over ``rate_hz``. A ``hold`` is not encoded: the frame before stays on
 until the next frame's presentation time (an MP4 sample lasts until the next one), so
 holding costs the encoder nothing and the file keeps its timeline with fewer frames in it
 (variable frame rate); a file that ends on holds gets its last frame again at the last
-index, so that it lasts to its end. With ``sound=True`` the file also gets a sound track: 48 kHz
-mono Opus at ``SOUND_BITRATE`` (FFmpeg's libopus; MP4 holds Opus, RFC 7845's mapping), fed
+index, so that it lasts to its end. With ``sound=True`` the file also gets a sound track:
+48 kHz mono Opus at ``SOUND_BITRATE`` (FFmpeg's libopus; MP4 holds Opus, RFC 7845's mapping), fed
 by ``write_sound(pcm, start_s)`` in the frames' order on the same queue: the first call
 places its samples at ``start_s`` seconds of the file's timeline (the video's frame 0 at 0),
 every later call's samples follow the last one's without a gap, so the caller keeps sound and
@@ -97,8 +97,8 @@ class _QueuedWriter:
 
     Subclasses implement ``_consume(index, rgb)`` (encode one frame) and ``_finish()``
     (flush and close the file); both run on the writer's thread only; ``_held`` (``hold``)
-    queues the frame before again, unless a subclass does better. ``consume_seconds`` holds the wall
-    time of the last ``TIMED_FRAMES`` frames' ``_consume`` (``bench speed``).
+    queues the frame before again, unless a subclass does better. ``consume_seconds`` holds
+    the wall time of the last ``TIMED_FRAMES`` frames' ``_consume`` (``bench speed``).
     """
 
     def __init__(self, target: Path, size: tuple[int, int] | None) -> None:

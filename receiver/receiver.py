@@ -65,13 +65,13 @@ the deadline passes. A renderer slower than the stream:
   - with ``keep_up`` (a live picture that is written, as the demo's receiver), a slot is not
     drawn when the render process has ``depth`` frames in flight and the next slot's packet
     is already in, or when the video file's encoder is behind (``WRITER_BEHIND`` frames
-    waiting for it: a large picture, 1080x1920 from a phone, encodes at about 17 frames/s here):
-    its output frame repeats the frame out before it (``repeated``), with
-    that frame's arrival and capture times (its latency is what the viewer sees, and the
-    voice keeps to it), and in the file it is a hold (``receiver.output``: not encoded, the
-    frame before lasts a slot longer), so the file keeps the stream's timeline, and the
-    latency stays within a few draws (the frames in flight and the one in hand) however far
-    the renderer or the encoder falls behind.
+    waiting for it: a phone's 1080x1920 encodes at about 17 frames/s here): its output
+    frame repeats the frame out before it (``repeated``), with that frame's arrival and
+    capture times (its latency is what the viewer sees, and the voice keeps to it), and in
+    the file it is a hold (``receiver.output``: not encoded, the frame before lasts a slot
+    longer), so the file keeps the stream's timeline, and the latency stays within a few
+    draws (the frames in flight and the one in hand) however far the renderer or the
+    encoder falls behind.
 
 The same holds for the packets that arrive before the loop starts (the reader runs from the
 start, while the Hello is asked, the model fetched and the renderer set up): without a view

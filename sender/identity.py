@@ -33,13 +33,13 @@ Where the descriptor is computed. A ``Person`` answers a check (``submit``, then
 either at once, in the caller's thread (files: the same answers on every run), or, made
 with ``apart=True``, from a child process of its own (spawned, so that the camera's and the
 sockets' threads are not forked): ``submit`` hands the 67 kB chip to a queue whose feeder
-thread writes it to the pipe, so the frame path goes on at once, and the answer is polled
-frames later (``sender.tracker``, "Identity", says what the tracker does meanwhile). The
-child loads the network once (about 80 ms of CPU; with Python's start and imports, 0.5-1 s
-of wall time, which the ``Person`` waits for, so that the first frames are answered as fast
-as the later ones) and computes the chips in the order given. A child that died is
-``IdentityError`` at the next ``poll``: the tracker would otherwise wait for an answer
-forever and never take the person.
+thread writes it to the pipe, so the frame path goes on at once, and the answer (0.5 kB,
+on a one-way pipe of its own) is polled frames later (``sender.tracker``, "Identity", says
+what the tracker does meanwhile). The child loads the network once (about 80 ms of CPU;
+with Python's start and imports, 0.5-1 s of wall time, which the ``Person`` waits for, so
+that the first frames are answered as fast as the later ones) and computes the chips in the
+order given. A child that died is ``IdentityError`` at the next ``poll``: the tracker would
+otherwise wait for an answer forever and never take the person.
 
 Image coordinates as ``sender.tracker``'s. The network runs single-threaded, with no BLAS.
 """
@@ -50,7 +50,7 @@ import itertools
 import multiprocessing
 import queue
 import threading
-import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,7 @@ import dlib
 import numpy as np
 
 from facewire.models.fields import DESCRIPTOR_SIZE
+from facewire.models.infra.childpipe import receive_from
 from facewire.models.modelfile import check_descriptors
 from facewire.protocol.errors import FacewireError
 from facewire.sender.tracker import box_from_points, predictor_path
@@ -144,28 +145,19 @@ class Person:
             return
         context = multiprocessing.get_context("spawn")
         self._chips: Any = context.Queue()
-        self._descriptors: Any = context.Queue()
+        self._descriptors, sending = context.Pipe(duplex=False)
         self._process = context.Process(target=_serve, name="facewire identity",
-                                        args=(self._chips, self._descriptors), daemon=True)
+                                        args=(self._chips, sending), daemon=True)
         self._process.start()
-        self._await_ready()
-
-    def _await_ready(self) -> None:
-        """Wait for the child's word that its network is loaded, so that the first frames'
-        checks are answered as fast as the later ones."""
-        deadline = time.monotonic() + START_S
-        while True:
-            try:
-                self._descriptors.get(timeout=0.25)
-                return
-            except queue.Empty:
-                pass
-            if not self._process.is_alive() or time.monotonic() > deadline:
-                code = self._process.exitcode
-                self.close()
-                raise IdentityError("the identity process " + (
-                    f"exited with code {code} while starting" if code is not None
-                    else f"did not start within {START_S:g} s"))
+        sending.close()  # the child's end: the pipe ends when the child does
+        try:  # its word that the network is loaded: the first checks as fast as the later
+            receive_from(self._process, self._descriptors, START_S)
+        except (EOFError, OSError) as error:  # TimeoutError is an OSError
+            code = self._process.exitcode
+            self.close()
+            raise IdentityError("the identity process " + (
+                f"did not start within {START_S:g} s" if isinstance(error, TimeoutError)
+                else f"exited with code {code} while starting")) from None
 
     def distance(self, image: np.ndarray, points: np.ndarray) -> float:
         """The face's descriptor's distance from the person's mean (``face_descriptor``), in
@@ -207,12 +199,12 @@ class Person:
         answers, self._answers = self._answers, {}
         if self._process is None:
             return answers
-        while True:
-            try:
-                ticket, descriptor = self._descriptors.get_nowait()
-            except queue.Empty:
-                break
-            answers[ticket] = self.distance_of(descriptor)
+        try:
+            while self._descriptors.poll(0):
+                ticket, descriptor = self._descriptors.recv()
+                answers[ticket] = self.distance_of(descriptor)
+        except (EOFError, OSError):
+            pass  # the child is gone: said below
         if not answers and not self._process.is_alive():
             raise IdentityError(f"the identity process (pid {self._process.pid}) exited "
                                 f"with code {self._process.exitcode}")
@@ -234,23 +226,26 @@ class Person:
         self._process = None
 
 
-def _serve(chips: Any, descriptors: Any) -> None:
+def _serve(chips: Any, descriptors: Connection) -> None:
     """The identity process: its network loaded, a word that it is ready, then (ticket,
     chip) in, (ticket, descriptor) out, until None, or until the parent is gone (killed: the
-    queues' pipes stay open in this process, so it would wait forever, holding the
-    parent's stdout)."""
+    chips' queue stays open in this process, so it would wait forever, holding the
+    parent's stdout). An answer is 0.5 kB: the pipe never holds the child up."""
     _network()
-    descriptors.put(None)
     parent = multiprocessing.parent_process()
-    while parent is None or parent.is_alive():
-        try:
-            item = chips.get(timeout=PARENT_POLL_S)
-        except queue.Empty:
-            continue
-        if item is None:
-            return
-        ticket, chip = item
-        descriptors.put((ticket, chip_descriptor(chip)))
+    try:
+        descriptors.send(None)
+        while parent is None or parent.is_alive():
+            try:
+                item = chips.get(timeout=PARENT_POLL_S)
+            except queue.Empty:
+                continue
+            if item is None:
+                return
+            ticket, chip = item
+            descriptors.send((ticket, chip_descriptor(chip)))
+    except (BrokenPipeError, ConnectionResetError):
+        return  # the parent closed its end: nobody is asking
 
 
 def _network() -> dlib.face_recognition_model_v1:

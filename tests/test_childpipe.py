@@ -49,3 +49,22 @@ def test_a_child_that_exited_without_a_reply_is_eof_within_a_poll() -> None:
         receive_from(child, conn)
     assert time.monotonic() - start < 2 * POLL_S + 1.0
     sending.close()
+
+
+def _wait_silently(conn: Connection) -> None:
+    time.sleep(30)  # alive, and saying nothing
+
+
+def test_a_live_child_that_says_nothing_is_a_timeout_when_one_is_given() -> None:
+    receiving, sending = _FORK.Pipe(duplex=False)
+    child = _FORK.Process(target=_wait_silently, args=(sending,), daemon=True)
+    child.start()
+    try:
+        start = time.monotonic()
+        with pytest.raises(TimeoutError, match=rf"\(pid {child.pid}\) sent nothing within 1 s"):
+            receive_from(child, receiving, timeout_s=1.0)
+        assert 1.0 <= time.monotonic() - start < 1.0 + 2 * POLL_S + 1.0
+    finally:
+        child.kill()
+        child.join()
+        sending.close()
