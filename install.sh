@@ -61,12 +61,13 @@ mediapipe_version=0.10.14
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -e ".[test]"
-# The hand model of the enrollment (sender.enroll.occluders): MediaPipe's wheel carries its
-# weights. Its own dependencies would pull opencv-contrib-python beside the headless OpenCV
-# (two cv2 packages in one environment), so it goes in without them; the ones it needs at
-# run time (absl-py, attrs, flatbuffers, protobuf<5) are pyproject's.
+# The hand and person models of the enrollment (sender.enroll.occluders, .silhouette):
+# MediaPipe's wheel carries their weights. Its own dependencies would pull
+# opencv-contrib-python beside the headless OpenCV (two cv2 packages in one environment), so
+# it goes in without them; the ones it needs at run time (absl-py, attrs, flatbuffers,
+# protobuf<5) are pyproject's.
 .venv/bin/python -m pip install --quiet --no-deps "mediapipe==$mediapipe_version" || {
-  echo "install.sh: mediapipe $mediapipe_version (the enrollment's hand model) could not be \
-installed: its wheels are for CPython 3.8-3.12 on x86_64 and aarch64 Linux" >&2; exit 1; }
+  echo "install.sh: mediapipe $mediapipe_version (the enrollment's hand and person models) \
+could not be installed: its wheels are for CPython 3.8-3.12 on x86_64 and aarch64 Linux" >&2; exit 1; }
 .venv/bin/facewire check
 echo "install.sh: done. Activate with: source .venv/bin/activate"

@@ -779,9 +779,11 @@ def _check(_: argparse.Namespace) -> int:
     from facewire.models.infra.egl import check_egl
     from facewire.receiver.speaker import check_sound
     from facewire.sender.enroll.occluders import check_hand_model
+    from facewire.sender.enroll.silhouette import check_silhouette_model
 
     print(check_egl())
     print(check_hand_model())
+    print(check_silhouette_model())
     print(check_sound())
     return 0
 
@@ -1178,8 +1180,8 @@ def _add_tools(sub: Commands) -> None:
     kg.add_argument("--name", default="id", help="key pair file name (default: id)")
     kg.set_defaults(run=_keys_generate)
 
-    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa, and "
-                       "the enrollment's hand model (mediapipe)")
+    c = sub.add_parser("check", help="check the system: headless OpenGL (EGL) and Mesa, the "
+                       "enrollment's hand and person models (mediapipe), and the sound")
     c.set_defaults(run=_check)
 
 

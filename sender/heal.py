@@ -50,7 +50,13 @@ several: a hand's tiles are mostly neighbours); its PNG bytes are counted so. Be
 is issued, the held frames it is made of are
 asked for hands (``sender.enroll.occluders``, MediaPipe's hand tracker: a hand that
 moves with the face and agrees with itself would otherwise be painted in); a frame with a
-hand on the face is dropped and the correction waits for clean ones. The hand tracker is made
+hand on the face is dropped and the correction waits for clean ones. They are asked for the
+person's outline too (``sender.enroll.silhouette``, MediaPipe's selfie segmentation): where
+the fitted head is wider or taller than the real one, the enrollment left its texels to the
+hole filling rather than take the room behind the person, and the reads there see the room
+again (clean, agreeing, far from the model: a patch of sky on mediapipe_selfie's crown within
+15 s), so a cell whose point lies within ``ROOM_PX`` of a pixel outside the person takes no
+part in that read, and the correction is looked for again without it. The hand tracker is made
 with the healer (MediaPipe's import and start, 0.8 s on this machine, mostly holding the GIL:
 paid before a live stream's first frame, not by a frame mid-stream, whose sender it stalled
 past the slots' ``MAX_LAG_S``). A patch is applied at
@@ -76,6 +82,7 @@ from facewire.models.patch import MAX_TILE_SIDE, TexturePatch, Tile, tile_diff
 from facewire.models.rig import Rig
 from facewire.models.texelgrid import texel_rect
 from facewire.sender.enroll.occluders import OccluderFinder
+from facewire.sender.enroll.silhouette import SilhouetteFinder
 from facewire.sender.texels import AreaTexels, area_surface, welded_normals
 
 SCALE = 8  # texels per healing cell, a side
@@ -103,18 +110,23 @@ PATCH_BYTES = 7400  # a patch's tiles stop at this many bytes of PNG: with its f
 MAX_CHANGE = 120.0  # grey levels a cell may change by in one patch
 BOX_GROW = 0.25  # the landmarks' UV box grown by this of its size on each side ...
 BOX_UP = 0.8  # ... and by this upwards (the forehead)
+ROOM_PX = 1.5  # a cell this near a pixel outside the person may read it (bilinear: sqrt 2)
 MOVING = ("eyeball_right", "eyeball_left", "eyelid_right", "eyelid_left", "mouth")
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 @dataclass(eq=False)
 class _Read:
-    """One held read: the frame (to ask for hands), its points, and the differences."""
+    """One held read: the frame (to ask for hands and the outline), its points, the cells'
+    projections and the differences."""
 
     image: np.ndarray  # (H, W, 3) uint8 BGR
     points: np.ndarray  # (68, 2)
+    x: np.ndarray  # (h, w) float32 px: the cells' points in the frame
+    y: np.ndarray
     diff: np.ndarray  # (h, w, 3) float32, NaN where the cell took no part
     hand: bool | None = None  # a hand on the face (None: not asked yet)
+    outlined: bool = False  # the cells outside the person taken out
 
 
 def _median(stack: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -158,6 +170,7 @@ class Healer:
         self._rest_until = 0  # no read before this frame (a hand was found)
         self.fresh = 0  # reads since the last look for a correction
         self._finder: OccluderFinder | None = OccluderFinder()
+        self._outline: SilhouetteFinder | None = SilhouetteFinder()
         self._patched: dict[tuple[int, int], int] = {}  # tile -> the read count it was patched at
         self.take(model)
 
@@ -234,7 +247,7 @@ class Healer:
             rotation: (3, 3); translation: (3,) mm; residuals: (9, 3) mm: the sent pose.
             q: (R,) the frame's Q per region (the classifier's).
         """
-        colour, seen, _, _ = self.area.read(self.camera, image, rotation, translation,
+        colour, seen, x, y = self.area.read(self.camera, image, rotation, translation,
                                             residuals, occlusion=True)
         facing = (self.area.normals @ np.asarray(rotation, np.float32).T)[..., 2]
         ok = seen & (facing >= FRONTAL_COS) & ~self.moving
@@ -246,7 +259,7 @@ class Healer:
             np.median(colour[trusted], axis=0), 1.0)
         diff = colour * np.clip(gain, 0.5, 2.0) - expected
         diff[~ok] = np.nan
-        self.reads.append(_Read(image.copy(), np.asarray(points).copy(), diff))
+        self.reads.append(_Read(image.copy(), np.asarray(points).copy(), x, y, diff))
         self.read_count += 1
         self.fresh += 1
 
@@ -319,13 +332,39 @@ class Healer:
             return True
         return False
 
+    def _room(self, reads: list[_Read]) -> bool:
+        """Take out of each of ``reads`` (each asked once) the cells that may read the room
+        behind the person (module docstring); whether any cell was taken out."""
+        assert self._outline is not None, "the healer was closed"
+        taken = False
+        for r in reads:
+            if r.outlined:
+                continue
+            r.outlined = True
+            person = self._outline.find(r.image, r.points)
+            inside = cv2.distanceTransform(person.astype(np.uint8), cv2.DIST_L2,
+                                           cv2.DIST_MASK_PRECISE)
+            h, w = person.shape
+            col = np.clip(np.rint(r.x), 0, w - 1).astype(np.intp)
+            row = np.clip(np.rint(r.y), 0, h - 1).astype(np.intp)
+            room = (inside[row, col] < ROOM_PX) & np.isfinite(r.diff[..., 0])
+            if room.any():
+                r.diff[room] = np.nan
+                taken = True
+        return taken
+
     def patch(self, reads: list[_Read], base_sha256: str, serial: int
               ) -> TexturePatch | None:
         """The patch ``reads`` (``held``) make (module docstring, a correction), asked for
-        hands; None when none is due or a hand was found (that read is then left out)."""
+        hands and the person's outline; None when none is due or a hand was found (that
+        read is then left out)."""
         found = self.correction(reads)
         if found is None or self._hands(reads):
             return None
+        if self._room(reads):
+            found = self.correction(reads)
+            if found is None:
+                return None
         d, where = found
         picked: list[tuple[int, int]] = []
         tiles: list[Tile] = []
@@ -366,7 +405,9 @@ class Healer:
         return tiles
 
     def close(self) -> None:
-        """Free the hand tracker (a second call does nothing)."""
+        """Free the hand tracker and the segmentation (a second call does nothing)."""
         if self._finder is not None:
             self._finder.close()
-        self._finder = None
+        if self._outline is not None:
+            self._outline.close()
+        self._finder = self._outline = None

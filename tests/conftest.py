@@ -77,6 +77,36 @@ def person_model(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) ->
     return path
 
 
+def chosen_views(clip: Path, frames: slice) -> tuple[list[tuple[np.ndarray, Any]],
+                                                     list[np.ndarray], Any, Any]:
+    """The texture views a build of ``frames`` of ``clip`` chooses, as it sees them: each
+    (image, camera) and its (68, 2) landmarks, the fit and its UV surface (at the build's
+    ``TEXTURE_SIZE``)."""
+    from facewire.models.geometry import intrinsics_guess
+    from facewire.models.infra.progress import no_progress
+    from facewire.models.infra.raster import Camera
+    from facewire.models.infra.video import read_frames, video_info
+    from facewire.sender.enroll import build
+    from facewire.sender.enroll.evidence import frame_scores, texture_views
+    from facewire.sender.enroll.registration import sharp_frames
+    from facewire.sender.enroll.texture import uv_surface
+    from facewire.sender.tracker import LandmarkTracker
+
+    def read(s: slice):
+        return read_frames(clip, s)
+
+    indices, points, blur, _, _ = build._track(read, frames, None, no_progress, str(clip),
+                                               False, LandmarkTracker())
+    info = video_info(clip)
+    camera = intrinsics_guess(info.width, info.height)
+    fit = build._fit(points, camera, "clip", sharp_frames(blur, [p is not None for p in points]))
+    surface = uv_surface(fit.mesh, build.TEXTURE_SIZE)
+    chosen, _ = texture_views(fit, frame_scores(points, fit, camera, blur))
+    images = build._decode(read, {indices[k] for k in chosen})
+    pairs = [(images[indices[k]], Camera(camera, fit.poses[k])) for k in chosen]
+    return pairs, [points[k] for k in chosen], fit, surface
+
+
 def write_video(path: Path, images: list[np.ndarray], rate: int = 25, rotation: int = 0) -> Path:
     """Encode (H, W, 3) uint8 BGR images as a real H.264 file with PyAV.
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import chosen_views
 
-from facewire.models.infra.raster import Camera
 from facewire.models.modelfile import PersonModel, load_model
 from facewire.models.regions import RAMP_TEXELS, ramp_mask
 from facewire.models.texelgrid import texel_rect
@@ -28,29 +28,10 @@ _LUMA_RGB = _LUMA_BGR[::-1]
 def glasses_views(shared_data: Path):
     """retalk_5 0:60 as the build sees it: the texture views it chooses, projected onto the
     texels of the fitted mesh, and the parts' masks."""
-    from facewire.models.geometry import intrinsics_guess
-    from facewire.models.infra.progress import no_progress
-    from facewire.models.infra.video import read_frames, video_info
-    from facewire.sender.enroll import build
-    from facewire.sender.enroll.evidence import frame_scores, part_masks, texture_views
-    from facewire.sender.enroll.registration import sharp_frames
-    from facewire.sender.enroll.texture import sample_views, uv_surface
-    from facewire.sender.tracker import LandmarkTracker
+    from facewire.sender.enroll.evidence import part_masks
+    from facewire.sender.enroll.texture import sample_views
 
-    clip = shared_data / "video" / "retalk_5.mp4"
-    info = video_info(clip)
-
-    def read(s: slice):
-        return read_frames(clip, s)
-
-    indices, points, blur, _, _ = build._track(read, slice(0, 60), None, no_progress,
-                                               str(clip), False, LandmarkTracker())
-    camera = intrinsics_guess(info.width, info.height)
-    fit = build._fit(points, camera, "clip", sharp_frames(blur, [p is not None for p in points]))
-    surface = uv_surface(fit.mesh, build.TEXTURE_SIZE)
-    chosen, _ = texture_views(fit, frame_scores(points, fit, camera, blur))
-    images = build._decode(read, {indices[k] for k in chosen})
-    views = [(images[indices[k]], Camera(camera, fit.poses[k])) for k in chosen]
+    views, _, fit, surface = chosen_views(shared_data / "video" / "retalk_5.mp4", slice(0, 60))
     colours, weights = sample_views(fit.mesh, surface, views, sharpness=4.0, cos_min=0.1,
                                     feather_px=8.0)
     parts = part_masks(fit.mesh, surface.size)

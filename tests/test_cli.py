@@ -111,11 +111,12 @@ def test_keys_generate(tmp_path: Path) -> None:
     assert again.returncode == 2 and "already exists" in again.stderr
 
 
-def test_check_reports_egl_and_the_hand_model() -> None:
+def test_check_reports_egl_and_the_hand_and_person_models() -> None:
     out = run("check")
     assert out.returncode == 0, out.stderr
     assert "EGL" in out.stdout
     assert "hand model: mediapipe 0.10.14" in out.stdout
+    assert "person model: mediapipe 0.10.14 (selfie_segmentation" in out.stdout
 
 
 def test_a_failed_loopback_run_is_one_line(generic_model: Path, shared_data: Path,

@@ -18,7 +18,8 @@ The steps, in order (``build_model``):
 3. Texture: score the frames and choose up to nine clean views, spread in time, the neutral
    frame first (``sender.enroll.evidence``: the landmarks' fit against the fitted model,
    blur, pose and expression; frames whose landmarks do not line up are not candidates),
-   decode them again, project them onto the fitted mesh's UV layout, register them onto
+   decode them again, project them onto the fitted mesh's UV layout within the person's
+   silhouette in each (``sender.enroll.silhouette``: not the room behind), register them onto
    their consensus (``sender.enroll.align``) and fuse them robustly
    per texel (``sender.enroll.fusion.fuse_views``: a weighted median's consensus, views
    departing from it or not lining up with it locally take no part there, misaligned
@@ -150,6 +151,7 @@ from facewire.sender.enroll.person import (
 )
 from facewire.sender.enroll.registration import sharp_frames
 from facewire.sender.enroll.routine import Guide
+from facewire.sender.enroll.silhouette import SilhouetteFinder
 from facewire.sender.enroll.texture import UVSurface, fill_holes, uv_surface
 from facewire.sender.enroll.usage import LABELS as USAGE_LABELS
 from facewire.sender.enroll.usage import ordered as usage_order
@@ -546,17 +548,20 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
     scores = {f: c for f, c in scores.items() if f not in handed} or scores
     chosen, primary = ((fit.neutral,), 1) if photo else texture_views(fit, scores)
     images = _decode(read, {indices[k] for k in chosen})
-    fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
-    clean = clean_views(fusion, occluded)
-    first_neutral = None
-    if not clean[0] and clean.any():  # the neutral was occluded: take it from the clean views
-        first_neutral = indices[fit.neutral]
-        fit = _fit(points, camera, where, [k for k, ok in zip(chosen, clean) if ok])
-        surface = uv_surface(fit.mesh, TEXTURE_SIZE)
-        chosen = (fit.neutral, *(k for k in chosen if k != fit.neutral))
-        primary = 1
-        images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
-        fusion, occluded = _fuse(fit, chosen, primary, images, indices, camera, surface)
+    with SilhouetteFinder() as finder:
+        fusion, occluded = _fuse(fit, chosen, primary, images, points, indices, camera,
+                                 surface, finder)
+        clean = clean_views(fusion, occluded)
+        first_neutral = None
+        if not clean[0] and clean.any():  # the neutral was occluded: take it from the clean
+            first_neutral = indices[fit.neutral]
+            fit = _fit(points, camera, where, [k for k, ok in zip(chosen, clean) if ok])
+            surface = uv_surface(fit.mesh, TEXTURE_SIZE)
+            chosen = (fit.neutral, *(k for k in chosen if k != fit.neutral))
+            primary = 1
+            images.update(_decode(read, {indices[k] for k in chosen} - set(images)))
+            fusion, occluded = _fuse(fit, chosen, primary, images, points, indices, camera,
+                                     surface, finder)
     valid = fusion.weight > 0
     if photo:
         pose = fit.poses[fit.neutral]
@@ -627,19 +632,24 @@ def _decode(read: Callable[[slice], Iterable[VideoFrame]], wanted: set[int]
 
 
 def _fuse(fit: Fit, chosen: tuple[int, ...], primary: int, images: dict[int, np.ndarray],
-          indices: list[int], camera: Intrinsics, surface: UVSurface
+          points: list[np.ndarray | None], indices: list[int], camera: Intrinsics,
+          surface: UVSurface, finder: SilhouetteFinder
           ) -> tuple[Fusion, dict[str, np.ndarray]]:
     """The chosen views fused onto the fitted mesh (the first ``primary`` of them make the
-    texture where none is an outlier), and per part which were occluded
+    texture where none is an outlier), each within the person's silhouette
+    (``sender.enroll.silhouette``), and per part which were occluded
     (``sender.enroll.evidence``, 3)."""
-    views = []
+    views, silhouettes = [], []
     for k in chosen:
-        pose = fit.poses[k]
-        assert pose is not None  # the views are chosen among the posed frames
-        views.append((images[indices[k]], ViewCamera(camera, pose)))
+        pose, face = fit.poses[k], points[k]
+        assert pose is not None and face is not None  # the views are among the posed frames
+        image = images[indices[k]]
+        views.append((image, ViewCamera(camera, pose)))
+        silhouettes.append(finder.find(image, face))
     parts = part_masks(fit.mesh, surface.size)
     fusion = fuse_views(fit.mesh, surface, views, primary=primary,
-                        features=np.logical_or.reduce(list(parts.values())))
+                        features=np.logical_or.reduce(list(parts.values())),
+                        silhouettes=silhouettes)
     return fusion, occluded_parts(fusion, parts)
 
 

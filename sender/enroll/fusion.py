@@ -214,7 +214,8 @@ def project_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, 
 
 def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Camera]], *,
                sharpness: float = 4.0, cos_min: float = 0.1, feather_px: float = 8.0,
-               primary: int | None = None, features: np.ndarray | None = None) -> Fusion:
+               primary: int | None = None, features: np.ndarray | None = None,
+               silhouettes: list[np.ndarray] | None = None) -> Fusion:
     """Project camera images onto the texture (``sender.enroll.texture``, 2) and fuse them
     robustly (module docstring).
 
@@ -234,6 +235,9 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
             and replace.
         features: (H, W) bool, the texels where views are judged for local alignment
             (``sender.enroll.registration``: the parts of the face); all when None.
+        silhouettes: per view, (h, w) bool, the person's pixels
+            (``sender.enroll.silhouette``): no texel takes a colour from outside them;
+            None: the views are taken whole.
 
     Returns:
         The ``Fusion``: texture (H, W, 3) uint8 RGB, black where no view saw the texel, the
@@ -244,11 +248,12 @@ def fuse_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Cam
         EGLUnavailable: headless OpenGL cannot be used.
     """
     check_views(mesh, surface, views, sharpness=sharpness, cos_min=cos_min,
-                feather_px=feather_px)
+                feather_px=feather_px, silhouettes=silhouettes)
     if primary is not None and not (isinstance(primary, int) and 1 <= primary <= len(views)):
         raise TextureError(f"primary: expected an int in [1, {len(views)}], got {primary!r}")
     colours, weights = sample_views(mesh, surface, views, sharpness=sharpness,
-                                    cos_min=cos_min, feather_px=feather_px)
+                                    cos_min=cos_min, feather_px=feather_px,
+                                    silhouettes=silhouettes)
     _match_exposure(colours, weights)
     covered = surface.covered
     as_seen = _take_part(np.stack([c @ _LUMA_BGR for c in colours]), np.stack(weights),

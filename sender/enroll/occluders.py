@@ -149,7 +149,7 @@ def load_mediapipe() -> Any:
 
 
 @contextmanager
-def _native_stderr_quiet() -> Iterator[None]:
+def native_stderr_quiet() -> Iterator[None]:
     """File descriptor 2 sent to /dev/null for the block: TFLite's and absl's start-up lines
     (the XNNPACK delegate, the feedback manager), written there by C++ past Python's
     ``sys.stderr`` when the graph first runs or closes, would break a command's one-line
@@ -175,7 +175,7 @@ class OccluderFinder:
 
     def __init__(self) -> None:
         hands = load_mediapipe().solutions.hands
-        with _native_stderr_quiet():  # made and run once on a blank image: all it says, said
+        with native_stderr_quiet():  # made and run once on a blank image: all it says, said
             self._hands: Any = hands.Hands(
                 static_image_mode=False, max_num_hands=2, model_complexity=1,
                 min_detection_confidence=0.5, min_tracking_confidence=0.5)
@@ -183,7 +183,7 @@ class OccluderFinder:
 
     def close(self) -> None:
         """Free the model's graph."""
-        with _native_stderr_quiet():
+        with native_stderr_quiet():
             self._hands.close()
 
     def hands(self, image: np.ndarray, points: np.ndarray) -> list[np.ndarray]:

@@ -40,7 +40,10 @@ centre at ``u = (c + 1/2) / W``, ``v = 1 - (r + 1/2) / H``, where OpenGL samples
    where ``e`` is the distance in pixels from (x, y) to the nearest *edge pixel* of the
    camera's image: background, the image border, or a depth step between 4-neighbours larger
    than the same tolerance taken at the more frontal of the two pixels (an occluder's rim is
-   grazing, the surface behind it usually is not), i.e. an occlusion boundary. The 2.5 px
+   grazing, the surface behind it usually is not), i.e. an occlusion boundary; and, when the
+   view's silhouette is given (``sender.enroll.silhouette``), every pixel outside the person:
+   the mesh's outline is the generic head's beyond the jaw, and where it is wider than the
+   real head its texels would take the room's colours. The 2.5 px
    margin keeps the footprint (up to sqrt(2) px from (x, y)) off the pixel next to an edge,
    whose colour is part background in any real or anti-aliased image. The first factor
    prefers views that see the surface frontally (a texel's footprint in the image shrinks
@@ -84,7 +87,7 @@ DEFAULT_SIZE = (512, 1024)
 MAX_SIZE = 8192
 MAX_OVERLAP = 0.01  # fraction of covered texels that two UV triangles may share
 _MAX_TRIANGLES = 2 ** 24  # triangle index + 1 travels as a float32
-_EDGE_MARGIN_PX = 2.5  # a bilinear footprint (sqrt 2) plus the blended pixel at a rim
+EDGE_MARGIN_PX = 2.5  # a bilinear footprint (sqrt 2) plus the blended pixel at a rim
 
 
 class TextureError(FacewireError, ValueError):
@@ -158,7 +161,7 @@ def uv_surface(mesh: Mesh, size: tuple[int, int] = DEFAULT_SIZE) -> UVSurface:
 
 
 def check_views(mesh: object, surface: object, views: object, *, sharpness: float,
-                cos_min: float, feather_px: float) -> None:
+                cos_min: float, feather_px: float, silhouettes: object = None) -> None:
     """Check the inputs of ``sample_views`` (see ``sender.enroll.fusion.fuse_views``).
 
     Raises:
@@ -177,13 +180,24 @@ def check_views(mesh: object, surface: object, views: object, *, sharpness: floa
         raise TextureError("views: expected a non-empty list of (image, camera)")
     for i, view in enumerate(views):
         _check_view(i, view)
+    if silhouettes is None:
+        return
+    if not isinstance(silhouettes, (list, tuple)) or len(silhouettes) != len(views):
+        raise TextureError(f"silhouettes: expected a list of {len(views)} masks, one per view")
+    for i, (mask, (image, _)) in enumerate(zip(silhouettes, views)):
+        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ \
+                or mask.shape != image.shape[:2]:
+            raise TextureError(f"silhouettes[{i}]: expected a {image.shape[:2]} bool array, "
+                               f"got {_describe(mask)}")
 
 
 def sample_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, Camera]], *,
                  sharpness: float, cos_min: float, feather_px: float,
+                 silhouettes: list[np.ndarray] | None = None,
                  ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Project each view onto the covered texels (module docstring, 2); inputs as checked by
-    ``check_views``.
+    ``check_views``; ``silhouettes``: per view the person's pixels, (h, w) bool
+    (``sender.enroll.silhouette``), the others edge pixels; None: every pixel may be.
 
     Returns:
         Per view, in the given order: the colour (K, 3) float32 BGR as the camera saw it and
@@ -197,10 +211,11 @@ def sample_views(mesh: Mesh, surface: UVSurface, views: list[tuple[np.ndarray, C
     normals = surface.normals[covered]
     colours, weights = [], []
     with _Gl() as gl:
-        for image, camera in views:
+        for i, (image, camera) in enumerate(views):
             depth, cos_pixel = gl.depth_pass(mesh, camera)
-            colour, weight = _sample_view(image, camera, depth, cos_pixel, points, normals,
-                                          sharpness, cos_min, feather_px)
+            person = None if silhouettes is None else silhouettes[i]
+            colour, weight = _sample_view(image, camera, depth, cos_pixel, person, points,
+                                          normals, sharpness, cos_min, feather_px)
             colours.append(colour)
             weights.append(weight)
     return colours, weights
@@ -274,9 +289,11 @@ def _channels(a: np.ndarray) -> np.ndarray:
 
 
 def _sample_view(image: np.ndarray, camera: Camera, depth: np.ndarray, cos_pixel: np.ndarray,
-                 points: np.ndarray, normals: np.ndarray, sharpness: float, cos_min: float,
-                 feather_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (K, 3) float32 BGR and weight (K,) float32 of K texel points in one view."""
+                 person: np.ndarray | None, points: np.ndarray, normals: np.ndarray,
+                 sharpness: float, cos_min: float, feather_px: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (K, 3) float32 BGR and weight (K,) float32 of K texel points in one view
+    (``person``: its silhouette, (h, w) bool, or None)."""
     pose, k = camera.pose, camera.intrinsics
     rotation = pose.rotation.astype(np.float32)
     cam = points @ rotation.T + pose.translation.astype(np.float32)
@@ -297,14 +314,16 @@ def _sample_view(image: np.ndarray, camera: Camera, depth: np.ndarray, cos_pixel
     i1, j1 = np.minimum(i0 + 1, w - 1), np.minimum(j0 + 1, h - 1)
     for jj, ii in ((j0, i0), (j0, i1), (j1, i0), (j1, i1)):
         ok &= np.abs(depth[jj, ii] - dist) < tol
-    edge_distance = cv2.distanceTransform(
-        (~_edges(depth, cos_pixel, focal, cos_min)).astype(np.uint8), cv2.DIST_L2,
-        cv2.DIST_MASK_PRECISE)
+    edges = _edges(depth, cos_pixel, focal, cos_min)
+    if person is not None:
+        edges |= ~person
+    edge_distance = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2,
+                                          cv2.DIST_MASK_PRECISE)
     x = np.where(ok, x, -10).astype(np.float32)
     y = np.where(ok, y, -10).astype(np.float32)
     colour = _remap(image.astype(np.float32), x, y)
     e = _remap(edge_distance, x, y)[:, 0]
-    fade = np.clip((e - _EDGE_MARGIN_PX) / feather_px, 0.0, 1.0)
+    fade = np.clip((e - EDGE_MARGIN_PX) / feather_px, 0.0, 1.0)
     angle = np.clip((cos - cos_min) / (1.0 - cos_min), 0.0, 1.0) ** sharpness
     weight = np.where(ok, angle * fade * fade * (3.0 - 2.0 * fade), 0.0).astype(np.float32)
     return colour, weight
