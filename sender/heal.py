@@ -55,7 +55,7 @@ person's outline too (``sender.enroll.silhouette``, MediaPipe's selfie segmentat
 the fitted head is wider or taller than the real one, the enrollment left its texels to the
 hole filling rather than take the room behind the person, and the reads there see the room
 again (clean, agreeing, far from the model: a patch of sky on mediapipe_selfie's crown within
-15 s), so a cell whose point lies within ``ROOM_PX`` of a pixel outside the person takes no
+3 s), so a cell whose point lies within ``ROOM_PX`` of a pixel outside the person takes no
 part in that read, and the correction is looked for again without it. The hand tracker is made
 with the healer (MediaPipe's import and start, 0.8 s on this machine, mostly holding the GIL:
 paid before a live stream's first frame, not by a frame mid-stream, whose sender it stalled
