@@ -42,11 +42,14 @@ patched when more than ``TILE_SHARE`` of its seen cells, and at least ``MIN_CELL
 healing (a tile at the box's edge, seen in a few cells, is not patched for a few), the largest
 disagreements first, at most ``MAX_TILES`` tiles and ``PATCH_BYTES`` of PNG a patch, none
 patched within the last ``REPATCH_READS`` reads (the rest waits for the next, so the first
-reaches the viewers soon), the correction tapered to zero at the chosen tiles' outer edges
-and clipped to ``MAX_CHANGE``. The patch stores the correction at ``STORE`` x ``STORE``
-cells a pixel (scale ``SCALE * STORE`` texels: the correction is smooth), and chosen tiles
-side by side in a row as one stored tile (one PNG's header and one tile's fields, not
-several: a hand's tiles are mostly neighbours); its PNG bytes are counted so. Before a patch
+reaches the viewers soon), the correction's weight blurred by a Gaussian of ``TAPER`` / 3
+cells and brought to zero over ``TAPER`` cells inside the chosen tiles' outer edges by a
+smoothstep (over 3 cells, and cut where the cells seen enough ended, a healed cheek on lp_d9
+showed its tile's rectangle), and clipped to ``MAX_CHANGE``. The patch stores the
+correction at ``STORE`` x ``STORE`` cells a pixel (scale ``SCALE * STORE`` texels: the
+correction is smooth), and chosen tiles side by side in a row as one stored tile (one PNG's
+header and one tile's fields, not several: a hand's tiles are mostly neighbours); its PNG
+bytes are counted so. Before a patch
 is issued, the held frames it is made of are
 asked for hands (``sender.enroll.occluders``, MediaPipe's hand tracker: a hand that
 moves with the face and agrees with itself would otherwise be painted in); a frame with a
@@ -101,6 +104,7 @@ NOISE_LEVELS = 6.0  # grey levels: a low-confidence cell's difference that count
 LOW_CONFIDENCE = 10  # of 255
 SMOOTH = 1.0  # cells, the Gaussian of the disagreement and of the correction
 GROW = 2  # cells the needing cells are grown by
+TAPER = 6  # cells over which the correction fades to zero at the chosen tiles' edges
 TILE_SHARE = 0.2  # of a tile's seen cells needing healing, over which it is patched ...
 MIN_CELLS = 32  # ... and at least this many (an eighth of a tile)
 REPATCH_READS = 15  # reads before a patched tile may be patched again
@@ -309,7 +313,9 @@ class Healer:
                             * 1.5, 1.0)
         # to zero at the chosen tiles' outer edge, so no tile's edge shows
         taper = cv2.distanceTransform(np.pad(inside, 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
-        weight = np.where(enough, np.minimum(weight, np.clip(taper / (GROW + 1), 0, 1)), 0.0)
+        ramp = np.clip(taper / TAPER, 0, 1)
+        weight = cv2.GaussianBlur(np.where(enough, weight, 0.0).astype(np.float32), (0, 0),
+                                  TAPER / 3) * ramp * ramp * (3 - 2 * ramp)
         # smoothed over the seen cells (a normalised Gaussian): the views' noise left out of
         # the patch, whose PNG it would bloat
         cover = cv2.GaussianBlur(enough.astype(np.float32), (0, 0), SMOOTH)

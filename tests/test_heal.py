@@ -20,7 +20,7 @@ from facewire.models.patch import TexturePatch, Tile, apply_patch
 from facewire.models.update import ModelVersions
 from facewire.sender.capture import open_source
 from facewire.sender.enroll.silhouette import SilhouetteFinder
-from facewire.sender.heal import SCALE, STORE, TILE, Healer
+from facewire.sender.heal import SCALE, STORE, TILE, VIEWS, Healer, _Read
 from facewire.sender.pipeline import SenderPipeline, sender_camera
 
 
@@ -82,6 +82,34 @@ def test_neighbouring_tiles_are_stored_as_one_and_carry_the_correction(
     unclipped = inside & (model.texture.max(axis=2) < 200)
     assert np.abs(changed[unclipped] - 20).max() <= 2
     assert not changed[~inside].any()
+
+
+def test_a_correction_has_no_edge(person_model: Path) -> None:
+    # Five agreeing reads, +40 levels over a block of cells and unseen around it: the
+    # correction heals the block's middle and fades out smoothly, with no step a viewer sees
+    # as an edge (the fade over 3 cells and the cut where the seen cells ended left a tile's
+    # rectangle on lp_d9's cheek: steps of 40 levels a cell here)
+    model = load_model(person_model)
+    pipeline = SenderPipeline(model, sender_camera(640, 480), learn=False)
+    healer = Healer(model, pipeline.camera, pipeline.rig)
+    h, w = healer.base.shape[:2]
+    diff = np.full((h, w, 3), np.nan, np.float32)
+    block = (slice(h // 2 - 20, h // 2 + 20), slice(w // 2 - 20, w // 2 + 20))
+    diff[block] = 40.0
+    nowhere = np.zeros((h, w), np.float32)
+    reads = [_Read(np.zeros((8, 8, 3), np.uint8), np.zeros((68, 2)), nowhere, nowhere,
+                   diff.copy()) for _ in range(VIEWS)]
+    found = healer.correction(reads)
+    assert found is not None
+    d, tiles = found
+    luma = d @ np.array([0.299, 0.587, 0.114], np.float32)
+    assert luma[h // 2, w // 2] > 36  # the middle healed
+    steps = max(np.abs(np.diff(luma, axis=0)).max(), np.abs(np.diff(luma, axis=1)).max())
+    assert steps < 0.25 * 40 + 1, steps  # a smoothstep over TAPER = 6 cells at most
+    inside = np.zeros((h, w), bool)
+    for r, c in tiles:
+        inside[r:r + TILE, c:c + TILE] = True
+    assert not luma[~inside].any()  # nothing outside the tiles patched
 
 
 @pytest.fixture(scope="module")
