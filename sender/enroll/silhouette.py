@@ -17,7 +17,7 @@ Per frame (``SilhouetteFinder.find``):
 1. The head's crop: a square centred on the 68 points' box, shifted up by ``CROP_UP`` of the
    box's height (the hair), of side ``CROP_SIDE`` times the box's longer side, cut at the
    image's borders. The model sees the head and shoulders at its own scale, as in a selfie,
-   however small the face is in the frame (a phone's portrait clip: a face 300 px wide in
+   however small the face is in the frame (a phone's portrait clip: a face 260 px wide in
    1080 x 1920), and its mask is read at the crop's resolution.
 2. The mask (H, W) bool: the crop's pixels whose probability is at least ``PERSON``;
    every pixel outside the crop is background (the whole head lies within it).
