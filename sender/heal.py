@@ -44,8 +44,9 @@ disagreements first, at most ``MAX_TILES`` tiles and ``PATCH_BYTES`` of PNG a pa
 patched within the last ``REPATCH_READS`` reads (the rest waits for the next, so the first
 reaches the viewers soon), the correction's weight blurred by a Gaussian of ``TAPER`` / 3
 cells and brought to zero over ``TAPER`` cells inside the chosen tiles' outer edges by a
-smoothstep (over 3 cells, and cut where the cells seen enough ended, a healed cheek on lp_d9
-showed its tile's rectangle), and clipped to ``MAX_CHANGE``. The patch stores the
+smoothstep (faded over 3 cells and cut where the cells seen in enough reads ended, a healed
+cheek showed its tile's rectangle: docs/DESIGN.md, "Texture patches"), and clipped to
+``MAX_CHANGE``. The patch stores the
 correction at ``STORE`` x ``STORE`` cells a pixel (scale ``SCALE * STORE`` texels: the
 correction is smooth), and chosen tiles side by side in a row as one stored tile (one PNG's
 header and one tile's fields, not several: a hand's tiles are mostly neighbours); its PNG
@@ -350,10 +351,12 @@ class Healer:
             person = self._outline.find(r.image, r.points)
             inside = cv2.distanceTransform(person.astype(np.uint8), cv2.DIST_L2,
                                            cv2.DIST_MASK_PRECISE)
+            seen = np.isfinite(r.diff[..., 0])  # on the image: their projections are finite
             h, w = person.shape
-            col = np.clip(np.rint(r.x), 0, w - 1).astype(np.intp)
-            row = np.clip(np.rint(r.y), 0, h - 1).astype(np.intp)
-            room = (inside[row, col] < ROOM_PX) & np.isfinite(r.diff[..., 0])
+            col = np.clip(np.rint(r.x[seen]), 0, w - 1).astype(np.intp)
+            row = np.clip(np.rint(r.y[seen]), 0, h - 1).astype(np.intp)
+            room = np.zeros_like(seen)
+            room[seen] = inside[row, col] < ROOM_PX
             if room.any():
                 r.diff[room] = np.nan
                 taken = True

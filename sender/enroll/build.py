@@ -93,6 +93,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -548,7 +549,9 @@ def _base_texture(read: Callable[[slice], Iterable[VideoFrame]], indices: list[i
     scores = {f: c for f, c in scores.items() if f not in handed} or scores
     chosen, primary = ((fit.neutral,), 1) if photo else texture_views(fit, scores)
     images = _decode(read, {indices[k] for k in chosen})
-    with SilhouetteFinder() as finder:
+    # a photo's texture keeps only the face inside its contour (photo_face_texels, below):
+    # nothing of the room, so no segmentation model is loaded for it
+    with nullcontext() if photo else SilhouetteFinder() as finder:
         fusion, occluded = _fuse(fit, chosen, primary, images, points, indices, camera,
                                  surface, finder)
         clean = clean_views(fusion, occluded)
@@ -633,23 +636,24 @@ def _decode(read: Callable[[slice], Iterable[VideoFrame]], wanted: set[int]
 
 def _fuse(fit: Fit, chosen: tuple[int, ...], primary: int, images: dict[int, np.ndarray],
           points: list[np.ndarray | None], indices: list[int], camera: Intrinsics,
-          surface: UVSurface, finder: SilhouetteFinder
+          surface: UVSurface, finder: SilhouetteFinder | None
           ) -> tuple[Fusion, dict[str, np.ndarray]]:
     """The chosen views fused onto the fitted mesh (the first ``primary`` of them make the
     texture where none is an outlier), each within the person's silhouette
-    (``sender.enroll.silhouette``), and per part which were occluded
-    (``sender.enroll.evidence``, 3)."""
+    (``sender.enroll.silhouette``; the whole view without a ``finder``), and per part which
+    were occluded (``sender.enroll.evidence``, 3)."""
     views, silhouettes = [], []
     for k in chosen:
         pose, face = fit.poses[k], points[k]
         assert pose is not None and face is not None  # the views are among the posed frames
         image = images[indices[k]]
         views.append((image, ViewCamera(camera, pose)))
-        silhouettes.append(finder.find(image, face))
+        if finder is not None:
+            silhouettes.append(finder.find(image, face))
     parts = part_masks(fit.mesh, surface.size)
     fusion = fuse_views(fit.mesh, surface, views, primary=primary,
                         features=np.logical_or.reduce(list(parts.values())),
-                        silhouettes=silhouettes)
+                        silhouettes=silhouettes if finder is not None else None)
     return fusion, occluded_parts(fusion, parts)
 
 
